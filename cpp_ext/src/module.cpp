@@ -1,0 +1,14 @@
+// stereorepro._core: optional native kernels. Pure torch (stereorepro/*.py) is the reference;
+// every function here has a torch twin and a parity test (tests/test_native.py).
+#include <nanobind/nanobind.h>
+
+namespace nb = nanobind;
+
+void bind_info(nb::module_ &m);
+void bind_blend(nb::module_ &m);
+
+NB_MODULE(_core, m) {
+    m.doc() = "stereorepro native CPU kernels (optional accelerator; torch is the reference)";
+    bind_info(m);
+    bind_blend(m);
+}

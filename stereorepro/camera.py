@@ -1,0 +1,302 @@
+"""Cameras and the project's geometric conventions (written once, here; referred to everywhere).
+
+Conventions
+-----------
+* **Camera axes** follow OpenCV: x right, y down, z forward. A camera looks along its +z axis.
+* **Transforms** are named ``<to>_from_<from>`` and read in matrix-product order:
+  ``points_cam = cam_from_world @ points_world``. ``cam_from_world`` is a rigid (B, 4, 4) matrix
+  (rotation + translation, no scale).
+* **Pixels**: pixel (x, y) (column, row) covers [x, x+1) × [y, y+1); its **centre is at (x + 0.5, y + 0.5)**.
+  Continuous image coordinates ``uv`` are in pixels with that origin; ``K`` maps camera space to them:
+  ``uv = (K @ p_cam)[:2] / p_cam.z``.
+* **Depth** is the camera-space z of the visible surface (not the ray length).
+* **No surface**: a pixel whose depth is non-finite (NaN, ±inf) or ``<= 0`` has no surface (a ray that
+  missed the scene). :func:`has_surface` is the single test used everywhere.
+* **Normals** are unit shading normals in **world** space, (B, 3, H, W); values at pixels without a surface
+  are ignored.
+* **World positions** derived from depth are never formed in world space inside the reprojection: points are
+  compared in the source camera's frame, so precision depends on distance from the camera, not from the
+  world origin. Pass camera matrices as float64 when the scene lies far (≥ 1e3 units) from the origin: a
+  float32 translation of 1e4 carries ~1e-3 units of rounding.
+
+Shapes: B batch, H height, W width. Every function here is a pure tensor function; :class:`PinholeCamera` and
+:class:`StereoRig` are light containers around them.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ._checks import check_camera, check_shape
+
+__all__ = [
+    "has_surface",
+    "pixel_centers",
+    "intrinsics_from_fov",
+    "look_at",
+    "invert_rigid",
+    "unproject",
+    "project",
+    "PinholeCamera",
+    "StereoRig",
+]
+
+
+def has_surface(depth: Tensor) -> Tensor:
+    """True where a pixel has a surface: depth finite and > 0.
+
+    Args:
+        depth: camera-space z, any shape, e.g. (B, 1, H, W).
+
+    Returns:
+        bool tensor of the same shape.
+    """
+    return torch.isfinite(depth) & (depth > 0)
+
+
+def pixel_centers(height: int, width: int, device=None, dtype=torch.float32) -> Tensor:
+    """Continuous coordinates of pixel centres.
+
+    Returns:
+        (2, H, W): ``[0]`` = u = x + 0.5 (column), ``[1]`` = v = y + 0.5 (row).
+    """
+    v = torch.arange(height, device=device, dtype=dtype) + 0.5
+    u = torch.arange(width, device=device, dtype=dtype) + 0.5
+    vv, uu = torch.meshgrid(v, u, indexing="ij")
+    return torch.stack([uu, vv], dim=0)
+
+
+def intrinsics_from_fov(vfov_deg: float, width: int, height: int, batch: int = 1,
+                        dtype=torch.float32, device=None) -> Tensor:
+    """Pinhole intrinsics with square pixels and the principal point at the image centre.
+
+    Args:
+        vfov_deg: vertical field of view in degrees.
+
+    Returns:
+        K: (B, 3, 3).
+    """
+    if not (0.0 < vfov_deg < 180.0):
+        raise ValueError(f"vfov_deg must be in (0, 180), got {vfov_deg}")
+    f = 0.5 * height / math.tan(math.radians(vfov_deg) * 0.5)
+    K = torch.tensor([[f, 0.0, width * 0.5], [0.0, f, height * 0.5], [0.0, 0.0, 1.0]], dtype=dtype, device=device)
+    return K.expand(batch, 3, 3).clone()
+
+
+def look_at(eye: Tensor, target: Tensor, up: Tensor) -> Tensor:
+    """``cam_from_world`` of a camera at ``eye`` looking at ``target`` (OpenCV axes: image up is -y).
+
+    Args:
+        eye, target, up: (B, 3) world coordinates / world up direction.
+
+    Returns:
+        cam_from_world: (B, 4, 4), rigid.
+    """
+    check_shape(eye, ["B", "3"], "eye")
+    check_shape(target, ["B", "3"], "target")
+    check_shape(up, ["B", "3"], "up")
+    forward = target - eye
+    forward = forward / forward.pow(2).sum(-1, keepdim=True).sqrt()
+    right = torch.cross(forward, up.to(forward), dim=-1)
+    norm = right.pow(2).sum(-1, keepdim=True).sqrt()
+    if bool((norm < 1e-12).any()):
+        raise ValueError("look_at: `up` is parallel to the viewing direction")
+    right = right / norm
+    down = torch.cross(forward, right, dim=-1)
+    R = torch.stack([right, down, forward], dim=-2)  # (B, 3, 3), rows = camera axes in world
+    t = -(R @ eye.unsqueeze(-1))  # (B, 3, 1)
+    T = torch.zeros(eye.shape[0], 4, 4, dtype=eye.dtype, device=eye.device)
+    T[:, :3, :3] = R
+    T[:, :3, 3:] = t
+    T[:, 3, 3] = 1.0
+    return T
+
+
+def invert_rigid(T: Tensor) -> Tensor:
+    """Inverse of rigid (B, 4, 4) transforms: ``[R | t]^-1 = [R^T | -R^T t]`` (ONNX-friendly, no linalg.inv)."""
+    R = T[..., :3, :3]
+    t = T[..., :3, 3:]
+    Rt = R.transpose(-1, -2)
+    top = torch.cat([Rt, -(Rt @ t)], dim=-1)
+    bottom = T[..., 3:, :]  # [0, 0, 0, 1]
+    return torch.cat([top, bottom], dim=-2)
+
+
+def inverse_intrinsics(K: Tensor) -> Tensor:
+    """Closed-form inverse of upper-triangular pinhole intrinsics (B, 3, 3) (skew allowed, K[2] = [0, 0, 1])."""
+    fx, s, cx = K[:, 0, 0], K[:, 0, 1], K[:, 0, 2]
+    fy, cy = K[:, 1, 1], K[:, 1, 2]
+    zero = torch.zeros_like(fx)
+    one = torch.ones_like(fx)
+    row0 = torch.stack([1.0 / fx, -s / (fx * fy), (s * cy - cx * fy) / (fx * fy)], dim=-1)
+    row1 = torch.stack([zero, 1.0 / fy, -cy / fy], dim=-1)
+    row2 = torch.stack([zero, zero, one], dim=-1)
+    return torch.stack([row0, row1, row2], dim=-2)
+
+
+def unproject(depth: Tensor, K: Tensor) -> Tensor:
+    """Camera-space points of every pixel centre at the given depth (camera z).
+
+    Args:
+        depth: (B, 1, H, W); pixels without a surface give non-finite or meaningless points.
+        K: (B, 3, 3).
+
+    Returns:
+        points_cam: (B, 3, H, W).
+    """
+    check_shape(depth, ["B", "1", "H", "W"], "depth")
+    check_shape(K, ["B", "3", "3"], "K")
+    B, _, H, W = depth.shape
+    uv1 = torch.cat([pixel_centers(H, W, depth.device, depth.dtype),
+                     torch.ones(1, H, W, device=depth.device, dtype=depth.dtype)], 0)  # 3xHxW
+    rays = inverse_intrinsics(K.to(depth.dtype)) @ uv1.reshape(1, 3, H * W)  # Bx3xHW, z = 1
+    return rays.reshape(B, 3, H, W) * depth
+
+
+def project(points_cam: Tensor, K: Tensor) -> tuple[Tensor, Tensor]:
+    """Project camera-space points to continuous pixel coordinates.
+
+    Args:
+        points_cam: (B, 3, H, W).
+        K: (B, 3, 3).
+
+    Returns:
+        uv: (B, 2, H, W) pixel coordinates (centres at +0.5); undefined where z <= 0.
+        z: (B, 1, H, W) camera-space depth of the points.
+    """
+    check_shape(points_cam, ["B", "3", "H", "W"], "points_cam")
+    B, _, H, W = points_cam.shape
+    p = (K.to(points_cam.dtype) @ points_cam.reshape(B, 3, H * W)).reshape(B, 3, H, W)
+    z = points_cam[:, 2:3]
+    return p[:, :2] / z, z
+
+
+@dataclass(frozen=True)
+class PinholeCamera:
+    """A batch of pinhole cameras sharing one image size.
+
+    Attributes:
+        K: (B, 3, 3) intrinsics, pixel centres at +0.5.
+        cam_from_world: (B, 4, 4) rigid extrinsics (OpenCV axes).
+        height, width: image size in pixels.
+    """
+
+    K: Tensor
+    cam_from_world: Tensor
+    height: int
+    width: int
+
+    def __post_init__(self):
+        check_camera(self.K, self.cam_from_world, "camera")
+        if self.height < 1 or self.width < 1:
+            raise ValueError(f"camera: image size must be positive, got {self.height}x{self.width}")
+
+    @property
+    def batch_size(self) -> int:
+        return self.K.shape[0]
+
+    @property
+    def world_from_cam(self) -> Tensor:
+        """(B, 4, 4)."""
+        return invert_rigid(self.cam_from_world)
+
+    @property
+    def center_world(self) -> Tensor:
+        """(B, 3) camera centre in world coordinates."""
+        return self.world_from_cam[:, :3, 3]
+
+    def to(self, *args, **kwargs) -> "PinholeCamera":
+        return PinholeCamera(self.K.to(*args, **kwargs), self.cam_from_world.to(*args, **kwargs),
+                             self.height, self.width)
+
+    def __getitem__(self, i) -> "PinholeCamera":
+        sl = slice(i, i + 1) if isinstance(i, int) else i
+        return PinholeCamera(self.K[sl], self.cam_from_world[sl], self.height, self.width)
+
+    def unproject(self, depth: Tensor) -> Tensor:
+        """World points of every pixel at ``depth`` (B, 1, H, W) → (B, 3, H, W)."""
+        p_cam = unproject(depth, self.K)
+        B, _, H, W = p_cam.shape
+        T = self.world_from_cam.to(p_cam.dtype)
+        return (T[:, :3, :3] @ p_cam.reshape(B, 3, -1) + T[:, :3, 3:]).reshape(B, 3, H, W)
+
+    def project(self, points_world: Tensor) -> tuple[Tensor, Tensor]:
+        """World points (B, 3, H, W) → (uv (B, 2, H, W), z (B, 1, H, W))."""
+        check_shape(points_world, ["B", "3", "H", "W"], "points_world")
+        B, _, H, W = points_world.shape
+        T = self.cam_from_world.to(points_world.dtype)
+        p_cam = (T[:, :3, :3] @ points_world.reshape(B, 3, -1) + T[:, :3, 3:]).reshape(B, 3, H, W)
+        return project(p_cam, self.K)
+
+    def ray_directions(self, jitter: Tensor | None = None) -> Tensor:
+        """World-space directions through pixel centres (or jittered positions), scaled so that camera z = 1.
+
+        A hit at ray parameter t along these directions has depth t (camera z), so depth needs no extra work.
+
+        Args:
+            jitter: optional (B, 2, H, W) offsets in pixels added to the centres (e.g. in [-0.5, 0.5)).
+
+        Returns:
+            (B, 3, H, W) world-space directions (not normalised).
+        """
+        B = self.batch_size
+        H, W = self.height, self.width
+        dtype = self.K.dtype
+        uv = pixel_centers(H, W, self.K.device, dtype).expand(B, 2, H, W)
+        if jitter is not None:
+            uv = uv + jitter.to(dtype)
+        uv1 = torch.cat([uv, torch.ones(B, 1, H, W, device=uv.device, dtype=dtype)], 1)
+        d_cam = inverse_intrinsics(self.K) @ uv1.reshape(B, 3, -1)
+        R_wc = self.world_from_cam[:, :3, :3].to(dtype)
+        return (R_wc @ d_cam).reshape(B, 3, H, W)
+
+
+@dataclass(frozen=True)
+class StereoRig:
+    """A parallel (sensor-shift) stereo rig: two cameras translated along the head's x axis only.
+
+    Attributes:
+        eye_separation: distance between the eyes in scene units (0.065 = 6.5 cm when units are metres).
+        convergence_distance: distance (scene units) at which the views converge through a sensor shift
+            (principal points shifted, optical axes stay parallel: no keystoning). ``None`` = parallel
+            views converging at infinity.
+    """
+
+    eye_separation: float = 0.065
+    convergence_distance: float | None = None
+
+    def __post_init__(self):
+        if not (self.eye_separation > 0 and math.isfinite(self.eye_separation)):
+            raise ValueError(f"StereoRig: eye_separation must be positive and finite, got {self.eye_separation}")
+        if self.convergence_distance is not None and not (self.convergence_distance > 0):
+            raise ValueError(f"StereoRig: convergence_distance must be positive, got {self.convergence_distance}")
+
+    def cameras(self, cam_from_world_head: Tensor, K: Tensor, height: int, width: int
+                ) -> tuple[PinholeCamera, PinholeCamera]:
+        """Left and right cameras of a head pose.
+
+        Args:
+            cam_from_world_head: (B, 4, 4) pose of the head (cyclopean eye), OpenCV axes.
+            K: (B, 3, 3) intrinsics of the head camera; each eye gets its own sensor shift.
+
+        Returns:
+            (left, right) :class:`PinholeCamera`; the left eye sits at x = -s/2, the right at +s/2 in head space.
+        """
+        check_camera(K, cam_from_world_head, "head")
+        half = 0.5 * self.eye_separation
+        out = []
+        for sign in (-1.0, +1.0):  # left, right
+            # eye_from_head: translate by -eye_position (eye at sign*half along head x).
+            eye_from_head = torch.eye(4, dtype=cam_from_world_head.dtype, device=cam_from_world_head.device)
+            eye_from_head = eye_from_head.expand_as(cam_from_world_head).clone()
+            eye_from_head[:, 0, 3] = -sign * half
+            K_eye = K.clone()
+            if self.convergence_distance is not None:
+                # A head-axis point at distance d lies at x = -sign*half in this eye: shift cx to centre it.
+                K_eye[:, 0, 2] = K[:, 0, 2] + sign * K[:, 0, 0] * half / self.convergence_distance
+            out.append(PinholeCamera(K_eye, eye_from_head @ cam_from_world_head, height, width))
+        return out[0], out[1]
