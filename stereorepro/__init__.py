@@ -17,3 +17,14 @@ from .camera import (  # noqa: F401
     project,
     unproject,
 )
+from .reproject import (  # noqa: F401
+    Reason,
+    StereoReprojection,
+    TemporalReprojection,
+    backward_reproject,
+    reason_to_rgb,
+    stereo_reproject,
+    temporal_blend,
+    temporal_reproject,
+)
+from .onnx_export import export_onnx  # noqa: F401

@@ -1,0 +1,452 @@
+"""A wavefront path tracer over structure-of-arrays batches (numpy float32), intersecting with embreex.
+
+Per sample (the paper's "one primary ray, one secondary ray, and two shadow rays"):
+
+1. **generate** - a primary ray through a uniformly jittered position inside the pixel;
+2. **intersect** - closest hit ``x1``; emitted radiance of ``x1`` is added (emitters seen directly);
+3. **shade + NEE** - one light sample at ``x1`` (a shadow ray), MIS-weighted (balance heuristic) against BSDF
+   sampling for area lights;
+4. **bounce** - one BSDF-sampled secondary ray to ``x2``; if ``x2`` is emissive its emission is added with the
+   complementary MIS weight;
+5. **NEE at x2** - one light sample at ``x2`` (the second shadow ray), unweighted (no further bounce);
+6. **shadow** - both shadow-ray sets are tested in one occlusion query.
+
+This equals a path tracer with maximum path depth 3 (Mitsuba's ``path`` integrator with ``max_depth = 3``):
+emission + direct light + one bounce of indirect light.
+
+G-buffers (depth, normal, position, albedo, material id) come from one unjittered primary ray per pixel centre,
+deterministic and independent of ``spp``/``sample_offset``; they are counted as ``ray_counts["gbuffer"]``.
+
+Random numbers are counter-based (:mod:`stereorepro.render.rng`), so results are bit-identical whatever the batch
+size or number of workers. Work is split into contiguous pixel ranges, one per worker thread; every stage of a
+range runs in its thread (embreex and numpy's large-array loops release the GIL).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..camera import PinholeCamera
+from . import bsdf as _bsdf
+from ._embree import TriangleBVH
+from .lights import EmitterTable, LightSet, luminance
+from .rng import DIM, path_keys, stream_key, uniform
+
+__all__ = ["PathTracer", "RenderResult", "ray_epsilon"]
+
+
+@dataclass(frozen=True)
+class RenderResult:
+    """One rendered image of one camera (B = 1). All tensors are float32 on the CPU unless noted.
+
+    Attributes:
+        radiance: (1, 3, H, W) linear RGB, the mean of ``spp`` samples; 0 where ``pixel_mask`` is False.
+        depth: (1, 1, H, W) camera-space z of the surface at the pixel centre; ``+inf`` where there is no surface
+            (a miss or a pixel outside ``pixel_mask``). ``None`` when G-buffers were not requested.
+        normal: (1, 3, H, W) unit world-space shading normal, flipped to face the camera; 0 without surface.
+        position: (1, 3, H, W) world position of the surface; 0 without surface.
+        albedo: (1, 3, H, W) diffuse albedo of the surface; 0 without surface.
+        material_id: (1, 1, H, W) int32 material index of the scene; -1 without surface.
+        ray_counts: rays traced per kind: ``primary``, ``secondary``, ``shadow``, ``gbuffer``.
+        spp: samples per pixel of ``radiance``.
+        time_s: wall time of the call in seconds.
+    """
+
+    radiance: Tensor
+    depth: Tensor | None
+    normal: Tensor | None
+    position: Tensor | None
+    albedo: Tensor | None
+    material_id: Tensor | None
+    ray_counts: dict = field(default_factory=dict)
+    spp: int = 0
+    time_s: float = 0.0
+
+
+def ray_epsilon(vertices: np.ndarray) -> float:
+    """Origin offset along the normal for secondary and shadow rays, scaled to the scene.
+
+    ``2e-5 * bbox diagonal`` covers the intersection error (relative to the ray length) and ``4e-7 * max |coord|``
+    (about 3 float32 ulps) covers the rounding of positions far from the origin.
+    """
+    v = np.asarray(vertices, np.float64)
+    lo, hi = v.min(0), v.max(0)
+    diag = float(np.linalg.norm(hi - lo))
+    return 2e-5 * diag + 4e-7 * float(np.abs(v).max()) + 1e-30
+
+
+def _dot(a, b):
+    return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
+
+
+def _normalize(v):
+    n = np.sqrt(_dot(v, v))
+    return v / np.where(n > 0, n, np.float32(1))[:, None]
+
+
+@dataclass
+class _Frame:
+    """Per-render constants."""
+
+    key: int
+    width: int
+    center: np.ndarray      # (3,) float32 camera centre (world)
+    dir_from_pix: np.ndarray  # (3, 3) float64: world direction (camera z = 1) = M @ [u, v, 1]
+    lights: LightSet
+
+
+class PathTracer:
+    """Path tracer for one scene (static geometry: the BVH is built once, at construction).
+
+    Args:
+        scene: a scene from :func:`stereorepro.load_scene`.
+        seed: RNG seed (the first field of every random number's key).
+        workers: threads (default: the usable CPU count).
+        max_batch: most paths one worker traces at once (bounds memory: about 1 KiB per path).
+
+    Only the effects the scene declares are simulated: the glossy lobe is evaluated only when ``"glossy" in
+    scene.effects``; lights are merged once per tracer unless ``"moving_light" in scene.effects`` (then once per
+    frame). ``stats`` counts these preparations (``bvh_builds``, ``light_prepare``).
+    """
+
+    def __init__(self, scene, seed: int = 0, workers: int | None = None, max_batch: int = 1 << 16):
+        if workers is None:
+            try:
+                workers = len(os.sched_getaffinity(0))
+            except AttributeError:  # pragma: no cover
+                workers = os.cpu_count() or 1
+        if int(workers) < 1:
+            raise ValueError(f"PathTracer: workers must be >= 1, got {workers}")
+        if int(max_batch) < 1:
+            raise ValueError(f"PathTracer: max_batch must be >= 1, got {max_batch}")
+        self.scene = scene
+        self.seed = int(seed)
+        self.workers = int(workers)
+        self.max_batch = int(max_batch)
+        self.stats = {"bvh_builds": 0, "light_prepare": 0}
+        self.glossy = "glossy" in scene.effects
+        self.moving_light = "moving_light" in scene.effects
+
+        geo = scene.geometry()
+        mats = scene.material_table()
+        self.vertices = np.ascontiguousarray(geo.vertices, np.float32)
+        self.faces = np.ascontiguousarray(geo.faces, np.int32)
+        self.face_material = np.ascontiguousarray(geo.material_ids, np.int32)
+        tri = self.vertices[self.faces].astype(np.float64)
+        fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        ln = np.linalg.norm(fn, axis=1, keepdims=True)
+        self.face_normal = (fn / np.where(ln > 0, ln, 1.0)).astype(np.float32)
+        self.kd = np.asarray(mats["albedo"], np.float32).reshape(-1, 3)
+        self.emission = np.asarray(mats["emission"], np.float32).reshape(-1, 3)
+        self.mat_emissive = luminance(self.emission) > 0
+        if self.glossy:
+            self.ks = np.asarray(mats["specular"], np.float32).reshape(-1, 3)
+            self.exponent = np.asarray(mats["exponent"], np.float32).reshape(-1)
+            ld, ls = luminance(self.kd), luminance(self.ks)
+            self.p_spec = np.where(ld + ls > 0, ls / np.maximum(ld + ls, 1e-12), 0).astype(np.float32)
+        self.eps = np.float32(ray_epsilon(self.vertices))
+
+        self._bvh = TriangleBVH(self.vertices, self.faces)
+        self.stats["bvh_builds"] += 1
+        self._emitters = EmitterTable(self.vertices, self.faces, self.emission[self.face_material])
+        self._lights_cache: tuple[int | None, LightSet] | None = None
+        self._lock = threading.Lock()
+
+    # ------------------------------------------------------------------ lights
+    def lights(self, frame: int) -> LightSet:
+        """The :class:`LightSet` of ``frame`` (built once for static lights, per frame for moving ones)."""
+        key = int(frame) if self.moving_light else None
+        cache = self._lights_cache
+        if cache is not None and cache[0] == key:
+            return cache[1]
+        pos, inten = self.scene.point_lights(0 if key is None else key)
+        ls = LightSet(self._emitters, pos, inten)
+        self.stats["light_prepare"] += 1
+        self._lights_cache = (key, ls)
+        return ls
+
+    # ------------------------------------------------------------------ public API
+    def render(self, camera: PinholeCamera, frame: int, spp: int, sample_offset: int = 0,
+               pixel_mask: Tensor | None = None, eye: int = 0, gbuffers: bool = True,
+               progress: bool = False) -> RenderResult:
+        """Render radiance (and G-buffers) of one camera.
+
+        Args:
+            camera: :class:`PinholeCamera` with batch size 1.
+            frame: frame index in ``[0, scene.num_frames)`` (lights and the RNG key depend on it).
+            spp: samples per pixel (>= 1).
+            sample_offset: first sample index of the stream (disjoint streams for disjoint ranges).
+            pixel_mask: optional bool (H, W) or (1, 1, H, W); only True pixels are traced (others cost no rays,
+                get radiance 0 and no G-buffer).
+            eye: RNG key field (0 = left, 1 = right).
+            gbuffers: also compute the G-buffers (from separate centre rays; radiance is unchanged).
+            progress: show a tqdm progress bar.
+
+        Returns:
+            :class:`RenderResult` with (1, C, H, W) tensors.
+        """
+        t0 = time.perf_counter()
+        if int(spp) < 1:
+            raise ValueError(f"render: spp must be >= 1, got {spp}")
+        if int(sample_offset) < 0:
+            raise ValueError(f"render: sample_offset must be >= 0, got {sample_offset}")
+        fr, pixels, H, W = self._setup(camera, frame, pixel_mask, eye)
+        counts = {"primary": 0, "secondary": 0, "shadow": 0, "gbuffer": 0}
+        acc = np.zeros((len(pixels), 3), np.float64)
+        bar = None
+        if progress:
+            from tqdm import tqdm
+            bar = tqdm(total=int(spp) * len(pixels), unit="path", unit_scale=True, desc="render")
+
+        def work(lo_hi):
+            lo, hi = lo_hi
+            c = {"primary": 0, "secondary": 0, "shadow": 0}
+            m = hi - lo
+            k = max(1, self.max_batch // max(m, 1))
+            for s0 in range(0, int(spp), k):
+                kk = min(k, int(spp) - s0)
+                pix = np.tile(pixels[lo:hi], kk)
+                samp = np.repeat(np.arange(s0, s0 + kk, dtype=np.int64) + int(sample_offset), m)
+                contrib = self._trace_paths(fr, pix, samp, c).reshape(kk, m, 3)
+                view = acc[lo:hi]
+                for j in range(kk):  # fixed summation order: bit-identical whatever the chunking
+                    view += contrib[j]
+                if bar is not None:
+                    with self._lock:
+                        bar.update(kk * m)
+            return c
+
+        for c in self._run(work, self._ranges(len(pixels))):
+            for name, v in c.items():
+                counts[name] += v
+        if bar is not None:
+            bar.close()
+        rad = np.zeros((H * W, 3), np.float32)
+        rad[pixels] = (acc / int(spp)).astype(np.float32)
+        radiance = torch.from_numpy(rad.T.reshape(1, 3, H, W).copy())
+        g = self._gbuffer(fr, pixels, H, W, counts) if gbuffers else {}
+        return RenderResult(radiance=radiance, depth=g.get("depth"), normal=g.get("normal"),
+                            position=g.get("position"), albedo=g.get("albedo"),
+                            material_id=g.get("material_id"), ray_counts=counts, spp=int(spp),
+                            time_s=time.perf_counter() - t0)
+
+    def gbuffer(self, camera: PinholeCamera, frame: int, pixel_mask: Tensor | None = None) -> RenderResult:
+        """G-buffers only (radiance zeros, ``spp = 0``, only ``gbuffer`` rays); same values as :meth:`render`."""
+        t0 = time.perf_counter()
+        fr, pixels, H, W = self._setup(camera, frame, pixel_mask, 0, need_lights=False)
+        counts = {"primary": 0, "secondary": 0, "shadow": 0, "gbuffer": 0}
+        g = self._gbuffer(fr, pixels, H, W, counts)
+        return RenderResult(radiance=torch.zeros(1, 3, H, W), ray_counts=counts, spp=0,
+                            time_s=time.perf_counter() - t0, **g)
+
+    # ------------------------------------------------------------------ internals
+    def _setup(self, camera, frame, pixel_mask, eye, need_lights=True):
+        if not isinstance(camera, PinholeCamera):
+            raise TypeError(f"render: camera must be a PinholeCamera, got {type(camera).__name__}")
+        if camera.batch_size != 1:
+            raise ValueError(f"render: camera must have batch size 1, got {camera.batch_size}")
+        n = int(self.scene.num_frames)
+        if not (0 <= int(frame) < n):
+            raise ValueError(f"render: frame must be in [0, {n}), got {frame}")
+        H, W = camera.height, camera.width
+        if pixel_mask is None:
+            pixels = np.arange(H * W, dtype=np.int64)
+        else:
+            if not isinstance(pixel_mask, Tensor) or pixel_mask.dtype != torch.bool:
+                raise TypeError("render: pixel_mask must be a bool tensor of shape (H, W) or (1, 1, H, W)")
+            if tuple(pixel_mask.shape) not in ((H, W), (1, 1, H, W)):
+                raise ValueError(f"render: pixel_mask must have shape ({H}, {W}) or (1, 1, {H}, {W}), "
+                                 f"got {tuple(pixel_mask.shape)}")
+            pixels = np.flatnonzero(pixel_mask.reshape(-1).cpu().numpy()).astype(np.int64)
+        K = camera.K[0].detach().cpu().double().numpy()
+        wfc = camera.world_from_cam[0].detach().cpu().double().numpy()
+        M = wfc[:3, :3] @ np.linalg.inv(K)
+        lights = self.lights(frame) if need_lights else None
+        fr = _Frame(stream_key(self.seed, int(frame), int(eye)), W, wfc[:3, 3].astype(np.float32), M, lights)
+        return fr, pixels, H, W
+
+    def _ranges(self, n):
+        parts = max(1, min(self.workers, n))
+        edges = [n * i // parts for i in range(parts + 1)]
+        return [(edges[i], edges[i + 1]) for i in range(parts) if edges[i + 1] > edges[i]]
+
+    def _run(self, fn, items):
+        if self.workers == 1 or len(items) <= 1:
+            return [fn(it) for it in items]
+        with ThreadPoolExecutor(max_workers=min(self.workers, len(items))) as ex:
+            return list(ex.map(fn, items))
+
+    def _camera_dirs(self, fr: _Frame, px: np.ndarray, py: np.ndarray) -> np.ndarray:
+        """World directions (N, 3) float32 with camera z = 1 through continuous pixel positions (N,)."""
+        M = fr.dir_from_pix.astype(np.float32)
+        d = np.empty((len(px), 3), np.float32)
+        for r in range(3):
+            d[:, r] = M[r, 0] * px + M[r, 1] * py + M[r, 2]
+        return d
+
+    def _surface(self, prim, d):
+        """Material ids (N,) and shading normals (N, 3) of hits ``prim`` (N,) facing against directions ``d``."""
+        fn = self.face_normal[prim]
+        sign = np.where(_dot(fn, d) > 0, np.float32(-1), np.float32(1))
+        return self.face_material[prim], fn * sign[:, None]
+
+    def _gbuffer(self, fr: _Frame, pixels, H, W, counts) -> dict:
+        depth = np.full(H * W, np.inf, np.float32)
+        normal = np.zeros((H * W, 3), np.float32)
+        position = np.zeros((H * W, 3), np.float32)
+        albedo = np.zeros((H * W, 3), np.float32)
+        matid = np.full(H * W, -1, np.int32)
+
+        def work(lo_hi):
+            lo, hi = lo_hi
+            pix = pixels[lo:hi]
+            px = (pix % W).astype(np.float32) + np.float32(0.5)
+            py = (pix // W).astype(np.float32) + np.float32(0.5)
+            d = self._camera_dirs(fr, px, py)
+            o = np.broadcast_to(fr.center, d.shape)
+            t, prim = self._bvh.intersect(o, d)
+            hit = prim >= 0
+            p, tp, dp = pix[hit], t[hit], d[hit]
+            mat, n = self._surface(prim[hit], dp)
+            depth[p] = tp
+            normal[p] = n
+            position[p] = fr.center + tp[:, None] * dp
+            albedo[p] = self.kd[mat]
+            matid[p] = mat
+            return len(pix)
+
+        for c in self._run(work, [(a, b) for a, b in self._ranges(len(pixels))]):
+            counts["gbuffer"] += c
+
+        def img(x, C):
+            return torch.from_numpy(np.ascontiguousarray(x.reshape(H * W, C).T).reshape(1, C, H, W))
+
+        return {"depth": img(depth, 1), "normal": img(normal, 3), "position": img(position, 3),
+                "albedo": img(albedo, 3), "material_id": img(matid, 1)}
+
+    # The stages of one wavefront batch ------------------------------------------------------------
+    def _bsdf_eval(self, mat, n, wo, wi):
+        """f (N, 3), cos_i (N,), pdf (N,) of the surface BSDF; Lambert only unless the scene is glossy."""
+        if self.glossy:
+            f, pdf, cos_i = _bsdf.mixture_eval(self.kd[mat], self.ks[mat], self.exponent[mat], self.p_spec[mat],
+                                               n, wo, wi)
+            return f, cos_i, pdf
+        cos_i = _dot(n, wi)
+        return self.kd[mat] * np.float32(1 / math.pi), cos_i, _bsdf.lambert_pdf(cos_i)
+
+    def _bsdf_sample(self, mat, n, wo, keys):
+        u1, u2 = uniform(keys, DIM["bsdf_u"]), uniform(keys, DIM["bsdf_v"])
+        if self.glossy:
+            return _bsdf.mixture_sample(self.kd[mat], self.ks[mat], self.exponent[mat], self.p_spec[mat], n, wo,
+                                        uniform(keys, DIM["lobe"]), u1, u2)
+        wi, cos_i = _bsdf.lambert_sample(n, u1, u2)
+        ok = cos_i > 0
+        return wi, self.kd[mat] * ok[:, None], _bsdf.lambert_pdf(cos_i)
+
+    def _nee(self, fr, P, n, wo, mat, keys, dims, mis: bool):
+        """Light sample at points P (N, 3): shadow-ray origins, directions, tmax and unoccluded contribution."""
+        ls = fr.lights
+        u_sel = uniform(keys, dims[0])
+        u1, u2 = uniform(keys, dims[1]), uniform(keys, dims[2])
+        o = P + n * self.eps
+        target, wi, dist, li, pdf_l = ls.sample(o, u_sel, u1, u2)
+        f, cos_i, pdf_b = self._bsdf_eval(mat, n, wo, wi)
+        val = f * (li * np.maximum(cos_i, np.float32(0))[:, None])
+        if mis:
+            w = np.where(np.isinf(pdf_l), np.float32(1), pdf_l / (pdf_l + pdf_b))
+            val = val * w.astype(np.float32)[:, None]
+        ok = (cos_i > 0) & (dist > 2 * self.eps) & (val.max(axis=1) > 0)
+        tmax = dist - np.float32(2) * self.eps
+        return ok, o, wi, tmax, val
+
+    def _trace_paths(self, fr: _Frame, pix: np.ndarray, samp: np.ndarray, counts: dict) -> np.ndarray:
+        """Radiance (N, 3) float32 of one sample per path (flat pixel ``pix`` (N,), sample index ``samp`` (N,))."""
+        N = len(pix)
+        L = np.zeros((N, 3), np.float32)
+        if N == 0:
+            return L
+        keys = path_keys(fr.key, pix, samp)
+        # --- generate
+        px = (pix % fr.width).astype(np.float32) + uniform(keys, DIM["jitter_x"])
+        py = (pix // fr.width).astype(np.float32) + uniform(keys, DIM["jitter_y"])
+        d = _normalize(self._camera_dirs(fr, px, py))
+        o = np.broadcast_to(fr.center, d.shape)
+        # --- intersect
+        t, prim = self._bvh.intersect(o, d)
+        counts["primary"] += N
+        i1 = np.flatnonzero(prim >= 0)
+        if len(i1) == 0:
+            return L
+        d1, k1, prim1 = d[i1], keys[i1], prim[i1]
+        P1 = fr.center + t[i1, None] * d1
+        mat1, n1 = self._surface(prim1, d1)
+        wo1 = -d1
+        # --- emission seen directly
+        em1 = self.mat_emissive[mat1]
+        if em1.any():
+            L[i1] += self.emission[mat1]
+        have_lights = not fr.lights.empty
+        shadow = []
+        # --- shade + NEE at x1
+        if have_lights:
+            ok, so, sd, st, val = self._nee(fr, P1, n1, wo1, mat1, k1,
+                                            (DIM["light1"], DIM["light1_u"], DIM["light1_v"]), mis=True)
+            shadow.append((i1[ok], so[ok], sd[ok], st[ok], val[ok]))
+        # --- bounce
+        wi2, weight, pdf_b = self._bsdf_sample(mat1, n1, wo1, k1)
+        live = np.flatnonzero(weight.max(axis=1) > 0)
+        if len(live):
+            o2 = P1[live] + n1[live] * self.eps
+            d2 = wi2[live]
+            t2, prim2 = self._bvh.intersect(o2, d2)
+            counts["secondary"] += len(live)
+            h = np.flatnonzero(prim2 >= 0)
+            if len(h):
+                idx2 = i1[live[h]]
+                thr = weight[live[h]]
+                d2h, t2h, p2 = d2[h], t2[h], prim2[h]
+                P2 = o2[h] + t2h[:, None] * d2h
+                mat2, n2 = self._surface(p2, d2h)
+                em2 = self.mat_emissive[mat2]
+                if em2.any() and have_lights:
+                    e = np.flatnonzero(em2)
+                    cos_l = np.abs(_dot(self.face_normal[p2[e]], d2h[e]))
+                    pdf_l = fr.lights.pdf_area_face[p2[e]] * t2h[e] * t2h[e] / np.maximum(cos_l, np.float32(1e-12))
+                    pb = pdf_b[live[h[e]]]
+                    w = np.where(pb > 0, pb / (pb + pdf_l), np.float32(0)).astype(np.float32)
+                    L[idx2[e]] += thr[e] * self.emission[mat2[e]] * w[:, None]
+                elif em2.any():
+                    e = np.flatnonzero(em2)
+                    L[idx2[e]] += thr[e] * self.emission[mat2[e]]
+                # --- NEE at x2
+                if have_lights:
+                    ok, so, sd, st, val = self._nee(fr, P2, n2, -d2h, mat2, k1[live[h]],
+                                                    (DIM["light2"], DIM["light2_u"], DIM["light2_v"]), mis=False)
+                    shadow.append((idx2[ok], so[ok], sd[ok], st[ok], thr[ok] * val[ok]))
+        # --- shadow
+        if shadow:
+            idx = np.concatenate([s[0] for s in shadow])
+            if len(idx):
+                so = np.concatenate([s[1] for s in shadow])
+                sd = np.concatenate([s[2] for s in shadow])
+                st = np.concatenate([s[3] for s in shadow])
+                val = np.concatenate([s[4] for s in shadow])
+                blocked = self._bvh.occluded(so, sd, st)
+                counts["shadow"] += len(idx)
+                vis = ~blocked
+                # Each path has at most one shadow ray per set; add the two sets in a fixed order.
+                n_first = len(shadow[0][0])
+                a = np.flatnonzero(vis[:n_first])
+                L[idx[a]] += val[a]
+                b = n_first + np.flatnonzero(vis[n_first:])
+                L[idx[b]] += val[b]
+        return L

@@ -1,0 +1,560 @@
+"""Backward reprojection with discard masks (paper §4.1), stereo and temporal, as pure tensor functions and
+nn.Modules.
+
+For every destination pixel: unproject it with the destination depth, move it into the source camera, project
+it, and read the 2×2 bilinear taps around that point in the source image (or the one nearest tap). A tap is
+**accepted** only if
+
+1. it lies inside the source frame,
+2. the source pixel has a surface (see :func:`stereorepro.camera.has_surface`),
+3. ``|P_src − P_dst| <= position_threshold`` (scene units; both points in the source camera's frame),
+4. ``|N_src − N_dst| <= normal_threshold`` (unit world-space shading normals), and
+5. its values are finite (policy: a NaN/Inf sample is rejected like an occluded one, so it never leaks).
+
+Accepted bilinear weights are renormalised by their sum; a pixel is ``valid`` when the accepted weight is > 0.
+The same-instant stereo case and the temporal case are the same operation with different cameras
+(paper §2.2: "stereo reprojection can be thought of as a special case of temporal reprojection").
+
+Discard reasons (:class:`Reason`, uint8 map, 0 = kept) are ordered by the test that failed; a tap's code is the
+first test it failed, and an invalid pixel reports the largest code among its taps of non-zero bilinear weight
+(the test at which its most nearly accepted tap failed). That is what the paper's Figure 1 colours.
+
+Precision: positions are compared in the source camera frame after composing ``src_from_dst`` in float64, so
+results do not degrade with distance from the world origin; they degrade with distance from the camera as
+fp32 does (relative 6e-8). Camera matrices are used in float64 whatever their dtype: pass float64 cameras for
+scenes far (≥ 1e3 units) from the origin.
+
+Dtypes: images may be float16/bfloat16/float32/float64; computation is float32 (float64 if any image input is
+float64) and the colour output takes the dtype of the source colour.
+"""
+
+from __future__ import annotations
+
+import enum
+
+import torch
+from torch import Tensor, nn
+
+from ._checks import check_camera, check_device, check_floating, check_shape
+from .camera import has_surface, invert_rigid
+from .camera import inverse_intrinsics as _inverse_intrinsics
+
+__all__ = [
+    "Reason",
+    "backward_reproject",
+    "stereo_reproject",
+    "temporal_blend",
+    "temporal_reproject",
+    "reason_to_rgb",
+    "StereoReprojection",
+    "TemporalReprojection",
+]
+
+
+class Reason(enum.IntEnum):
+    """Why a destination pixel was discarded (values of the uint8 ``reason`` map)."""
+
+    KEPT = 0
+    NO_SURFACE_DST = 1  #: the destination pixel has no surface: nothing to reproject
+    BEHIND_CAMERA = 2  #: the destination point is not in front of the source camera
+    OUT_OF_FRAME = 3  #: the tap lies outside the source image
+    NO_SURFACE_SRC = 4  #: the source tap has no surface
+    POSITION = 5  #: |P_src − P_dst| > position_threshold (occlusion / disocclusion)
+    NORMAL = 6  #: |N_src − N_dst| > normal_threshold
+    NONFINITE = 7  #: the source tap's values are NaN or Inf
+
+
+#: Figure 1 colours (RGB in [0, 1]) by reason: green = position, cyan = normal, red = out of frame.
+REASON_COLORS = {
+    Reason.KEPT: (0.0, 0.0, 0.0),
+    Reason.NO_SURFACE_DST: (0.25, 0.25, 0.25),
+    Reason.BEHIND_CAMERA: (1.0, 0.0, 1.0),
+    Reason.OUT_OF_FRAME: (1.0, 0.0, 0.0),
+    Reason.NO_SURFACE_SRC: (0.0, 0.0, 1.0),
+    Reason.POSITION: (0.0, 1.0, 0.0),
+    Reason.NORMAL: (0.0, 1.0, 1.0),
+    Reason.NONFINITE: (1.0, 1.0, 0.0),
+}
+
+_SAMPLINGS = ("bilinear", "nearest")
+
+
+def _compute_dtype(*tensors: Tensor) -> torch.dtype:
+    return torch.float64 if any(t.dtype == torch.float64 for t in tensors) else torch.float32
+
+
+def _check_inputs(src_values, src_depth, src_normal, src_K, src_cam_from_world,
+                  dst_depth, dst_normal, dst_K, dst_cam_from_world, src_name="src_color") -> None:
+    bind_src: dict = {}
+    check_shape(src_values, ["B", "C", "H", "W"], src_name, bind_src)
+    check_shape(src_depth, ["B", "1", "H", "W"], "src_depth", bind_src)
+    check_shape(src_normal, ["B", "3", "H", "W"], "src_normal", bind_src)
+    bind_dst: dict = {"B": bind_src.get("B")} if bind_src else {}
+    check_shape(dst_depth, ["B", "1", "H", "W"], "dst_depth", bind_dst)
+    check_shape(dst_normal, ["B", "3", "H", "W"], "dst_normal", bind_dst)
+    check_camera(src_K, src_cam_from_world, "src", {"B": bind_src.get("B")} if bind_src else None)
+    check_camera(dst_K, dst_cam_from_world, "dst", {"B": bind_src.get("B")} if bind_src else None)
+    for name, t in (("src_color" if src_name == "src_color" else src_name, src_values), ("src_depth", src_depth),
+                    ("src_normal", src_normal), ("dst_depth", dst_depth), ("dst_normal", dst_normal)):
+        check_floating(t, name)
+    check_device(dict(src_color=src_values, src_depth=src_depth, src_normal=src_normal, src_K=src_K,
+                      src_cam_from_world=src_cam_from_world, dst_depth=dst_depth, dst_normal=dst_normal,
+                      dst_K=dst_K, dst_cam_from_world=dst_cam_from_world), "reprojection")
+
+
+def _as_scalar(x, like: Tensor) -> Tensor:
+    if isinstance(x, Tensor):
+        return x.to(device=like.device, dtype=like.dtype).reshape(())
+    return torch.tensor(float(x), device=like.device, dtype=like.dtype)
+
+
+def _finite_or_zero(x: Tensor) -> Tensor:
+    return torch.where(torch.isfinite(x), x, torch.zeros((), dtype=x.dtype, device=x.device))
+
+
+def backward_reproject(
+    src_values: Tensor,
+    src_depth: Tensor,
+    src_normal: Tensor,
+    src_K: Tensor,
+    src_cam_from_world: Tensor,
+    dst_depth: Tensor,
+    dst_normal: Tensor,
+    dst_K: Tensor,
+    dst_cam_from_world: Tensor,
+    position_threshold,
+    normal_threshold,
+    sampling: str = "bilinear",
+    soft: bool = False,
+    temperature: float = 0.1,
+    check: bool = True,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Backward-warp ``src_values`` into the destination view with per-tap discard tests.
+
+    Args:
+        src_values: (B, C, Hs, Ws) values to carry (colour; extra channels such as history length ride along).
+        src_depth: (B, 1, Hs, Ws) camera-z depth of the source view.
+        src_normal: (B, 3, Hs, Ws) unit world-space shading normals of the source view.
+        src_K: (B, 3, 3) source intrinsics.
+        src_cam_from_world: (B, 4, 4) source extrinsics (rigid).
+        dst_depth: (B, 1, H, W) camera-z depth of the destination view.
+        dst_normal: (B, 3, H, W) unit world-space shading normals of the destination view.
+        dst_K: (B, 3, 3) destination intrinsics.
+        dst_cam_from_world: (B, 4, 4) destination extrinsics (rigid).
+        position_threshold: max |P_src − P_dst| in scene units (float or 0-d tensor).
+        normal_threshold: max |N_src − N_dst| between unit normals (float or 0-d tensor).
+        sampling: ``"bilinear"`` (2×2 taps, the paper's choice) or ``"nearest"`` (one tap).
+        soft: replace the position and normal step functions by sigmoids
+            ``sigmoid((thr² − d²) / (2·temperature·thr²))`` (≈ a sigmoid in (thr − d) / (temperature·thr)), so
+            that the output is differentiable in the thresholds. ``valid`` and ``reason`` still report the hard
+            decision at the current thresholds.
+        temperature: softness relative to the threshold (dimensionless), used when ``soft``.
+        check: validate shapes/dtypes (public boundary).
+
+    Returns:
+        values: (B, C, H, W) warped values (0 where nothing was accepted), dtype of ``src_values``.
+        valid: (B, 1, H, W) bool, accepted bilinear weight > 0.
+        reason: (B, 1, H, W) uint8 :class:`Reason` codes (0 where valid).
+        confidence: (B, 1, H, W) accepted bilinear weight in [0, 1] before renormalisation (soft weights when
+            ``soft``), in the compute dtype.
+    """
+    if sampling not in _SAMPLINGS:
+        raise ValueError(f"sampling must be one of {_SAMPLINGS}, got {sampling!r}")
+    if check:
+        _check_inputs(src_values, src_depth, src_normal, src_K, src_cam_from_world,
+                      dst_depth, dst_normal, dst_K, dst_cam_from_world, "src_values")
+    cd = _compute_dtype(src_values, src_depth, src_normal, dst_depth, dst_normal)
+    dev = dst_depth.device
+    B, C, Hs, Ws = src_values.shape
+    H, W = dst_depth.shape[-2:]
+
+    # --- cameras, float64: src_cam <- dst_cam, and M = R @ K_dst^-1 so that p_src = z * M @ [u, v, 1] + t.
+    src_from_dst = src_cam_from_world.double() @ invert_rigid(dst_cam_from_world.double())
+    M = (src_from_dst[:, :3, :3] @ _inverse_intrinsics(dst_K.double())).to(cd)  # Bx3x3
+    t = src_from_dst[:, :3, 3].to(cd)  # Bx3
+    Ks = src_K.to(cd)
+    Ks_inv = _inverse_intrinsics(src_K.double()).to(cd)
+
+    # --- destination points in the source camera frame.
+    z_dst = dst_depth.to(cd)
+    dst_ok = has_surface(z_dst)  # Bx1xHxW
+    z_dst = torch.where(dst_ok, z_dst, torch.ones((), dtype=cd, device=dev))
+    v_c = torch.arange(H, device=dev, dtype=cd).view(1, H, 1) + 0.5
+    u_c = torch.arange(W, device=dev, dtype=cd).view(1, 1, W) + 0.5
+    Mv = M.view(B, 3, 3, 1, 1)
+    ray = Mv[:, :, 0] * u_c + Mv[:, :, 1] * v_c + Mv[:, :, 2]  # Bx3xHxW, ray * z = point (src cam, before +t)
+    q = ray * z_dst + t.view(B, 3, 1, 1)  # Bx3xHxW, destination points in the source camera frame
+    qz = q[:, 2:3]
+    k = Ks.reshape(B, 9, 1, 1)  # k[:, 3*i+j : 3*i+j+1] is K[i, j] as (B, 1, 1, 1)
+    front = qz > 0
+    qz_safe = torch.where(front, qz, torch.ones((), dtype=cd, device=dev))
+    u = (k[:, 0:1] * q[:, 0:1] + k[:, 1:2] * q[:, 1:2]) / qz_safe + k[:, 2:3]  # Bx1xHxW
+    v = (k[:, 4:5] * q[:, 1:2]) / qz_safe + k[:, 5:6]
+    front = front & torch.isfinite(u) & torch.isfinite(v)
+    # Keep coordinates finite and in a small range: anything clamped is out of frame anyway.
+    u = torch.where(front, u, torch.full((), -4.0, dtype=cd, device=dev)).clamp(-4.0, Ws + 4.0)
+    v = torch.where(front, v, torch.full((), -4.0, dtype=cd, device=dev)).clamp(-4.0, Hs + 4.0)
+
+    # --- taps (T = 4 or 1) and their bilinear weights, shapes BxTxHxW.
+    if sampling == "bilinear":
+        x = u - 0.5
+        y = v - 0.5
+        x0 = torch.floor(x)
+        y0 = torch.floor(y)
+        fx = x - x0  # gradient 1 w.r.t. u
+        fy = y - y0
+        xi = torch.cat([x0, x0 + 1, x0, x0 + 1], 1)
+        yi = torch.cat([y0, y0, y0 + 1, y0 + 1], 1)
+        wts = torch.cat([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], 1)
+    else:
+        xi = torch.floor(u)
+        yi = torch.floor(v)
+        wts = torch.ones_like(u)
+    T = xi.shape[1]
+    in_frame = (xi >= 0) & (xi <= Ws - 1) & (yi >= 0) & (yi <= Hs - 1)
+    index = (yi.clamp(0, Hs - 1) * Ws + xi.clamp(0, Ws - 1)).to(torch.int64)  # BxTxHxW
+
+    # --- sanitise the source once (cheaper than per tap), then gather values, depth, normals and a flag
+    # channel at the taps: (B, C+5, T, H, W). Non-finite values and missing surfaces become finite
+    # placeholders that the flags reject, so a rejected tap can never leak NaN/Inf (0 * NaN = NaN).
+    zero = torch.zeros((), dtype=cd, device=dev)
+    one = torch.ones((), dtype=cd, device=dev)
+    sv = src_values.to(cd)
+    sv_finite = torch.isfinite(sv.sum(1, keepdim=True))  # any NaN/Inf in a pixel makes its sum non-finite
+    sz = src_depth.to(cd)
+    s_ok = has_surface(sz)
+    flags = s_ok.to(cd) + 2.0 * sv_finite.to(cd)  # bit 0: surface, bit 1: finite values
+    feats = torch.cat([torch.where(sv_finite, sv, zero), torch.where(s_ok, sz, one),
+                       _finite_or_zero(src_normal.to(cd)), flags], 1).reshape(B, C + 5, Hs * Ws)
+    g = torch.gather(feats, 2, index.reshape(B, 1, T * H * W).expand(B, C + 5, T * H * W))
+    g = g.reshape(B, C + 5, T, H, W)
+    g_val = g[:, :C]
+    z_src = g[:, C]  # BxTxHxW, 1 where no surface
+    n_src = g[:, C + 1:C + 4]  # Bx3xTxHxW
+    g_flags = g[:, C + 4]
+    src_ok = (g_flags == 1.0) | (g_flags == 3.0)
+    finite = g_flags >= 2.0
+
+    ki = Ks_inv.reshape(B, 9, 1, 1)
+    ut = xi + 0.5
+    vt = yi + 0.5
+    px = z_src * (ki[:, 0:1] * ut + ki[:, 1:2] * vt + ki[:, 2:3])
+    py = z_src * (ki[:, 4:5] * vt + ki[:, 5:6])
+    d_pos2 = (q[:, 0:1] - px).square() + (q[:, 1:2] - py).square() + (qz - z_src).square()
+    n_dst = _finite_or_zero(dst_normal.to(cd)).unsqueeze(2)  # Bx3x1xHxW
+    d_n2 = (n_src - n_dst).square().sum(1)  # BxTxHxW
+
+    thr_p = _as_scalar(position_threshold, d_pos2)
+    thr_n = _as_scalar(normal_threshold, d_n2)
+    pos_ok = d_pos2 <= thr_p * thr_p
+    nrm_ok = d_n2 <= thr_n * thr_n
+
+    pixel_ok = dst_ok & front  # Bx1xHxW
+    base_ok = pixel_ok & in_frame & src_ok & finite  # BxTxHxW: the tests that stay hard
+    hard = base_ok & pos_ok & nrm_ok
+    if soft:
+        tau = float(temperature)
+        tp2 = (thr_p * thr_p).clamp_min(torch.finfo(cd).tiny)
+        tn2 = (thr_n * thr_n).clamp_min(torch.finfo(cd).tiny)
+        a_soft = torch.sigmoid((tp2 - d_pos2) / (2 * tau * tp2)) * torch.sigmoid((tn2 - d_n2) / (2 * tau * tn2))
+        accept_w = torch.where(base_ok, a_soft, zero)
+    else:
+        accept_w = hard.to(cd)
+
+    ws = wts * accept_w  # BxTxHxW
+    den = ws.sum(1, keepdim=True)  # Bx1xHxW
+    num = (ws.unsqueeze(1) * g_val).sum(2)  # BxCxHxW (g_val is finite: sanitised above)
+    has_w = den > 0
+    values = torch.where(has_w, num / torch.where(has_w, den, one), zero)
+    valid = (wts * hard.to(cd)).sum(1, keepdim=True) > 0
+
+    # --- reason codes (uint8): first failing test per tap; invalid pixel -> max over taps with weight > 0.
+    def u8(r: Reason) -> Tensor:
+        return torch.full((), int(r), dtype=torch.uint8, device=dev)
+
+    code = torch.where(finite, u8(Reason.KEPT), u8(Reason.NONFINITE))
+    code = torch.where(nrm_ok, code, u8(Reason.NORMAL))
+    code = torch.where(pos_ok, code, u8(Reason.POSITION))
+    code = torch.where(src_ok, code, u8(Reason.NO_SURFACE_SRC))
+    code = torch.where(in_frame & (wts > 0), code, torch.where(wts > 0, u8(Reason.OUT_OF_FRAME), u8(Reason.KEPT)))
+    reason = code.amax(1, keepdim=True)
+    reason = torch.where(front, reason, u8(Reason.BEHIND_CAMERA))
+    reason = torch.where(dst_ok, reason, u8(Reason.NO_SURFACE_DST))
+    reason = torch.where(valid, u8(Reason.KEPT), reason)
+    return values.to(src_values.dtype), valid, reason, den
+
+
+def stereo_reproject(
+    src_color: Tensor,
+    src_depth: Tensor,
+    src_normal: Tensor,
+    src_K: Tensor,
+    src_cam_from_world: Tensor,
+    dst_depth: Tensor,
+    dst_normal: Tensor,
+    dst_K: Tensor,
+    dst_cam_from_world: Tensor,
+    position_threshold,
+    normal_threshold,
+    sampling: str = "bilinear",
+    soft: bool = False,
+    temperature: float = 0.1,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Reproject one eye into the other at the same instant (paper §4.1: right → left).
+
+    Args: as :func:`backward_reproject`, with ``src_color`` (B, 3, Hs, Ws).
+
+    Returns:
+        color: (B, 3, H, W) reprojected colour, 0 where discarded.
+        valid: (B, 1, H, W) bool.
+        reason: (B, 1, H, W) uint8 :class:`Reason`.
+
+    Example:
+        >>> import torch
+        >>> from stereorepro import stereo_reproject, intrinsics_from_fov
+        >>> K = intrinsics_from_fov(60.0, 8, 6); T = torch.eye(4)[None]
+        >>> depth = torch.full((1, 1, 6, 8), 2.0); normal = torch.zeros(1, 3, 6, 8); normal[:, 2] = -1
+        >>> color = torch.rand(1, 3, 6, 8)
+        >>> out, valid, reason = stereo_reproject(color, depth, normal, K, T, depth, normal, K, T, 0.01, 0.1)
+        >>> bool(torch.equal(out, color)), bool(valid.all()), int(reason.max())
+        (True, True, 0)
+    """
+    check_shape(src_color, ["B", "3", "H", "W"], "src_color")
+    color, valid, reason, _ = backward_reproject(
+        src_color, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal, dst_K,
+        dst_cam_from_world, position_threshold, normal_threshold, sampling, soft, temperature)
+    return color, valid, reason
+
+
+def temporal_blend(
+    current_color: Tensor,
+    history_color: Tensor,
+    history_len: Tensor,
+    confidence: Tensor,
+    alpha=0.2,
+    warmup: bool = True,
+    max_history: float = 255.0,
+) -> tuple[Tensor, Tensor]:
+    """Blend a (reprojected) history into the current frame: the paper's 20 % exponential moving average.
+
+    ``a = max(1 / (n + 1), alpha)`` with ``warmup`` (a running mean until the EMA weight is reached, as in BMFR,
+    the paper's group's code), else ``a = alpha``; ``out = (1 − a)·history + a·current``. Where the history is
+    discarded the output restarts from the current sample with ``n = 1``. With hard tests ``confidence`` is the
+    valid mask (0/1); with soft tests it is the accepted weight and the output mixes
+    ``confidence·blend + (1 − confidence)·current``.
+
+    Args:
+        current_color: (B, C, H, W) this frame's samples.
+        history_color: (B, C, H, W) history already warped into this frame.
+        history_len: (B, 1, H, W) accumulated sample count n of the warped history (float).
+        confidence: (B, 1, H, W) bool valid mask, or float in [0, 1].
+        alpha: minimum weight of the current frame, in (0, 1] (float or 0-d tensor; learnable).
+        warmup: use ``max(1/(n+1), alpha)`` instead of a fixed ``alpha``.
+        max_history: cap of n.
+
+    Returns:
+        color: (B, C, H, W), dtype of ``current_color``.
+        history_len: (B, 1, H, W) float, the new n (1 where restarted, capped at ``max_history``).
+    """
+    cd = _compute_dtype(current_color, history_color)
+    cur = current_color.to(cd)
+    hist = history_color.to(cd)
+    n = history_len.to(cd)
+    one = torch.ones((), dtype=cd, device=cur.device)
+    a_min = _as_scalar(alpha, n).clamp(0.0, 1.0)
+    a = torch.maximum(1.0 / (n.clamp_min(0.0) + 1.0), a_min) if warmup else a_min.expand_as(n)
+    blended = (1.0 - a) * hist + a * cur
+    n_next = torch.minimum(n + 1.0, _as_scalar(max_history, n))
+    if confidence.dtype == torch.bool:
+        out = torch.where(confidence, blended, cur)
+        n_out = torch.where(confidence, n_next, one)
+    else:
+        s = confidence.to(cd)
+        keep = s > 0
+        out = torch.where(keep, s * torch.where(keep, blended, cur) + (1.0 - s) * cur, cur)
+        n_out = torch.where(keep, s * n_next + (1.0 - s), one)
+    return out.to(current_color.dtype), n_out
+
+
+def temporal_reproject(
+    current_color: Tensor,
+    depth: Tensor,
+    normal: Tensor,
+    K: Tensor,
+    cam_from_world: Tensor,
+    history_color: Tensor,
+    history_len: Tensor,
+    prev_depth: Tensor,
+    prev_normal: Tensor,
+    prev_K: Tensor,
+    prev_cam_from_world: Tensor,
+    position_threshold,
+    normal_threshold,
+    alpha=0.2,
+    warmup: bool = True,
+    max_history: float = 255.0,
+    sampling: str = "bilinear",
+    soft: bool = False,
+    temperature: float = 0.1,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Temporal accumulation: warp the previous frame's history into this frame and blend (paper §4.1).
+
+    Args:
+        current_color: (B, 3, H, W) this frame's 1-spp colour.
+        depth, normal: (B, 1, H, W), (B, 3, H, W) this frame's G-buffer.
+        K, cam_from_world: (B, 3, 3), (B, 4, 4) this frame's camera.
+        history_color: (B, 3, Hp, Wp) accumulated colour of the previous frame.
+        history_len: (B, 1, Hp, Wp) its sample count (float; 0 = no history).
+        prev_depth, prev_normal, prev_K, prev_cam_from_world: the previous frame's G-buffer and camera.
+        position_threshold, normal_threshold, sampling, soft, temperature: see :func:`backward_reproject`.
+        alpha, warmup, max_history: see :func:`temporal_blend`.
+
+    Returns:
+        color: (B, 3, H, W) accumulated colour.
+        history_len: (B, 1, H, W) float sample count for the next frame.
+        valid: (B, 1, H, W) bool, where the history was kept.
+    """
+    bind: dict = {}
+    check_shape(current_color, ["B", "3", "H", "W"], "current_color", bind)
+    check_shape(depth, ["B", "1", "H", "W"], "depth", bind)
+    check_shape(normal, ["B", "3", "H", "W"], "normal", bind)
+    bind_p: dict = {"B": bind.get("B")} if bind else {}
+    check_shape(history_color, ["B", "3", "H", "W"], "history_color", bind_p)
+    check_shape(history_len, ["B", "1", "H", "W"], "history_len", bind_p)
+    check_floating(current_color, "current_color")
+    check_floating(history_len, "history_len")
+    values = torch.cat([history_color.to(_compute_dtype(history_color, history_len)),
+                        history_len.to(_compute_dtype(history_color, history_len))], 1)
+    warped, valid, _reason, conf = backward_reproject(
+        values, prev_depth, prev_normal, prev_K, prev_cam_from_world, depth, normal, K, cam_from_world,
+        position_threshold, normal_threshold, sampling, soft, temperature)
+    confidence = conf if soft else valid
+    color, n = temporal_blend(current_color, warped[:, :3], warped[:, 3:4], confidence, alpha, warmup, max_history)
+    return color, n, valid
+
+
+def reason_to_rgb(reason: Tensor) -> Tensor:
+    """Colour a reason map like the paper's Figure 1 (green position, cyan normal, red out of frame).
+
+    Args:
+        reason: (B, 1, H, W) uint8 :class:`Reason` codes.
+
+    Returns:
+        (B, 3, H, W) float32 RGB in [0, 1].
+    """
+    check_shape(reason, ["B", "1", "H", "W"], "reason")
+    lut = torch.tensor([REASON_COLORS[Reason(i)] for i in range(len(Reason))], dtype=torch.float32,
+                       device=reason.device)  # Rx3
+    rgb = lut[reason[:, 0].long().clamp(0, len(Reason) - 1)]  # BxHxWx3
+    return rgb.permute(0, 3, 1, 2).contiguous()
+
+
+def _threshold_param(value, learnable: bool) -> Tensor:
+    t = torch.as_tensor(float(value), dtype=torch.float32)
+    return nn.Parameter(t) if learnable else t
+
+
+class _ReprojectionBase(nn.Module):
+    def __init__(self, position_threshold: float, normal_threshold: float, sampling: str, soft: bool,
+                 temperature: float):
+        super().__init__()
+        if sampling not in _SAMPLINGS:
+            raise ValueError(f"sampling must be one of {_SAMPLINGS}, got {sampling!r}")
+        for name, val in (("position_threshold", position_threshold), ("normal_threshold", normal_threshold)):
+            if not float(val) > 0:
+                raise ValueError(f"{name} must be > 0, got {val}")
+        if soft and not temperature > 0:
+            raise ValueError(f"temperature must be > 0, got {temperature}")
+        self.sampling = sampling
+        self.soft = bool(soft)
+        self.temperature = float(temperature)
+        if soft:  # learnable
+            self.position_threshold = _threshold_param(position_threshold, True)
+            self.normal_threshold = _threshold_param(normal_threshold, True)
+        else:
+            self.register_buffer("position_threshold", _threshold_param(position_threshold, False))
+            self.register_buffer("normal_threshold", _threshold_param(normal_threshold, False))
+
+    def extra_repr(self) -> str:
+        return (f"position_threshold={float(self.position_threshold):g}, "
+                f"normal_threshold={float(self.normal_threshold):g}, sampling={self.sampling!r}, soft={self.soft}")
+
+
+class StereoReprojection(_ReprojectionBase):
+    """Stereo backward reprojection (one eye → the other) with discard masks. See :func:`stereo_reproject`.
+
+    Args:
+        position_threshold: max |P_src − P_dst| in scene units (the scene's limit; paper §4.1).
+        normal_threshold: max |N_src − N_dst| between unit shading normals.
+        sampling: ``"bilinear"`` or ``"nearest"``.
+        soft: smooth accept tests; the thresholds become learnable ``nn.Parameter``s.
+        temperature: softness relative to the thresholds.
+
+    Forward:
+        ``forward(src_color, src_depth, src_normal, src_K, src_cam_from_world,
+        dst_depth, dst_normal, dst_K, dst_cam_from_world) -> (color, valid, reason)`` with shapes
+        (B,3,Hs,Ws), (B,1,Hs,Ws), (B,3,Hs,Ws), (B,3,3), (B,4,4), (B,1,H,W), (B,3,H,W), (B,3,3), (B,4,4)
+        → (B,3,H,W), (B,1,H,W) bool, (B,1,H,W) uint8.
+    """
+
+    input_names = ["src_color", "src_depth", "src_normal", "src_K", "src_cam_from_world",
+                   "dst_depth", "dst_normal", "dst_K", "dst_cam_from_world"]
+    output_names = ["color", "valid", "reason"]
+
+    def __init__(self, position_threshold: float, normal_threshold: float, sampling: str = "bilinear",
+                 soft: bool = False, temperature: float = 0.1):
+        super().__init__(position_threshold, normal_threshold, sampling, soft, temperature)
+
+    def forward(self, src_color: Tensor, src_depth: Tensor, src_normal: Tensor, src_K: Tensor,
+                src_cam_from_world: Tensor, dst_depth: Tensor, dst_normal: Tensor, dst_K: Tensor,
+                dst_cam_from_world: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        return stereo_reproject(src_color, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal,
+                                dst_K, dst_cam_from_world, self.position_threshold, self.normal_threshold,
+                                self.sampling, self.soft, self.temperature)
+
+
+class TemporalReprojection(_ReprojectionBase):
+    """Temporal reprojection + EMA accumulation. See :func:`temporal_reproject`.
+
+    Args:
+        position_threshold, normal_threshold, sampling, soft, temperature: as :class:`StereoReprojection`.
+        alpha: minimum weight of the current frame (paper: 0.2); learnable when ``soft``.
+        warmup: running mean until the weight reaches ``alpha`` (BMFR); ``False`` = fixed EMA.
+        max_history: cap of the accumulated sample count.
+
+    Forward:
+        ``forward(current_color, depth, normal, K, cam_from_world, history_color, history_len, prev_depth,
+        prev_normal, prev_K, prev_cam_from_world) -> (color, history_len, valid)`` with shapes
+        (B,3,H,W), (B,1,H,W), (B,3,H,W), (B,3,3), (B,4,4), (B,3,H,W), (B,1,H,W), (B,1,H,W), (B,3,H,W),
+        (B,3,3), (B,4,4) → (B,3,H,W), (B,1,H,W) float, (B,1,H,W) bool.
+    """
+
+    input_names = ["current_color", "depth", "normal", "K", "cam_from_world", "history_color", "history_len",
+                   "prev_depth", "prev_normal", "prev_K", "prev_cam_from_world"]
+    output_names = ["color", "history_len_out", "valid"]
+
+    def __init__(self, position_threshold: float, normal_threshold: float, alpha: float = 0.2,
+                 warmup: bool = True, max_history: float = 255.0, sampling: str = "bilinear", soft: bool = False,
+                 temperature: float = 0.1):
+        super().__init__(position_threshold, normal_threshold, sampling, soft, temperature)
+        if not (0.0 < float(alpha) <= 1.0):
+            raise ValueError(f"alpha must be in (0, 1], got {alpha}")
+        if not max_history >= 1:
+            raise ValueError(f"max_history must be >= 1, got {max_history}")
+        self.warmup = bool(warmup)
+        self.max_history = float(max_history)
+        if soft:
+            self.alpha = nn.Parameter(torch.as_tensor(float(alpha), dtype=torch.float32))
+        else:
+            self.register_buffer("alpha", torch.as_tensor(float(alpha), dtype=torch.float32))
+
+    def extra_repr(self) -> str:
+        return super().extra_repr() + f", alpha={float(self.alpha):g}, warmup={self.warmup}, max_history={self.max_history:g}"
+
+    def forward(self, current_color: Tensor, depth: Tensor, normal: Tensor, K: Tensor, cam_from_world: Tensor,
+                history_color: Tensor, history_len: Tensor, prev_depth: Tensor, prev_normal: Tensor,
+                prev_K: Tensor, prev_cam_from_world: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        return temporal_reproject(current_color, depth, normal, K, cam_from_world, history_color, history_len,
+                                  prev_depth, prev_normal, prev_K, prev_cam_from_world, self.position_threshold,
+                                  self.normal_threshold, self.alpha, self.warmup, self.max_history, self.sampling,
+                                  self.soft, self.temperature)
