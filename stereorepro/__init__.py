@@ -28,3 +28,18 @@ from .reproject import (  # noqa: F401
     temporal_reproject,
 )
 from .onnx_export import export_onnx  # noqa: F401
+
+# --- metrics (stereorepro/metrics.py): image errors and effective spp ---
+from .metrics import (  # noqa: F401
+    EFFECTIVE_SPP_FLAGS,
+    EffectiveSppLadder,
+    effective_spp,
+    effective_spp_many,
+    fit_ladder,
+    ladder_rmse,
+    mse,
+    rmse,
+    ssim,
+    suggest_reference_spp,
+)
+# --- end metrics ---

@@ -39,7 +39,7 @@ def example_inputs(module: nn.Module, batch: int = 1, height: int = 24, width: i
     """
     from .synthetic import camera_pair, default_scene, raycast
 
-    dst, src = camera_pair(height, width, batch, baseline=0.065, forward=0.02 * (seed + 1), yaw_deg=0.5)
+    dst, src = camera_pair(height, width, batch, baseline=0.065, forward=0.05, yaw_deg=0.5)
     scene = default_scene()
     gd, gs = raycast(dst, scene), raycast(src, scene)
     g = torch.Generator().manual_seed(seed)

@@ -83,29 +83,45 @@ def _compute_dtype(*tensors: Tensor) -> torch.dtype:
     return torch.float64 if any(t.dtype == torch.float64 for t in tensors) else torch.float32
 
 
+_STEREO_NAMES = dict(src_values="src_color", src_depth="src_depth", src_normal="src_normal", src="src",
+                     dst_depth="dst_depth", dst_normal="dst_normal", dst="dst")
+_TEMPORAL_NAMES = dict(src_values="history_color", src_depth="prev_depth", src_normal="prev_normal", src="prev",
+                       dst_depth="depth", dst_normal="normal", dst="current")
+
+
 def _check_inputs(src_values, src_depth, src_normal, src_K, src_cam_from_world,
-                  dst_depth, dst_normal, dst_K, dst_cam_from_world, src_name="src_color") -> None:
+                  dst_depth, dst_normal, dst_K, dst_cam_from_world, names: dict) -> None:
+    """Boundary checks; ``names`` maps roles to the caller's argument names so errors name what the user passed."""
     bind_src: dict = {}
-    check_shape(src_values, ["B", "C", "H", "W"], src_name, bind_src)
-    check_shape(src_depth, ["B", "1", "H", "W"], "src_depth", bind_src)
-    check_shape(src_normal, ["B", "3", "H", "W"], "src_normal", bind_src)
-    bind_dst: dict = {"B": bind_src.get("B")} if bind_src else {}
-    check_shape(dst_depth, ["B", "1", "H", "W"], "dst_depth", bind_dst)
-    check_shape(dst_normal, ["B", "3", "H", "W"], "dst_normal", bind_dst)
-    check_camera(src_K, src_cam_from_world, "src", {"B": bind_src.get("B")} if bind_src else None)
-    check_camera(dst_K, dst_cam_from_world, "dst", {"B": bind_src.get("B")} if bind_src else None)
-    for name, t in (("src_color" if src_name == "src_color" else src_name, src_values), ("src_depth", src_depth),
-                    ("src_normal", src_normal), ("dst_depth", dst_depth), ("dst_normal", dst_normal)):
-        check_floating(t, name)
-    check_device(dict(src_color=src_values, src_depth=src_depth, src_normal=src_normal, src_K=src_K,
-                      src_cam_from_world=src_cam_from_world, dst_depth=dst_depth, dst_normal=dst_normal,
-                      dst_K=dst_K, dst_cam_from_world=dst_cam_from_world), "reprojection")
+    check_shape(src_values, ["B", "C", "H", "W"], names["src_values"], bind_src)
+    check_shape(src_depth, ["B", "1", "H", "W"], names["src_depth"], bind_src)
+    check_shape(src_normal, ["B", "3", "H", "W"], names["src_normal"], bind_src)
+    bind_b = {"B": bind_src["B"]} if "B" in bind_src else {}
+    check_shape(dst_depth, ["B", "1", "H", "W"], names["dst_depth"], dict(bind_b))
+    check_shape(dst_normal, ["B", "3", "H", "W"], names["dst_normal"], {**bind_b, "H": dst_depth.shape[-2],
+                                                                         "W": dst_depth.shape[-1]})
+    check_camera(src_K, src_cam_from_world, names["src"], dict(bind_b))
+    check_camera(dst_K, dst_cam_from_world, names["dst"], dict(bind_b))
+    for role, t in (("src_values", src_values), ("src_depth", src_depth), ("src_normal", src_normal),
+                    ("dst_depth", dst_depth), ("dst_normal", dst_normal)):
+        check_floating(t, names[role])
+    check_device({names["src_values"]: src_values, names["src_depth"]: src_depth,
+                  names["src_normal"]: src_normal, names["src"] + "_K": src_K,
+                  names["src"] + "_cam_from_world": src_cam_from_world, names["dst_depth"]: dst_depth,
+                  names["dst_normal"]: dst_normal, names["dst"] + "_K": dst_K,
+                  names["dst"] + "_cam_from_world": dst_cam_from_world}, "reprojection")
 
 
 def _as_scalar(x, like: Tensor) -> Tensor:
     if isinstance(x, Tensor):
         return x.to(device=like.device, dtype=like.dtype).reshape(())
-    return torch.tensor(float(x), device=like.device, dtype=like.dtype)
+    return torch.full((), float(x), device=like.device, dtype=like.dtype)
+
+
+def _snap(A: Tensor, tol: float = 1e-12) -> Tensor:
+    """Round entries within ``tol`` (relative) of an integer to it (float64 camera compositions)."""
+    r = torch.round(A)
+    return torch.where((A - r).abs() <= tol * (1.0 + A.abs()), r, A)
 
 
 def _finite_or_zero(x: Tensor) -> Tensor:
@@ -162,34 +178,43 @@ def backward_reproject(
         raise ValueError(f"sampling must be one of {_SAMPLINGS}, got {sampling!r}")
     if check:
         _check_inputs(src_values, src_depth, src_normal, src_K, src_cam_from_world,
-                      dst_depth, dst_normal, dst_K, dst_cam_from_world, "src_values")
+                      dst_depth, dst_normal, dst_K, dst_cam_from_world, dict(_STEREO_NAMES, src_values="src_values"))
     cd = _compute_dtype(src_values, src_depth, src_normal, dst_depth, dst_normal)
     dev = dst_depth.device
     B, C, Hs, Ws = src_values.shape
     H, W = dst_depth.shape[-2:]
 
-    # --- cameras, float64: src_cam <- dst_cam, and M = R @ K_dst^-1 so that p_src = z * M @ [u, v, 1] + t.
-    src_from_dst = src_cam_from_world.double() @ invert_rigid(dst_cam_from_world.double())
-    M = (src_from_dst[:, :3, :3] @ _inverse_intrinsics(dst_K.double())).to(cd)  # Bx3x3
-    t = src_from_dst[:, :3, 3].to(cd)  # Bx3
-    Ks = src_K.to(cd)
+    # --- cameras, composed once per batch item in float64:
+    #   q   = z · M @ [u, v, 1] + t          the destination point in the source camera frame (position test)
+    #   uvw = P @ [u, v, 1] + (K_src t) / z  its source pixel, homogeneous (u_s = uvw_x / uvw_z)
+    # with M = R K_dst^-1 and P = K_src M. Entries within 1e-12 of an integer are snapped, so identical cameras
+    # give P = I and t = 0 exactly: identity warps and integer-pixel shifts are bit-exact.
+    src_from_dst = _snap(src_cam_from_world.double() @ invert_rigid(dst_cam_from_world.double()))
+    M64 = src_from_dst[:, :3, :3] @ _inverse_intrinsics(dst_K.double())
+    t64 = src_from_dst[:, :3, 3:]
+    m = M64.to(cd).reshape(B, 3, 3, 1, 1)  # m[:, :, j] is column j as (B, 3, 1, 1)
+    t = t64.to(cd).reshape(B, 3, 1, 1)
+    p = _snap(src_K.double() @ M64).to(cd).reshape(B, 9, 1, 1)  # p[:, 3*i+j : 3*i+j+1] is P[i, j]
+    kt = (src_K.double() @ t64).to(cd).reshape(B, 3, 1, 1)
     Ks_inv = _inverse_intrinsics(src_K.double()).to(cd)
 
-    # --- destination points in the source camera frame.
+    # --- destination pixels → source pixels and source-camera points.
     z_dst = dst_depth.to(cd)
     dst_ok = has_surface(z_dst)  # Bx1xHxW
-    z_dst = torch.where(dst_ok, z_dst, torch.ones((), dtype=cd, device=dev))
-    v_c = torch.arange(H, device=dev, dtype=cd).view(1, H, 1) + 0.5
-    u_c = torch.arange(W, device=dev, dtype=cd).view(1, 1, W) + 0.5
-    Mv = M.view(B, 3, 3, 1, 1)
-    ray = Mv[:, :, 0] * u_c + Mv[:, :, 1] * v_c + Mv[:, :, 2]  # Bx3xHxW, ray * z = point (src cam, before +t)
-    q = ray * z_dst + t.view(B, 3, 1, 1)  # Bx3xHxW, destination points in the source camera frame
+    one = torch.ones((), dtype=cd, device=dev)
+    z_dst = torch.where(dst_ok, z_dst, one)
+    inv_z = 1.0 / z_dst
+    v_c = torch.arange(H, device=dev, dtype=cd).view(1, 1, H, 1) + 0.5
+    u_c = torch.arange(W, device=dev, dtype=cd).view(1, 1, 1, W) + 0.5
+    wx = p[:, 0:1] * u_c + p[:, 1:2] * v_c + p[:, 2:3] + kt[:, 0:1] * inv_z  # Bx1xHxW
+    wy = p[:, 3:4] * u_c + p[:, 4:5] * v_c + p[:, 5:6] + kt[:, 1:2] * inv_z
+    wz = p[:, 6:7] * u_c + p[:, 7:8] * v_c + p[:, 8:9] + kt[:, 2:3] * inv_z  # = q_z / z
+    front = wz > 0
+    wz = torch.where(front, wz, one)
+    u = wx / wz
+    v = wy / wz
+    q = (m[:, :, 0] * u_c + m[:, :, 1] * v_c + m[:, :, 2]) * z_dst + t  # Bx3xHxW
     qz = q[:, 2:3]
-    k = Ks.reshape(B, 9, 1, 1)  # k[:, 3*i+j : 3*i+j+1] is K[i, j] as (B, 1, 1, 1)
-    front = qz > 0
-    qz_safe = torch.where(front, qz, torch.ones((), dtype=cd, device=dev))
-    u = (k[:, 0:1] * q[:, 0:1] + k[:, 1:2] * q[:, 1:2]) / qz_safe + k[:, 2:3]  # Bx1xHxW
-    v = (k[:, 4:5] * q[:, 1:2]) / qz_safe + k[:, 5:6]
     front = front & torch.isfinite(u) & torch.isfinite(v)
     # Keep coordinates finite and in a small range: anything clamped is out of frame anyway.
     u = torch.where(front, u, torch.full((), -4.0, dtype=cd, device=dev)).clamp(-4.0, Ws + 4.0)
@@ -218,7 +243,6 @@ def backward_reproject(
     # channel at the taps: (B, C+5, T, H, W). Non-finite values and missing surfaces become finite
     # placeholders that the flags reject, so a rejected tap can never leak NaN/Inf (0 * NaN = NaN).
     zero = torch.zeros((), dtype=cd, device=dev)
-    one = torch.ones((), dtype=cd, device=dev)
     sv = src_values.to(cd)
     sv_finite = torch.isfinite(sv.sum(1, keepdim=True))  # any NaN/Inf in a pixel makes its sum non-finite
     sz = src_depth.to(cd)
@@ -320,9 +344,11 @@ def stereo_reproject(
         (True, True, 0)
     """
     check_shape(src_color, ["B", "3", "H", "W"], "src_color")
+    _check_inputs(src_color, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal, dst_K,
+                  dst_cam_from_world, _STEREO_NAMES)
     color, valid, reason, _ = backward_reproject(
         src_color, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal, dst_K,
-        dst_cam_from_world, position_threshold, normal_threshold, sampling, soft, temperature)
+        dst_cam_from_world, position_threshold, normal_threshold, sampling, soft, temperature, check=False)
     return color, valid, reason
 
 
@@ -423,11 +449,13 @@ def temporal_reproject(
     check_shape(history_len, ["B", "1", "H", "W"], "history_len", bind_p)
     check_floating(current_color, "current_color")
     check_floating(history_len, "history_len")
+    _check_inputs(history_color, prev_depth, prev_normal, prev_K, prev_cam_from_world, depth, normal, K,
+                  cam_from_world, _TEMPORAL_NAMES)
     values = torch.cat([history_color.to(_compute_dtype(history_color, history_len)),
                         history_len.to(_compute_dtype(history_color, history_len))], 1)
     warped, valid, _reason, conf = backward_reproject(
         values, prev_depth, prev_normal, prev_K, prev_cam_from_world, depth, normal, K, cam_from_world,
-        position_threshold, normal_threshold, sampling, soft, temperature)
+        position_threshold, normal_threshold, sampling, soft, temperature, check=False)
     confidence = conf if soft else valid
     color, n = temporal_blend(current_color, warped[:, :3], warped[:, 3:4], confidence, alpha, warmup, max_history)
     return color, n, valid
