@@ -43,3 +43,4 @@ from .metrics import (  # noqa: F401
     suggest_reference_spp,
 )
 # --- end metrics ---
+from .pipeline import SpatiotemporalReprojection  # noqa: F401
