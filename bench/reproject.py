@@ -1,0 +1,107 @@
+"""Reprojection speed at 1280×720: torch eager, native (when built), onnxruntime, kornia's bare warp, and the
+copy floor, on the same realistic inputs, in one run. Writes bench/results/reproject.{json,md}.
+
+    python bench/reproject.py [--height 720 --width 1280 --repeats 7]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import header, save, time_ms  # noqa: E402
+
+from stereorepro import StereoReprojection, TemporalReprojection, export_onnx  # noqa: E402
+from stereorepro.onnx_export import example_inputs  # noqa: E402
+
+
+def copy_floor(n_bytes: int, repeats: int) -> dict:
+    src = torch.empty(n_bytes // 4, dtype=torch.float32).uniform_()
+    dst = torch.empty_like(src)
+    return time_ms(lambda: dst.copy_(src), repeats)
+
+
+def module_backends(cls, **kw):
+    """(label, module) for each backend the module supports here."""
+    out = []
+    try:
+        out.append(("torch", cls(**kw, backend="torch")))
+        from stereorepro import native
+
+        if native.available():
+            out.append(("native", cls(**kw, backend="native")))
+    except TypeError:  # modules without a backend argument
+        out.append(("torch", cls(**kw)))
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--height", type=int, default=720)
+    ap.add_argument("--width", type=int, default=1280)
+    ap.add_argument("--repeats", type=int, default=7)
+    ap.add_argument("--no-onnx", action="store_true")
+    args = ap.parse_args(argv)
+    H, W, R = args.height, args.width, args.repeats
+    rows = []
+    px = H * W
+    # bytes the op must read + write per pixel (float32 images, bool valid, uint8 reason)
+    bytes_stereo = px * 4 * (3 + 1 + 3 + 1 + 3 + 3) + px * 2
+    bytes_temporal = px * 4 * (3 + 1 + 3 + 1 + 3 + 3 + 1 + 3 + 1) + px * 1
+    floors = {"stereo": copy_floor(bytes_stereo, R), "temporal": copy_floor(bytes_temporal, R)}
+    for name, cls in (("stereo", StereoReprojection), ("temporal", TemporalReprojection)):
+        for label, m in module_backends(cls, position_threshold=0.05, normal_threshold=0.3):
+            inp = example_inputs(m, batch=1, height=H, width=W)
+            with torch.inference_mode():
+                t = time_ms(lambda: m(*inp), R)
+            rows.append({"op": name, "impl": f"{label} eager", **t})
+        if not args.no_onnx:
+            try:
+                import onnxruntime as ort
+
+                m = cls(position_threshold=0.05, normal_threshold=0.3)
+                inp = example_inputs(m, batch=1, height=H, width=W)
+                with tempfile.TemporaryDirectory() as d:
+                    path = export_onnx(m, Path(d) / f"{name}.onnx")
+                    so = ort.SessionOptions()
+                    so.intra_op_num_threads = torch.get_num_threads()
+                    sess = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+                    feed = {n: x.numpy() for n, x in zip(m.input_names, inp)}
+                    t = time_ms(lambda: sess.run(None, feed), R)
+                rows.append({"op": name, "impl": "onnxruntime", **t})
+            except ImportError:
+                pass
+        rows.append({"op": name, "impl": "copy floor", **floors[name]})
+    try:
+        from kornia.geometry.depth import warp_frame_depth
+
+        m = StereoReprojection(0.05, 0.3)
+        inp = dict(zip(m.input_names, example_inputs(m, batch=1, height=H, width=W)))
+        src_from_dst = inp["src_cam_from_world"] @ torch.linalg.inv(inp["dst_cam_from_world"])
+        depth = torch.where(torch.isfinite(inp["dst_depth"]), inp["dst_depth"], torch.ones(()))
+        with torch.inference_mode():
+            t = time_ms(lambda: warp_frame_depth(inp["src_color"], depth, src_from_dst, inp["dst_K"]), R)
+        rows.append({"op": "stereo", "impl": "kornia warp_frame_depth (warp only)", **t})
+    except ImportError:
+        pass
+    for r in rows:
+        r["x_floor"] = r["median_ms"] / floors[r["op"]]["median_ms"]
+    record = {**header(), "resolution": f"{W}x{H}", "rows": rows,
+              "floor_bytes": {"stereo": bytes_stereo, "temporal": bytes_temporal}}
+    lines = ["| op | implementation | median ms | min ms | × copy floor |", "|---|---|---:|---:|---:|"]
+    for r in rows:
+        lines.append(f"| {r['op']} | {r['impl']} | {r['median_ms']:.1f} | {r['min_ms']:.1f} | {r['x_floor']:.1f} |")
+    table = f"Reprojection at {W}×{H}, B=1, float32, median of {R} after warm-up.\n\n" + "\n".join(lines) + "\n"
+    j, md = save("reproject", record, table)
+    print(table)
+    print(f"wrote {j} and {md}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
