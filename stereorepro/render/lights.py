@@ -70,6 +70,11 @@ class LightSet:
         self.pdf_area_face = np.zeros(emitters.num_faces, np.float32)
         if self.num_area:
             self.pdf_area_face[emitters.face_index] = (self.prob[:self.num_area] / emitters.area).astype(np.float32)
+        # One gather table per area light (float32): v0, e1, e2, normal, radiance (3 each), selection pdf / area.
+        E = emitters
+        self._table = np.concatenate([E.v0, E.e1, E.e2, E.normal, E.radiance,
+                                      (self.prob[:self.num_area] / np.maximum(E.area, 1e-30))[:, None]],
+                                     axis=1).astype(np.float32) if self.num_area else np.zeros((0, 16), np.float32)
 
     def sample(self, points: np.ndarray, u_sel: np.ndarray, u1: np.ndarray, u2: np.ndarray):
         """Sample one light per shading point.
@@ -89,15 +94,16 @@ class LightSet:
         li = np.zeros((n, 3), np.float32)
         pdf = np.full(n, np.inf, np.float32)
         is_area = sel < self.num_area
-        a = np.nonzero(is_area)[0]
-        E = self.emitters
-        if len(a):
-            k = sel[a]
+        all_area = len(self.point_pos) == 0
+        a = slice(None) if all_area else np.nonzero(is_area)[0]
+        na = n if all_area else len(a)
+        if na:
+            T = self._table[sel[a]]  # one gather: (na, 16)
             su = np.sqrt(u1[a])
             b1 = (su * (np.float32(1) - u2[a]))[:, None]
             b2 = (su * u2[a])[:, None]
-            target[a] = E.v0[k] + b1 * E.e1[k] + b2 * E.e2[k]
-        p = np.nonzero(~is_area)[0]
+            target[a] = T[:, 0:3] + b1 * T[:, 3:6] + b2 * T[:, 6:9]
+        p = np.zeros(0, np.int64) if all_area else np.nonzero(~is_area)[0]
         if len(p):
             target[p] = self.point_pos[sel[p] - self.num_area]
         delta = target - points
@@ -105,14 +111,15 @@ class LightSet:
         dist = np.sqrt(d2)
         safe = np.where(dist > 0, dist, np.float32(1))
         wi = delta / safe[:, None]
-        if len(a):
-            k = sel[a]
-            nl = E.normal[k]
-            cos_l = np.abs(nl[:, 0] * wi[a, 0] + nl[:, 1] * wi[a, 1] + nl[:, 2] * wi[a, 2])
-            pdf_a = (self.prob[k] / E.area[k]).astype(np.float32) * d2[a] / np.maximum(cos_l, np.float32(1e-12))
-            ok = (cos_l > 1e-7) & (d2[a] > 0)
+        if na:
+            wa = wi[a]
+            cos_l = np.abs(T[:, 9] * wa[:, 0] + T[:, 10] * wa[:, 1] + T[:, 11] * wa[:, 2])
+            d2a = d2[a]
+            pdf_a = T[:, 15] * d2a / np.maximum(cos_l, np.float32(1e-12))
+            ok = (cos_l > 1e-7) & (d2a > 0)
             pdf[a] = np.where(ok, pdf_a, np.float32(np.inf))
-            li[a] = np.where(ok[:, None], E.radiance[k] / np.where(ok, pdf_a, np.float32(1))[:, None], 0)
+            li[a] = T[:, 12:15] * np.where(ok, np.float32(1) / np.where(ok, pdf_a, np.float32(1)),
+                                            np.float32(0))[:, None]
         if len(p):
             k = sel[p] - self.num_area
             ok = d2[p] > 0

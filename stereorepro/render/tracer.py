@@ -362,7 +362,8 @@ class PathTracer:
         f, cos_i, pdf_b = self._bsdf_eval(mat, n, wo, wi)
         val = f * (li * np.maximum(cos_i, np.float32(0))[:, None])
         if mis:
-            w = np.where(np.isinf(pdf_l), np.float32(1), pdf_l / (pdf_l + pdf_b))
+            with np.errstate(invalid="ignore", divide="ignore"):
+                w = np.where(np.isinf(pdf_l), np.float32(1), pdf_l / (pdf_l + pdf_b))
             val = val * w.astype(np.float32)[:, None]
         ok = (cos_i > 0) & (dist > 2 * self.eps) & (val.max(axis=1) > 0)
         tmax = dist - np.float32(2) * self.eps

@@ -1,0 +1,86 @@
+"""Sub-commands ``stereorepro scenes`` and ``stereorepro render``."""
+
+from __future__ import annotations
+
+import os
+
+
+def _size(s: str) -> tuple[int, int]:
+    import argparse
+
+    try:
+        w, h = s.lower().split("x")
+        w, h = int(w), int(h)
+        if w < 1 or h < 1:
+            raise ValueError
+        return w, h
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT (e.g. 320x180), got {s!r}") from None
+
+
+def _cmd_scenes(args) -> int:
+    from ..scenes import SceneError, list_scenes, load_scene
+
+    for name in list_scenes(include_external=args.all):
+        try:
+            s = load_scene(name)
+            effects = ",".join(sorted(s.effects)) or "diffuse"
+            print(f"{name:28s} {effects:14s} frames={s.num_frames:<4d} {s.description}")
+        except SceneError as e:
+            print(f"{name:28s} unavailable: {e}")
+    return 0
+
+
+def _cmd_render(args) -> int:
+    from ..cli import UserError
+    from ..scenes import SceneError, load_scene
+    from .exr import write_exr
+    from .tracer import PathTracer
+
+    if args.shared_scenes:
+        os.environ["STEREOREPRO_SHARED_SCENES"] = args.shared_scenes
+    if args.spp < 1:
+        raise UserError(f"--spp must be >= 1, got {args.spp}")
+    if not args.out.lower().endswith(".exr"):
+        raise UserError(f"--out must be an .exr file, got {args.out}")
+    try:
+        scene = load_scene(args.scene)
+        if not (0 <= args.frame < scene.num_frames):
+            raise UserError(f"--frame must be in [0, {scene.num_frames}) for scene {scene.name}, got {args.frame}")
+        w, h = args.resolution
+        left, right = scene.stereo_cameras(args.frame, w, h)
+        cam = {"left": left, "right": right, "head": scene.camera(args.frame, w, h)}[args.eye]
+        tracer = PathTracer(scene, seed=args.seed, workers=args.workers)
+        res = tracer.render(cam, args.frame, args.spp, sample_offset=args.sample_offset,
+                            eye=1 if args.eye == "right" else 0, progress=not args.quiet)
+    except SceneError as e:
+        raise UserError(str(e)) from None
+    try:
+        write_exr(args.out, res)
+    except OSError as e:
+        raise UserError(f"cannot write {args.out}: {e}") from None
+    if not args.quiet:
+        rays = sum(res.ray_counts.values())
+        print(f"{args.out}: {w}x{h} {args.spp} spp in {res.time_s:.2f} s ({rays / res.time_s / 1e6:.2f} Mrays/s)")
+    return 0
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("scenes", help="list the built-in scenes")
+    p.add_argument("--all", action="store_true", help="also list the scenes that need the shared meshes")
+    p.set_defaults(func=_cmd_scenes)
+
+    p = subparsers.add_parser("render", help="path trace one frame of a scene to an EXR")
+    p.add_argument("--scene", required=True, help="built-in scene name or path to a .toml")
+    p.add_argument("--frame", type=int, default=0)
+    p.add_argument("--spp", type=int, default=1)
+    p.add_argument("--resolution", type=_size, default=(320, 180), metavar="WxH")
+    p.add_argument("--out", required=True, help="output .exr (R,G,B, Z, N.X/Y/Z, P.X/Y/Z)")
+    p.add_argument("--eye", choices=("left", "right", "head"), default="left")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--sample-offset", type=int, default=0)
+    p.add_argument("--workers", type=int, default=None)
+    p.add_argument("--shared-scenes", default=None,
+                   help="folder of the shared meshes (overrides $STEREOREPRO_SHARED_SCENES)")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=_cmd_render)

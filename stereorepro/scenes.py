@@ -1,0 +1,553 @@
+"""Declarative scenes: ``scenes/*.toml`` files and their loader.
+
+A scene file (TOML) declares geometry, materials, lights, a camera path over ``num_frames`` frames, the stereo
+rig, the scene's reprojection thresholds and the ``effects`` it needs. Only declared effects are simulated (see
+:class:`stereorepro.render.PathTracer`). Keys (unknown keys or wrong types are errors naming file, key and the
+expected type)::
+
+    name = "atrium"                 # default: the file name without .toml
+    extends = "atrium.toml"         # optional base file (tables merged recursively, other values replaced)
+    description = "..."
+    effects = ["glossy"]            # subset of {"glossy", "moving_light"}
+    num_frames = 60
+
+    [geometry]
+    generator = "atrium"            # a built-in generator (stereorepro.render.procedural), or
+    mesh = "$STEREOREPRO_SHARED_SCENES/classroom/classroom.ply"   # a trimesh-loadable file
+    sidecar = "classroom.json"      # materials for the mesh's per-face ids (default: mesh path with .json)
+    scale = 1.0
+    [[geometry.quads]]              # extra parallelograms (e.g. area lights): corner, edge_u, edge_v, material
+    [[geometry.boxes]]              # extra axis-aligned boxes: min, max, material
+
+    [materials.NAME]                # albedo (diffuse RGB), specular + exponent (glossy lobe), emission (RGB)
+
+    [[lights]]                      # point lights: intensity (W/sr RGB) and position, or keyframes (moving)
+    [camera]                        # vfov_deg, up, positions = [[x,y,z],...], targets = [[x,y,z],...]
+    [rig]                           # eye_separation (scene units), convergence_distance (optional)
+    [reprojection]                  # position_threshold (scene units), normal_threshold (unit-normal distance)
+
+Camera and light keyframes are control points of a uniform Catmull-Rom spline over the sequence (frame 0 at the
+first point, the last frame at the last point): smooth curves through the points.
+
+``$STEREOREPRO_SHARED_SCENES`` in a mesh path expands to that environment variable, or to ``../shared/scenes``
+beside the repository when it is unset.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import threading
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .camera import PinholeCamera, StereoRig, intrinsics_from_fov, look_at
+
+__all__ = ["Scene", "SceneError", "SceneGeometry", "list_scenes", "load_scene", "scenes_dir",
+           "shared_scenes_dir", "KNOWN_EFFECTS"]
+
+KNOWN_EFFECTS = frozenset({"glossy", "moving_light"})
+BUILTIN_SCENES = ("atrium", "atrium_glossy", "atrium_moving_light", "living_room", "living_room_glossy",
+                  "living_room_moving_light", "classroom")
+EXTERNAL_SCENES = ("shared_sponza", "shared_living_room", "shared_classroom")
+SHARED_ENV = "STEREOREPRO_SHARED_SCENES"
+
+
+class SceneError(ValueError):
+    """A scene file is missing, malformed or inconsistent (the message names the file and the key)."""
+
+
+# ----------------------------------------------------------------------------------------------- locations
+def scenes_dir() -> Path:
+    """Folder of the built-in scene files: ``$STEREOREPRO_SCENES_DIR``, else ``scenes/`` of the repository
+    (found relative to this package: repository layout and editable installs), else ``./scenes``."""
+    cands = []
+    if os.environ.get("STEREOREPRO_SCENES_DIR"):
+        cands.append(Path(os.environ["STEREOREPRO_SCENES_DIR"]))
+    here = Path(__file__).resolve().parent
+    cands += [here.parent / "scenes", here / "scenes", Path.cwd() / "scenes"]
+    for c in cands:
+        if (c / "atrium.toml").is_file():
+            return c
+    raise SceneError("cannot find the built-in scene files (scenes/*.toml); looked in "
+                     + ", ".join(str(c) for c in cands) + "; set STEREOREPRO_SCENES_DIR")
+
+
+def shared_scenes_dir() -> Path:
+    """Folder of the external meshes: ``$STEREOREPRO_SHARED_SCENES`` or ``../shared/scenes`` beside the repo."""
+    env = os.environ.get(SHARED_ENV)
+    if env:
+        return Path(env)
+    return Path(__file__).resolve().parent.parent.parent / "shared" / "scenes"
+
+
+def list_scenes(include_external: bool = False) -> list[str]:
+    """Names of the built-in scenes (the paper's seven variants); with ``include_external`` also the scenes that
+    need the shared meshes (``shared_*``)."""
+    return list(BUILTIN_SCENES) + (list(EXTERNAL_SCENES) if include_external else [])
+
+
+# ----------------------------------------------------------------------------------------------- schema
+_VEC3 = "vec3"
+_SCHEMA = {
+    "name": "str", "extends": "str", "description": "str", "effects": "strlist", "num_frames": "int",
+    "geometry": ("table", {
+        "generator": "str", "mesh": "str", "sidecar": "str", "scale": "float",
+        "quads": ("tablelist", {"corner": _VEC3, "edge_u": _VEC3, "edge_v": _VEC3, "material": "str"}),
+        "boxes": ("tablelist", {"min": _VEC3, "max": _VEC3, "material": "str"}),
+    }),
+    "materials": ("tablemap", {"albedo": _VEC3, "specular": _VEC3, "exponent": "float", "emission": _VEC3}),
+    "lights": ("tablelist", {"type": "str", "intensity": _VEC3, "position": _VEC3, "keyframes": "vec3list"}),
+    "camera": ("table", {"vfov_deg": "float", "up": _VEC3, "positions": "vec3list", "targets": "vec3list"}),
+    "rig": ("table", {"eye_separation": "float", "convergence_distance": "float"}),
+    "reprojection": ("table", {"position_threshold": "float", "normal_threshold": "float"}),
+}
+_DESCR = {"str": "a string", "int": "an integer", "float": "a number", "strlist": "a list of strings",
+          _VEC3: "a list of 3 numbers", "vec3list": "a non-empty list of [x, y, z] lists",
+          "table": "a table", "tablelist": "an array of tables ([[...]])", "tablemap": "a table of tables"}
+
+
+def _num(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def _type_ok(kind: str, v) -> bool:
+    if kind == "str":
+        return isinstance(v, str)
+    if kind == "int":
+        return isinstance(v, int) and not isinstance(v, bool)
+    if kind == "float":
+        return _num(v)
+    if kind == "strlist":
+        return isinstance(v, list) and all(isinstance(s, str) for s in v)
+    if kind == _VEC3:
+        return isinstance(v, list) and len(v) == 3 and all(_num(a) for a in v)
+    if kind == "vec3list":
+        return isinstance(v, list) and len(v) > 0 and all(_type_ok(_VEC3, p) for p in v)
+    raise AssertionError(kind)
+
+
+def _validate(data: dict, schema: dict, file: str, prefix: str = "") -> None:
+    for key, value in data.items():
+        path = f"{prefix}{key}"
+        if key not in schema:
+            raise SceneError(f"{file}: unknown key '{path}' (expected one of: {', '.join(sorted(schema))})")
+        spec = schema[key]
+        if isinstance(spec, tuple):
+            kind, sub = spec
+            if kind == "table":
+                if not isinstance(value, dict):
+                    raise SceneError(f"{file}: key '{path}': expected {_DESCR[kind]}, got {type(value).__name__}")
+                _validate(value, sub, file, path + ".")
+            elif kind == "tablelist":
+                if not (isinstance(value, list) and all(isinstance(t, dict) for t in value)):
+                    raise SceneError(f"{file}: key '{path}': expected {_DESCR[kind]}, got {type(value).__name__}")
+                for i, t in enumerate(value):
+                    _validate(t, sub, file, f"{path}[{i}].")
+            elif kind == "tablemap":
+                if not (isinstance(value, dict) and all(isinstance(t, dict) for t in value.values())):
+                    raise SceneError(f"{file}: key '{path}': expected {_DESCR[kind]}, got {type(value).__name__}")
+                for name, t in value.items():
+                    _validate(t, sub, file, f"{path}.{name}.")
+        elif not _type_ok(spec, value):
+            raise SceneError(f"{file}: key '{path}': expected {_DESCR[spec]}, got {value!r}")
+
+
+def _merge(base: dict, child: dict) -> dict:
+    out = dict(base)
+    for k, v in child.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def _read_toml(path: Path, seen=()) -> dict:
+    if path in seen:
+        raise SceneError(f"{path}: 'extends' forms a cycle")
+    try:
+        with open(path, "rb") as f:
+            data = tomllib.load(f)
+    except FileNotFoundError:
+        raise SceneError(f"{path}: scene file not found") from None
+    except tomllib.TOMLDecodeError as e:
+        raise SceneError(f"{path}: invalid TOML: {e}") from None
+    _validate(data, _SCHEMA, str(path))
+    if "extends" in data:
+        base_path = (path.parent / data["extends"]).resolve()
+        base = _read_toml(base_path, seen + (path,))
+        base.pop("name", None)
+        data = _merge(base, {k: v for k, v in data.items() if k != "extends"})
+    return data
+
+
+def _req(data: dict, key: str, file: str, what: str):
+    cur = data
+    for part in key.split("."):
+        if not isinstance(cur, dict) or part not in cur:
+            raise SceneError(f"{file}: missing key '{key}' ({what})")
+        cur = cur[part]
+    return cur
+
+
+# ----------------------------------------------------------------------------------------------- splines
+def catmull_rom(points: np.ndarray, t: float) -> np.ndarray:
+    """Point at ``t`` in [0, 1] on the uniform Catmull-Rom spline through ``points`` (P, 3) (ends clamped)."""
+    P = np.asarray(points, np.float64)
+    if len(P) == 1:
+        return P[0].copy()
+    s = min(max(float(t), 0.0), 1.0) * (len(P) - 1)
+    i = min(int(math.floor(s)), len(P) - 2)
+    u = s - i
+    p0, p1, p2, p3 = P[max(i - 1, 0)], P[i], P[i + 1], P[min(i + 2, len(P) - 1)]
+    if i == 0:
+        p0 = 2 * p1 - p2
+    if i + 2 > len(P) - 1:
+        p3 = 2 * p2 - p1
+    u2, u3 = u * u, u * u * u
+    return 0.5 * ((2 * p1) + (-p0 + p2) * u + (2 * p0 - 5 * p1 + 4 * p2 - p3) * u2 + (-p0 + 3 * p1 - 3 * p2 + p3) * u3)
+
+
+# ----------------------------------------------------------------------------------------------- scene
+@dataclass(frozen=True)
+class SceneGeometry:
+    """Triangle soup of a scene.
+
+    Attributes:
+        vertices: (V, 3) float32 world positions; faces: (F, 3) int32; material_ids: (F,) int32.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    material_ids: np.ndarray
+
+
+@dataclass(frozen=True)
+class _Material:
+    name: str
+    albedo: tuple
+    specular: tuple = (0.0, 0.0, 0.0)
+    exponent: float = 1.0
+    emission: tuple = (0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class _PointLight:
+    intensity: np.ndarray        # (3,)
+    keyframes: np.ndarray        # (P, 3); one row = static
+
+
+@dataclass
+class Scene:
+    """A loaded scene. Build with :func:`load_scene`.
+
+    Attributes:
+        name: scene name; effects: frozenset of declared effects; num_frames: frames of the camera path.
+        vfov_deg: vertical field of view; rig: :class:`~stereorepro.camera.StereoRig`.
+        position_threshold: reprojection limit on ``|P_src - P_dst|`` (scene units).
+        normal_threshold: reprojection limit on ``|N_src - N_dst|`` (unit normals).
+        source: the scene file.
+    """
+
+    name: str
+    effects: frozenset
+    num_frames: int
+    vfov_deg: float
+    rig: StereoRig
+    position_threshold: float
+    normal_threshold: float
+    source: Path
+    description: str = ""
+    _data: dict = field(default_factory=dict, repr=False)
+    _materials: list = field(default_factory=list, repr=False)
+    _lights: list = field(default_factory=list, repr=False)
+    _geometry: SceneGeometry | None = field(default=None, repr=False)
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+    # camera ---------------------------------------------------------------------------------------
+    def _t(self, frame: int) -> float:
+        if not (0 <= int(frame) < self.num_frames):
+            raise ValueError(f"scene {self.name}: frame must be in [0, {self.num_frames}), got {frame}")
+        return int(frame) / max(self.num_frames - 1, 1)
+
+    def head_pose(self, frame: int) -> torch.Tensor:
+        """``cam_from_world`` (1, 4, 4) float64 of the head (cyclopean eye) at ``frame``."""
+        cam = self._data["camera"]
+        t = self._t(frame)
+        eye = catmull_rom(np.array(cam["positions"]), t)
+        target = catmull_rom(np.array(cam["targets"]), t)
+        up = np.array(cam.get("up", [0.0, 1.0, 0.0]), np.float64)
+        as_t = lambda a: torch.tensor(a, dtype=torch.float64).reshape(1, 3)  # noqa: E731
+        return look_at(as_t(eye), as_t(target), as_t(up))
+
+    def intrinsics(self, width: int, height: int) -> torch.Tensor:
+        """K (1, 3, 3) float64 of the scene's field of view at the given image size."""
+        return intrinsics_from_fov(self.vfov_deg, width, height, dtype=torch.float64)
+
+    def camera(self, frame: int, width: int, height: int) -> PinholeCamera:
+        """The head (cyclopean) camera, B = 1."""
+        return PinholeCamera(self.intrinsics(width, height), self.head_pose(frame), height, width)
+
+    def stereo_cameras(self, frame: int, width: int, height: int) -> tuple[PinholeCamera, PinholeCamera]:
+        """(left, right) :class:`PinholeCamera` (B = 1, float64) of the stereo rig at ``frame``."""
+        return self.rig.cameras(self.head_pose(frame), self.intrinsics(width, height), height, width)
+
+    # lights and materials -------------------------------------------------------------------------
+    def point_lights(self, frame: int) -> tuple[np.ndarray, np.ndarray]:
+        """Point lights at ``frame``: positions (L, 3) and intensities (L, 3), float32."""
+        t = self._t(frame)
+        pos = [catmull_rom(li.keyframes, t) for li in self._lights]
+        inten = [li.intensity for li in self._lights]
+        return (np.array(pos, np.float32).reshape(-1, 3), np.array(inten, np.float32).reshape(-1, 3))
+
+    def material_table(self) -> dict:
+        """Materials as arrays: ``names`` (M,), ``albedo``/``specular``/``emission`` (M, 3), ``exponent`` (M,)."""
+        ms = self._materials
+        return {"names": [m.name for m in ms],
+                "albedo": np.array([m.albedo for m in ms], np.float32).reshape(-1, 3),
+                "specular": np.array([m.specular for m in ms], np.float32).reshape(-1, 3),
+                "exponent": np.array([m.exponent for m in ms], np.float32).reshape(-1),
+                "emission": np.array([m.emission for m in ms], np.float32).reshape(-1, 3)}
+
+    # geometry -------------------------------------------------------------------------------------
+    def geometry(self) -> SceneGeometry:
+        """The scene's triangles (loaded or generated once, then cached)."""
+        with self._lock:
+            if self._geometry is None:
+                self._geometry = _build_geometry(self)
+            return self._geometry
+
+
+def _vec(v) -> tuple:
+    return tuple(float(a) for a in v)
+
+
+_SIDECAR_GLOSSY = {"plastic": (0.04, 200.0), "glossy_black": (0.04, 100.0)}
+
+
+def _sidecar_materials(path: Path, glossy: bool, file: str) -> tuple[list[_Material], set[int]]:
+    """Materials of a shared-scene JSON sidecar. Returns (materials by id, ids whose faces are dropped).
+
+    Mapping: diffuse → Lambert; plastic / glossy_black → Lambert + a dielectric-like lobe (ks 0.04) when glossy;
+    metal → a glossy lobe with the base colour when glossy (Lambert otherwise); emitter → emission;
+    dielectric (glass) → dropped (no refraction here: windows let light through).
+    """
+    try:
+        side = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise SceneError(f"{file}: geometry.sidecar: file not found: {path}") from None
+    except json.JSONDecodeError as e:
+        raise SceneError(f"{file}: geometry.sidecar: invalid JSON in {path}: {e}") from None
+    mats, dropped = [], set()
+    for i, m in enumerate(side.get("materials", [])):
+        base = tuple(min(float(c), 0.95) for c in m.get("base_color_linear", [0.5, 0.5, 0.5]))
+        kind = m.get("type", "diffuse")
+        name = str(m.get("name", f"mat{i}"))
+        if kind == "emitter":
+            mats.append(_Material(name, (0.0, 0.0, 0.0), emission=_vec(m.get("emission_linear", [1, 1, 1]))))
+        elif kind == "dielectric":
+            dropped.add(i)
+            mats.append(_Material(name, base))
+        elif glossy and kind in _SIDECAR_GLOSSY:
+            ks, e = _SIDECAR_GLOSSY[kind]
+            mats.append(_Material(name, tuple(c * (1 - ks) for c in base), (ks, ks, ks), e))
+        elif glossy and kind == "metal":
+            mats.append(_Material(name, tuple(0.1 * c for c in base), tuple(0.85 * c for c in base), 300.0))
+        else:
+            mats.append(_Material(name, base))
+    return mats, dropped
+
+
+def _expand_path(s: str, base: Path) -> Path:
+    s = s.replace("${" + SHARED_ENV + "}", str(shared_scenes_dir())).replace("$" + SHARED_ENV,
+                                                                              str(shared_scenes_dir()))
+    p = Path(os.path.expanduser(s))
+    return p if p.is_absolute() else (base / p)
+
+
+def _build_geometry(scene: Scene) -> SceneGeometry:
+    from .render.procedural import GENERATORS, MeshBuilder
+
+    data, file = scene._data, str(scene.source)
+    geo = data.get("geometry", {})
+    names = [m.name for m in scene._materials]
+    verts, faces, mids = [], [], []
+    nv = 0
+    if "generator" in geo:
+        gen = geo["generator"]
+        if gen not in GENERATORS:
+            raise SceneError(f"{file}: geometry.generator: unknown generator {gen!r} "
+                             f"(expected one of: {', '.join(sorted(GENERATORS))})")
+        b = GENERATORS[gen]()
+        try:
+            v, f, m = b.build(names)
+        except KeyError as e:
+            raise SceneError(f"{file}: materials: {e.args[0]}") from None
+        verts.append(v), faces.append(f), mids.append(m)
+        nv += len(v)
+    if "mesh" in geo:
+        v, f, m = _load_mesh(scene, geo, file)
+        verts.append(v), faces.append(f + nv), mids.append(m)
+        nv += len(v)
+    extra = MeshBuilder()
+    for q in geo.get("quads", []):
+        extra.quad(q["corner"], q["edge_u"], q["edge_v"], q["material"])
+    for bx in geo.get("boxes", []):
+        extra.box(bx["min"], bx["max"], bx["material"])
+    if extra.material_names:
+        try:
+            v, f, m = extra.build(names)
+        except KeyError as e:
+            raise SceneError(f"{file}: geometry: {e.args[0]}") from None
+        verts.append(v), faces.append(f + nv), mids.append(m)
+    if not faces or sum(len(f) for f in faces) == 0:
+        raise SceneError(f"{file}: geometry: the scene has no triangles")
+    V = np.concatenate(verts).astype(np.float32)
+    scale = float(geo.get("scale", 1.0))
+    if scale != 1.0:
+        V = V * np.float32(scale)
+    return SceneGeometry(V, np.concatenate(faces).astype(np.int32), np.concatenate(mids).astype(np.int32))
+
+
+def _load_mesh(scene: Scene, geo: dict, file: str):
+    import trimesh
+
+    path = _expand_path(geo["mesh"], scene.source.parent)
+    if not path.is_file():
+        raise SceneError(f"{file}: geometry.mesh: file not found: {path} (set {SHARED_ENV} to the folder of the "
+                         "shared scenes, or pass --shared-scenes to the CLI)")
+    try:
+        loaded = trimesh.load(str(path), process=False)
+    except Exception as e:  # trimesh raises many types
+        raise SceneError(f"{file}: geometry.mesh: cannot load {path}: {e}") from None
+    offset = scene._mesh_material_offset
+    if isinstance(loaded, trimesh.Scene):  # OBJ/GLB with several parts: one material per geometry, in order
+        parts = list(loaded.dump()) if hasattr(loaded, "dump") else list(loaded.geometry.values())
+        vs, fs, ms, n = [], [], [], 0
+        for i, g in enumerate(parts):
+            vs.append(np.asarray(g.vertices)), fs.append(np.asarray(g.faces) + n)
+            ms.append(np.full(len(g.faces), min(i, scene._mesh_material_count - 1) + offset))
+            n += len(g.vertices)
+        v, f, m = np.concatenate(vs), np.concatenate(fs), np.concatenate(ms)
+    else:
+        v, f = np.asarray(loaded.vertices), np.asarray(loaded.faces)
+        raw = loaded.metadata.get("_ply_raw", {}).get("face", {}).get("data") if hasattr(loaded, "metadata") else None
+        if raw is not None and "material_id" in getattr(raw, "dtype", np.dtype([])).names:
+            m = np.asarray(raw["material_id"]).astype(np.int64).reshape(-1)
+            if len(m) != len(f):
+                raise SceneError(f"{file}: geometry.mesh: {path} has {len(f)} faces but {len(m)} material ids")
+            if len(m) and m.max() >= scene._mesh_material_count:
+                raise SceneError(f"{file}: geometry.mesh: material id {int(m.max())} in {path} has no material in "
+                                 "the sidecar")
+            m = m + offset
+        else:
+            m = np.full(len(f), offset)
+    keep = ~np.isin(m - offset, list(scene._mesh_dropped)) if scene._mesh_dropped else np.ones(len(f), bool)
+    return v.astype(np.float32), f[keep].astype(np.int32), m[keep].astype(np.int32)
+
+
+def load_scene(name_or_path: str | os.PathLike) -> Scene:
+    """Load a built-in scene by name (:func:`list_scenes`) or a scene file by path.
+
+    Raises:
+        SceneError: unknown name, missing file, unknown key, wrong type or inconsistent declaration.
+    """
+    s = str(name_or_path)
+    if s.endswith(".toml") or os.sep in s or "/" in s:
+        path = Path(s)
+    elif s in BUILTIN_SCENES or s in EXTERNAL_SCENES:
+        path = scenes_dir() / f"{s}.toml"
+    else:
+        raise SceneError(f"unknown scene {s!r}: expected one of {', '.join(list_scenes(True))} or a .toml path")
+    path = path.resolve()
+    data = _read_toml(path)
+    file = str(path)
+    effects = frozenset(data.get("effects", []))
+    bad = sorted(effects - KNOWN_EFFECTS)
+    if bad:
+        raise SceneError(f"{file}: key 'effects': unknown effect(s) {bad} (expected a subset of "
+                         f"{sorted(KNOWN_EFFECTS)})")
+    num_frames = int(data.get("num_frames", 60))
+    if num_frames < 1:
+        raise SceneError(f"{file}: key 'num_frames': expected a positive integer, got {num_frames}")
+    geo = _req(data, "geometry", file, "geometry.generator or geometry.mesh")
+    if "generator" not in geo and "mesh" not in geo and not geo.get("quads") and not geo.get("boxes"):
+        raise SceneError(f"{file}: key 'geometry': expected 'generator', 'mesh', 'quads' or 'boxes'")
+    glossy = "glossy" in effects
+
+    materials: list[_Material] = []
+    mesh_dropped: set[int] = set()
+    mesh_count = 1
+    if "mesh" in geo:
+        mesh_path = _expand_path(geo["mesh"], path.parent)
+        side = _expand_path(geo["sidecar"], path.parent) if "sidecar" in geo else mesh_path.with_suffix(".json")
+        if side.is_file() or "sidecar" in geo:
+            materials, mesh_dropped = _sidecar_materials(side, glossy, file)
+            mesh_count = max(len(materials), 1)
+        if not materials:
+            materials = [_Material("mesh_default", (0.6, 0.6, 0.6))]
+    mesh_offset = 0
+    for mname, m in data.get("materials", {}).items():
+        where = f"{file}: materials.{mname}"
+        albedo = _vec(m.get("albedo", [0.0, 0.0, 0.0]))
+        spec = _vec(m.get("specular", [0.0, 0.0, 0.0]))
+        if min(albedo + spec) < 0 or max(a + b for a, b in zip(albedo, spec)) > 1.0:
+            raise SceneError(f"{where}: expected albedo + specular in [0, 1] per channel (energy conservation), "
+                             f"got albedo {albedo} and specular {spec}")
+        if max(spec) > 0 and not glossy:
+            raise SceneError(f"{where}.specular: a glossy lobe needs the scene to declare effects = [\"glossy\"]")
+        exponent = float(m.get("exponent", 1.0))
+        if exponent < 0:
+            raise SceneError(f"{where}.exponent: expected a number >= 0, got {exponent}")
+        emission = _vec(m.get("emission", [0.0, 0.0, 0.0]))
+        if min(emission) < 0:
+            raise SceneError(f"{where}.emission: expected non-negative values, got {emission}")
+        materials.append(_Material(mname, albedo, spec, exponent, emission))
+    if glossy and not any(max(m.specular) > 0 for m in materials):
+        raise SceneError(f"{file}: key 'effects': declares 'glossy' but no material has a specular lobe")
+
+    lights = []
+    for i, li in enumerate(data.get("lights", [])):
+        where = f"{file}: lights[{i}]"
+        if li.get("type", "point") != "point":
+            raise SceneError(f"{where}.type: expected 'point', got {li['type']!r}")
+        inten = np.array(_req(li, "intensity", where, "RGB intensity in W/sr"), np.float64)
+        if "position" in li and "keyframes" in li:
+            raise SceneError(f"{where}: expected either 'position' or 'keyframes', not both")
+        if "keyframes" in li:
+            if "moving_light" not in effects:
+                raise SceneError(f"{where}.keyframes: a moving light needs effects = [\"moving_light\"]")
+            kf = np.array(li["keyframes"], np.float64)
+        else:
+            kf = np.array([_req(li, "position", where, "position or keyframes")], np.float64)
+        lights.append(_PointLight(inten, kf))
+    if "moving_light" in effects and not any(len(li.keyframes) > 1 for li in lights):
+        raise SceneError(f"{file}: key 'effects': declares 'moving_light' but no light has keyframes")
+
+    cam = _req(data, "camera", file, "camera path")
+    for k in ("positions", "targets", "vfov_deg"):
+        _req(cam, k, f"{file}: camera", k)
+    vfov = float(cam["vfov_deg"])
+    if not (0 < vfov < 180):
+        raise SceneError(f"{file}: camera.vfov_deg: expected a number in (0, 180), got {vfov}")
+    rig = data.get("rig", {})
+    try:
+        stereo = StereoRig(float(rig.get("eye_separation", 0.065)), rig.get("convergence_distance"))
+    except ValueError as e:
+        raise SceneError(f"{file}: rig: {e}") from None
+    rep = _req(data, "reprojection", file, "position_threshold and normal_threshold")
+    pt = float(_req(rep, "position_threshold", f"{file}: reprojection", "scene units"))
+    nt = float(_req(rep, "normal_threshold", f"{file}: reprojection", "unit-normal distance"))
+    if not (pt > 0 and nt > 0):
+        raise SceneError(f"{file}: reprojection: thresholds must be positive, got {pt}, {nt}")
+
+    scene = Scene(name=data.get("name", path.stem), effects=effects, num_frames=num_frames, vfov_deg=vfov,
+                  rig=stereo, position_threshold=pt, normal_threshold=nt, source=path,
+                  description=data.get("description", ""), _data=data, _materials=materials, _lights=lights)
+    scene._mesh_material_offset = mesh_offset
+    scene._mesh_material_count = mesh_count
+    scene._mesh_dropped = mesh_dropped
+    return scene
