@@ -23,9 +23,10 @@ Renders are cached by content (scene file, mesh file, frame, eye, sample range, 
 written atomically, so a killed run resumes and a cached run reproduces the same tables; ``force`` recomputes.
 
 Resolution and thresholds: the position test compares a tap's surface point with the destination point, so a
-tap half a pixel away on a slanted surface differs by about half a pixel footprint. Scene thresholds are set for
-the paper's 720 rows; at ``height`` rows they are scaled by ``max(1, 720 / height)`` (``threshold_scale="auto"``)
-so the test keeps the same meaning in pixels.
+tap half a pixel away on a slanted surface differs by about half a pixel footprint. Scene thresholds (in scene
+units, like the paper's scene-specific limits) are chosen as 2–3 pixel footprints at a typical depth at 180 rows;
+below 180 rows they are scaled by ``180 / height`` (``threshold_scale="auto"``) so the test keeps its meaning in
+pixels; at 180 rows and above they are used as they are.
 """
 
 from __future__ import annotations
@@ -52,8 +53,8 @@ __all__ = ["ExperimentConfig", "run_experiment", "REFERENCE_OFFSET", "register",
 
 #: First sample index of reference renders (ladders use 0..L-1: disjoint streams).
 REFERENCE_OFFSET = 1 << 24
-#: Rows the scene thresholds are meant for (the paper's 720p).
-THRESHOLD_ROWS = 720
+#: Rows for which scene thresholds are ~2–3 pixel footprints; below this they are scaled up.
+THRESHOLD_ROWS = 180
 LEFT, RIGHT = 0, 1
 
 
@@ -91,7 +92,7 @@ class ExperimentConfig:
     ladder_spp: int = 16
     seed: int = 0
     alphas: tuple[float, ...] = (0.1, 0.5)  #: extra EMA weights measured beside the paper's 0.2
-    threshold_scale: float | None = None  #: None = auto, max(1, 720 / height)
+    threshold_scale: float | None = None  #: None = auto, max(1, 180 / height)
     workers: int | None = None
     exr: bool = False
     force: bool = False
@@ -572,7 +573,7 @@ def add_arguments(p: argparse.ArgumentParser, defaults: dict | None = None) -> N
     p.add_argument("--out", default=d.get("out"), required="out" not in d)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--alphas", default="0.1,0.5", help="extra EMA weights measured beside 0.2")
-    p.add_argument("--threshold-scale", default="auto", help="'auto' = max(1, 720/height), or a number")
+    p.add_argument("--threshold-scale", default="auto", help="'auto' = max(1, 180/height), or a number")
     p.add_argument("--workers", type=int, default=None)
     p.add_argument("--exr", action="store_true", help="also write EXR frames of both eyes")
     p.add_argument("--force", action="store_true", help="recompute cached renders")

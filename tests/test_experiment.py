@@ -1,0 +1,84 @@
+"""The experiment command: schema of results.json, content cache, resume, atomic outputs, CLI errors."""
+
+import json
+
+import pytest
+
+from stereorepro.cli import main
+from stereorepro.experiment import ExperimentConfig, RenderCache, run_experiment, tables_markdown
+
+SMALL = dict(scene="living_room", frames=3, width=48, height=27, reference_spp=16, ladder_spp=4, progress=False,
+             alphas=(0.5,))
+
+
+@pytest.fixture(scope="module")
+def first_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("exp")
+    return out, run_experiment(ExperimentConfig(out=str(out), **SMALL), log=lambda *a: None)
+
+
+class TestExperiment:
+    def test_smoke(self, first_run):
+        out, res = first_run
+        for f in ("results.json", "tables.md", "report.md", "fig1_discards.png", "fig3_rmse.png",
+                  "fig4_comparison.png", "fig_cost.png"):
+            assert (out / f).is_file(), f
+        assert not list(out.glob("*.tmp")) and not list((out / "cache").glob("*.tmp"))
+
+    def test_results_schema(self, first_run):
+        out, res = first_run
+        data = json.loads((out / "results.json").read_text())
+        assert data["scene"] == "living_room" and data["frames"] == 3 and data["resolution"] == "48x27"
+        assert data["reference_spp"] == 16
+        for k in ("stereo", "temporal"):
+            assert set(data["table1"][k]) >= {"avg", "min", "max"}
+        for k in ("stereo", "temporal", "stereo_temporal"):
+            t = data["table2"][k]
+            assert t["min"] <= t["avg"] <= t["max"]
+        assert len(data["per_frame"]) == 3 and "timing_ms" in data
+        assert data["table2"]["temporal"]["min"] == pytest.approx(1.0, abs=0.05)  # frame 0: no history yet
+        assert "temporal_alpha0.5" in data["table2_variants"] and "stereo_nearest" in data["table2_variants"]
+        # the masked trace of the left eye's discarded pixels reproduces the full 1-spp render there
+        assert all(r.get("masked_trace_matches", True) for r in data["per_frame"])
+
+    def test_cached_run_is_identical(self, first_run, tmp_path):
+        out, res = first_run
+        again = run_experiment(ExperimentConfig(out=str(out), **SMALL))
+        assert again["cache"]["misses"] == 0 and again["cache"]["hits"] > 0
+        assert tables_markdown(again) == tables_markdown(res)
+        assert again["table2"] == res["table2"] and again["table1"] == res["table1"]
+
+    def test_resume_after_interruption(self, tmp_path):
+        cfg = dict(SMALL, frames=2)
+        part = run_experiment(ExperimentConfig(out=str(tmp_path), **cfg))
+        full = run_experiment(ExperimentConfig(out=str(tmp_path), **dict(SMALL)))
+        per_frame = (SMALL["ladder_spp"] + 2) * 2  # ladder rungs + gbuffer + reference, both eyes
+        assert part["cache"]["misses"] == 2 * per_frame
+        assert full["cache"]["misses"] == per_frame and full["cache"]["hits"] == 2 * per_frame
+
+    def test_force_recomputes(self, tmp_path):
+        cfg = dict(SMALL, frames=1)
+        run_experiment(ExperimentConfig(out=str(tmp_path), **cfg))
+        forced = run_experiment(ExperimentConfig(out=str(tmp_path), force=True, **cfg))
+        assert forced["cache"]["hits"] == 0
+
+    def test_corrupt_cache_entry_is_recomputed(self, tmp_path):
+        cache = RenderCache(tmp_path)
+        key = {"a": 1}
+        cache.get_or_make(key, lambda: ({"x": __import__("numpy").ones(3)}, {"ms": 1.0}))
+        path = next(tmp_path.glob("*.npz"))
+        path.write_bytes(b"not a zip")
+        data, meta = cache.get_or_make(key, lambda: ({"x": __import__("numpy").zeros(3)}, {"ms": 2.0}))
+        assert meta["ms"] == 2.0 and data["x"].sum() == 0
+
+    def test_exceptions(self, tmp_path):
+        with pytest.raises(ValueError, match="ladder_spp"):
+            run_experiment(ExperimentConfig(out=str(tmp_path), **dict(SMALL, ladder_spp=1)))
+        with pytest.raises(ValueError, match="frames"):
+            run_experiment(ExperimentConfig(out=str(tmp_path), **dict(SMALL, frames=10_000)))
+
+    def test_cli_errors(self, tmp_path, capsys):
+        assert main(["experiment", "--scene", "no_such_scene", "--out", str(tmp_path)]) == 2
+        assert "no_such_scene" in capsys.readouterr().err
+        with pytest.raises(SystemExit):
+            main(["experiment", "--scene", "living_room", "--out", str(tmp_path), "--resolution", "big"])
