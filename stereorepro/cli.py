@@ -21,6 +21,18 @@ _COMMAND_MODULES = [
 ]
 
 
+def parse_resolution(s: str) -> tuple[int, int]:
+    """``"320x180"`` → ``(320, 180)`` (width, height); an argparse type."""
+    try:
+        w, h = s.lower().split("x")
+        w, h = int(w), int(h)
+        if w < 1 or h < 1:
+            raise ValueError
+        return w, h
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT (e.g. 320x180), got {s!r}") from None
+
+
 class UserError(Exception):
     """An error caused by the user's input (file, option); printed without a traceback, exit code 2."""
 

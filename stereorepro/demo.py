@@ -7,27 +7,17 @@ Every setting can be overridden with the same options as ``stereorepro experimen
 
 from __future__ import annotations
 
-from pathlib import Path
-
-from .experiment import add_arguments, config_from_args, run_experiment, tables_markdown
+from .experiment import _cmd as run_command
+from .experiment import add_arguments
 
 DEFAULTS = dict(scene="living_room", frames=16, resolution=(240, 135), reference_spp=128, ladder_spp=16,
                 out="runs/demo")
 
 
 def _cmd(args) -> int:
-    from .cli import UserError
-
-    cfg = config_from_args(args)
-    print(f"stereorepro demo: scene {cfg.scene}, {cfg.frames} frames at {cfg.width}x{cfg.height}, reference "
-          f"{cfg.reference_spp} spp, ladder 1..{cfg.ladder_spp} spp -> {cfg.out}")
-    try:
-        results = run_experiment(cfg)
-    except (ValueError, FileNotFoundError) as e:
-        raise UserError(str(e)) from None
-    print(tables_markdown(results))
-    print(f"report: {Path(cfg.out) / 'report.md'} (figures and results.json beside it); wall {results['wall_s']:.0f} s")
-    return 0
+    print(f"stereorepro demo: scene {args.scene}, {args.frames} frames at {args.resolution[0]}x{args.resolution[1]}, "
+          f"reference {args.reference_spp} spp, ladder 1..{args.ladder_spp} spp -> {args.out}")
+    return run_command(args)
 
 
 def register(sub) -> None:

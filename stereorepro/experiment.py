@@ -552,22 +552,13 @@ def _write_frame_exr(root: Path, f: int, eyes: dict, drivers: dict) -> None:
 # ---------------------------------------------------------------------------------------------------------------
 # CLI
 
-def _resolution(s: str) -> tuple[int, int]:
-    try:
-        w, h = s.lower().split("x")
-        w, h = int(w), int(h)
-        if w < 1 or h < 1:
-            raise ValueError
-        return w, h
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"resolution must look like 320x180, got {s!r}") from None
-
-
 def add_arguments(p: argparse.ArgumentParser, defaults: dict | None = None) -> None:
+    from .cli import parse_resolution
+
     d = defaults or {}
     p.add_argument("--scene", default=d.get("scene"), required="scene" not in d, help="built-in name or .toml path")
     p.add_argument("--frames", type=int, default=d.get("frames"), help="frames (default: the scene's)")
-    p.add_argument("--resolution", type=_resolution, default=d.get("resolution", (320, 180)), help="WxH")
+    p.add_argument("--resolution", type=parse_resolution, default=d.get("resolution", (320, 180)), help="WxH")
     p.add_argument("--reference-spp", type=int, default=d.get("reference_spp", 256))
     p.add_argument("--ladder-spp", type=int, default=d.get("ladder_spp", 16))
     p.add_argument("--out", default=d.get("out"), required="out" not in d)
@@ -604,7 +595,8 @@ def _cmd(args) -> int:
     except (ValueError, FileNotFoundError) as e:
         raise UserError(str(e)) from None
     print(tables_markdown(results))
-    print(f"report: {Path(cfg.out) / 'report.md'}")
+    print(f"report: {Path(cfg.out) / 'report.md'} (figures and results.json beside it); "
+          f"wall {results['wall_s']:.0f} s")
     return 0
 
 

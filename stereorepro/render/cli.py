@@ -4,18 +4,7 @@ from __future__ import annotations
 
 import os
 
-
-def _size(s: str) -> tuple[int, int]:
-    import argparse
-
-    try:
-        w, h = s.lower().split("x")
-        w, h = int(w), int(h)
-        if w < 1 or h < 1:
-            raise ValueError
-        return w, h
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT (e.g. 320x180), got {s!r}") from None
+from ..cli import parse_resolution
 
 
 def _cmd_scenes(args) -> int:
@@ -74,7 +63,7 @@ def register(subparsers) -> None:
     p.add_argument("--scene", required=True, help="built-in scene name or path to a .toml")
     p.add_argument("--frame", type=int, default=0)
     p.add_argument("--spp", type=int, default=1)
-    p.add_argument("--resolution", type=_size, default=(320, 180), metavar="WxH")
+    p.add_argument("--resolution", type=parse_resolution, default=(320, 180), metavar="WxH")
     p.add_argument("--out", required=True, help="output .exr (R,G,B, Z, N.X/Y/Z, P.X/Y/Z)")
     p.add_argument("--eye", choices=("left", "right", "head"), default="left")
     p.add_argument("--seed", type=int, default=0)
