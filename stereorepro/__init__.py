@@ -44,3 +44,7 @@ from .metrics import (  # noqa: F401
 )
 # --- end metrics ---
 from .pipeline import SpatiotemporalReprojection  # noqa: F401
+# --- render (path tracer, scenes, EXR frames) ---
+from .render import PathTracer, RenderResult, read_exr, write_exr  # noqa: F401,E402
+from .scenes import list_scenes, load_scene  # noqa: F401,E402
+# --- end render ---

@@ -35,6 +35,7 @@ import enum
 import torch
 from torch import Tensor, nn
 
+from . import native as _native
 from ._checks import check_camera, check_device, check_floating, check_shape
 from .camera import has_surface, invert_rigid
 from .camera import inverse_intrinsics as _inverse_intrinsics
@@ -128,6 +129,25 @@ def _finite_or_zero(x: Tensor) -> Tensor:
     return torch.where(torch.isfinite(x), x, torch.zeros((), dtype=x.dtype, device=x.device))
 
 
+def _compose_cameras(src_K: Tensor, src_cam_from_world: Tensor, dst_K: Tensor, dst_cam_from_world: Tensor,
+                     dtype: torch.dtype) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Per-batch warp matrices, composed in float64 and cast to ``dtype``; shared by the torch and native paths.
+
+    ``q = z · M @ [u, v, 1] + t`` is the destination point in the source camera frame and
+    ``uvw = P @ [u, v, 1] + kt / z`` its homogeneous source pixel, with M = R K_dst^-1, P = K_src M, kt = K_src t.
+
+    Returns:
+        M: (B, 3, 3), t: (B, 3, 1), P: (B, 3, 3), kt: (B, 3, 1), Ks_inv: (B, 3, 3) = K_src^-1.
+    """
+    src_from_dst = _snap(src_cam_from_world.double() @ invert_rigid(dst_cam_from_world.double()))
+    M64 = src_from_dst[:, :3, :3] @ _inverse_intrinsics(dst_K.double())
+    t64 = src_from_dst[:, :3, 3:]
+    P = _snap(src_K.double() @ M64).to(dtype)
+    kt = (src_K.double() @ t64).to(dtype)
+    Ks_inv = _inverse_intrinsics(src_K.double()).to(dtype)
+    return M64.to(dtype), t64.to(dtype), P, kt, Ks_inv
+
+
 def backward_reproject(
     src_values: Tensor,
     src_depth: Tensor,
@@ -189,14 +209,11 @@ def backward_reproject(
     #   uvw = P @ [u, v, 1] + (K_src t) / z  its source pixel, homogeneous (u_s = uvw_x / uvw_z)
     # with M = R K_dst^-1 and P = K_src M. Entries within 1e-12 of an integer are snapped, so identical cameras
     # give P = I and t = 0 exactly: identity warps and integer-pixel shifts are bit-exact.
-    src_from_dst = _snap(src_cam_from_world.double() @ invert_rigid(dst_cam_from_world.double()))
-    M64 = src_from_dst[:, :3, :3] @ _inverse_intrinsics(dst_K.double())
-    t64 = src_from_dst[:, :3, 3:]
-    m = M64.to(cd).reshape(B, 3, 3, 1, 1)  # m[:, :, j] is column j as (B, 3, 1, 1)
-    t = t64.to(cd).reshape(B, 3, 1, 1)
-    p = _snap(src_K.double() @ M64).to(cd).reshape(B, 9, 1, 1)  # p[:, 3*i+j : 3*i+j+1] is P[i, j]
-    kt = (src_K.double() @ t64).to(cd).reshape(B, 3, 1, 1)
-    Ks_inv = _inverse_intrinsics(src_K.double()).to(cd)
+    M, t, P, kt, Ks_inv = _compose_cameras(src_K, src_cam_from_world, dst_K, dst_cam_from_world, cd)
+    m = M.reshape(B, 3, 3, 1, 1)  # m[:, :, j] is column j as (B, 3, 1, 1)
+    t = t.reshape(B, 3, 1, 1)
+    p = P.reshape(B, 9, 1, 1)  # p[:, 3*i+j : 3*i+j+1] is P[i, j]
+    kt = kt.reshape(B, 3, 1, 1)
 
     # --- destination pixels → source pixels and source-camera points.
     z_dst = dst_depth.to(cd)
@@ -323,10 +340,12 @@ def stereo_reproject(
     sampling: str = "bilinear",
     soft: bool = False,
     temperature: float = 0.1,
+    backend: str = "auto",
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Reproject one eye into the other at the same instant (paper §4.1: right → left).
 
-    Args: as :func:`backward_reproject`, with ``src_color`` (B, 3, Hs, Ws).
+    Args: as :func:`backward_reproject`, with ``src_color`` (B, 3, Hs, Ws), and ``backend``: ``"auto"`` |
+        ``"torch"`` | ``"native"`` (see :mod:`stereorepro.native`; ``STEREOREPRO_BACKEND`` overrides it).
 
     Returns:
         color: (B, 3, H, W) reprojected colour, 0 where discarded.
@@ -346,6 +365,13 @@ def stereo_reproject(
     check_shape(src_color, ["B", "3", "H", "W"], "src_color")
     _check_inputs(src_color, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal, dst_K,
                   dst_cam_from_world, _STEREO_NAMES)
+    if _native.select_backend(backend, (src_color, src_depth, src_normal, dst_depth, dst_normal),
+                              (src_K, src_cam_from_world, dst_K, dst_cam_from_world, position_threshold,
+                               normal_threshold), soft) == "native":
+        color, valid, reason, _ = _native.native_backward_reproject(
+            src_color, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal, dst_K,
+            dst_cam_from_world, position_threshold, normal_threshold, sampling, check=False)
+        return color, valid, reason
     color, valid, reason, _ = backward_reproject(
         src_color, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal, dst_K,
         dst_cam_from_world, position_threshold, normal_threshold, sampling, soft, temperature, check=False)
@@ -422,6 +448,7 @@ def temporal_reproject(
     sampling: str = "bilinear",
     soft: bool = False,
     temperature: float = 0.1,
+    backend: str = "auto",
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Temporal accumulation: warp the previous frame's history into this frame and blend (paper §4.1).
 
@@ -434,6 +461,7 @@ def temporal_reproject(
         prev_depth, prev_normal, prev_K, prev_cam_from_world: the previous frame's G-buffer and camera.
         position_threshold, normal_threshold, sampling, soft, temperature: see :func:`backward_reproject`.
         alpha, warmup, max_history: see :func:`temporal_blend`.
+        backend: ``"auto"`` | ``"torch"`` | ``"native"`` (see :mod:`stereorepro.native`).
 
     Returns:
         color: (B, 3, H, W) accumulated colour.
@@ -451,6 +479,13 @@ def temporal_reproject(
     check_floating(history_len, "history_len")
     _check_inputs(history_color, prev_depth, prev_normal, prev_K, prev_cam_from_world, depth, normal, K,
                   cam_from_world, _TEMPORAL_NAMES)
+    if _native.select_backend(backend, (current_color, depth, normal, history_color, history_len, prev_depth,
+                                        prev_normal),
+                              (K, cam_from_world, prev_K, prev_cam_from_world, position_threshold, normal_threshold,
+                               alpha), soft) == "native":
+        return _native.native_temporal_reproject(
+            current_color, depth, normal, K, cam_from_world, history_color, history_len, prev_depth, prev_normal,
+            prev_K, prev_cam_from_world, position_threshold, normal_threshold, alpha, warmup, max_history, sampling)
     values = torch.cat([history_color.to(_compute_dtype(history_color, history_len)),
                         history_len.to(_compute_dtype(history_color, history_len))], 1)
     warped, valid, _reason, conf = backward_reproject(
@@ -484,8 +519,9 @@ def _threshold_param(value, learnable: bool) -> Tensor:
 
 class _ReprojectionBase(nn.Module):
     def __init__(self, position_threshold: float, normal_threshold: float, sampling: str, soft: bool,
-                 temperature: float):
+                 temperature: float, backend: str = "auto"):
         super().__init__()
+        self.backend = _native.check_backend(backend)
         if sampling not in _SAMPLINGS:
             raise ValueError(f"sampling must be one of {_SAMPLINGS}, got {sampling!r}")
         for name, val in (("position_threshold", position_threshold), ("normal_threshold", normal_threshold)):
@@ -517,6 +553,8 @@ class StereoReprojection(_ReprojectionBase):
         sampling: ``"bilinear"`` or ``"nearest"``.
         soft: smooth accept tests; the thresholds become learnable ``nn.Parameter``s.
         temperature: softness relative to the thresholds.
+        backend: ``"auto"`` (native kernel when built, on CPU, float32, hard, without autograd), ``"torch"`` or
+            ``"native"``; ``STEREOREPRO_BACKEND`` overrides it. See :mod:`stereorepro.native`.
 
     Forward:
         ``forward(src_color, src_depth, src_normal, src_K, src_cam_from_world,
@@ -530,22 +568,22 @@ class StereoReprojection(_ReprojectionBase):
     output_names = ["color", "valid", "reason"]
 
     def __init__(self, position_threshold: float, normal_threshold: float, sampling: str = "bilinear",
-                 soft: bool = False, temperature: float = 0.1):
-        super().__init__(position_threshold, normal_threshold, sampling, soft, temperature)
+                 soft: bool = False, temperature: float = 0.1, backend: str = "auto"):
+        super().__init__(position_threshold, normal_threshold, sampling, soft, temperature, backend)
 
     def forward(self, src_color: Tensor, src_depth: Tensor, src_normal: Tensor, src_K: Tensor,
                 src_cam_from_world: Tensor, dst_depth: Tensor, dst_normal: Tensor, dst_K: Tensor,
                 dst_cam_from_world: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         return stereo_reproject(src_color, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal,
                                 dst_K, dst_cam_from_world, self.position_threshold, self.normal_threshold,
-                                self.sampling, self.soft, self.temperature)
+                                self.sampling, self.soft, self.temperature, self.backend)
 
 
 class TemporalReprojection(_ReprojectionBase):
     """Temporal reprojection + EMA accumulation. See :func:`temporal_reproject`.
 
     Args:
-        position_threshold, normal_threshold, sampling, soft, temperature: as :class:`StereoReprojection`.
+        position_threshold, normal_threshold, sampling, soft, temperature, backend: as :class:`StereoReprojection`.
         alpha: minimum weight of the current frame (paper: 0.2); learnable when ``soft``.
         warmup: running mean until the weight reaches ``alpha`` (BMFR); ``False`` = fixed EMA.
         max_history: cap of the accumulated sample count.
@@ -563,8 +601,8 @@ class TemporalReprojection(_ReprojectionBase):
 
     def __init__(self, position_threshold: float, normal_threshold: float, alpha: float = 0.2,
                  warmup: bool = True, max_history: float = 255.0, sampling: str = "bilinear", soft: bool = False,
-                 temperature: float = 0.1):
-        super().__init__(position_threshold, normal_threshold, sampling, soft, temperature)
+                 temperature: float = 0.1, backend: str = "auto"):
+        super().__init__(position_threshold, normal_threshold, sampling, soft, temperature, backend)
         if not (0.0 < float(alpha) <= 1.0):
             raise ValueError(f"alpha must be in (0, 1], got {alpha}")
         if not max_history >= 1:
@@ -585,4 +623,4 @@ class TemporalReprojection(_ReprojectionBase):
         return temporal_reproject(current_color, depth, normal, K, cam_from_world, history_color, history_len,
                                   prev_depth, prev_normal, prev_K, prev_cam_from_world, self.position_threshold,
                                   self.normal_threshold, self.alpha, self.warmup, self.max_history, self.sampling,
-                                  self.soft, self.temperature)
+                                  self.soft, self.temperature, self.backend)

@@ -25,6 +25,11 @@ expected type)::
     [camera]                        # vfov_deg, up, positions = [[x,y,z],...], targets = [[x,y,z],...]
     [rig]                           # eye_separation (scene units), convergence_distance (optional)
     [reprojection]                  # position_threshold (scene units), normal_threshold (unit-normal distance)
+    [render]                        # optional renderer settings of the scene:
+    radiance_clamp = 0.0            #   firefly clamp on reflected radiance; 0 or absent = "auto" (see
+                                    #   stereorepro.render.lights.radiance_bound); > 0 = this limit
+    point_light_min_distance = 0.3  #   d_min of the auto rule for point lights (default: each light's distance
+                                    #   to the nearest surface, per frame)
 
 Camera and light keyframes are control points of a uniform Catmull-Rom spline over the sequence (frame 0 at the
 first point, the last frame at the last point): smooth curves through the points.
@@ -106,6 +111,7 @@ _SCHEMA = {
     "camera": ("table", {"vfov_deg": "float", "up": _VEC3, "positions": "vec3list", "targets": "vec3list"}),
     "rig": ("table", {"eye_separation": "float", "convergence_distance": "float"}),
     "reprojection": ("table", {"position_threshold": "float", "normal_threshold": "float"}),
+    "render": ("table", {"radiance_clamp": "float", "point_light_min_distance": "float"}),
 }
 _DESCR = {"str": "a string", "int": "an integer", "float": "a number", "strlist": "a list of strings",
           _VEC3: "a list of 3 numbers", "vec3list": "a non-empty list of [x, y, z] lists",
@@ -250,6 +256,8 @@ class Scene:
         position_threshold: reprojection limit on ``|P_src - P_dst|`` (scene units).
         normal_threshold: reprojection limit on ``|N_src - N_dst|`` (unit normals).
         source: the scene file.
+        radiance_clamp: ``[render] radiance_clamp``: 0 = "auto" (the renderer derives the limit), else the limit.
+        point_light_min_distance: ``[render] point_light_min_distance`` or None (nearest-surface distance).
     """
 
     name: str
@@ -261,6 +269,8 @@ class Scene:
     normal_threshold: float
     source: Path
     description: str = ""
+    radiance_clamp: float = 0.0
+    point_light_min_distance: float | None = None
     _data: dict = field(default_factory=dict, repr=False)
     _materials: list = field(default_factory=list, repr=False)
     _lights: list = field(default_factory=list, repr=False)
@@ -544,9 +554,19 @@ def load_scene(name_or_path: str | os.PathLike) -> Scene:
     if not (pt > 0 and nt > 0):
         raise SceneError(f"{file}: reprojection: thresholds must be positive, got {pt}, {nt}")
 
+    ren = data.get("render", {})
+    clamp = float(ren.get("radiance_clamp", 0.0))
+    if clamp < 0:
+        raise SceneError(f"{file}: render.radiance_clamp: expected a number >= 0 (0 = auto), got {clamp}")
+    dmin = ren.get("point_light_min_distance")
+    if dmin is not None and not float(dmin) > 0:
+        raise SceneError(f"{file}: render.point_light_min_distance: expected a positive number, got {dmin}")
+
     scene = Scene(name=data.get("name", path.stem), effects=effects, num_frames=num_frames, vfov_deg=vfov,
                   rig=stereo, position_threshold=pt, normal_threshold=nt, source=path,
-                  description=data.get("description", ""), _data=data, _materials=materials, _lights=lights)
+                  description=data.get("description", ""), radiance_clamp=clamp,
+                  point_light_min_distance=None if dmin is None else float(dmin),
+                  _data=data, _materials=materials, _lights=lights)
     scene._mesh_material_offset = mesh_offset
     scene._mesh_material_count = mesh_count
     scene._mesh_dropped = mesh_dropped

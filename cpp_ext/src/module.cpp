@@ -6,9 +6,11 @@ namespace nb = nanobind;
 
 void bind_info(nb::module_ &m);
 void bind_blend(nb::module_ &m);
+void bind_reproject(nb::module_ &m);
 
 NB_MODULE(_core, m) {
     m.doc() = "stereorepro native CPU kernels (optional accelerator; torch is the reference)";
     bind_info(m);
     bind_blend(m);
+    bind_reproject(m);
 }

@@ -5,13 +5,17 @@ have no consistent winding) and are sampled uniformly in area. One light is pick
 probability proportional to its power (``pi * lum(Le) * area`` for a triangle, ``4 pi * lum(I)`` for a point
 light). Static emitters are tabulated once per tracer (:class:`EmitterTable`); point lights are merged per frame
 (:class:`LightSet`), which is only redone for scenes that declare ``moving_light``.
+
+:func:`radiance_bound` gives the firefly-clamp limit of :class:`~stereorepro.render.PathTracer` (an upper bound on
+the reflected radiance of any vertex of the depth-3 estimator) and :func:`point_mesh_distance` the distance from
+point lights to the nearest surface that it needs.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["EmitterTable", "LightSet", "luminance"]
+__all__ = ["EmitterTable", "LightSet", "luminance", "point_mesh_distance", "radiance_bound"]
 
 
 def luminance(rgb: np.ndarray) -> np.ndarray:
@@ -126,3 +130,98 @@ class LightSet:
             w = np.where(ok, np.float32(1) / (np.where(ok, d2[p], 1) * self.prob[self.num_area + k]), 0)
             li[p] = self.point_int[k] * w.astype(np.float32)[:, None]
         return target, wi, dist.astype(np.float32), li, pdf
+
+
+def _segment_distance2(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Squared distance from point ``p`` (3,) to segments ``a``-``b`` (F, 3) → (F,), float64."""
+    ab = b - a
+    t = np.einsum("ij,ij->i", p - a, ab) / np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-300)
+    q = a + np.clip(t, 0.0, 1.0)[:, None] * ab
+    d = p - q
+    return np.einsum("ij,ij->i", d, d)
+
+
+def point_mesh_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, chunk: int = 1 << 16
+                        ) -> np.ndarray:
+    """Exact Euclidean distance from each point to the nearest triangle of a mesh (brute force, chunked).
+
+    Args:
+        points: (L, 3); vertices: (V, 3); faces: (F, 3) int.
+
+    Returns:
+        (L,) float64 distances (``inf`` for an empty mesh).
+    """
+    P = np.asarray(points, np.float64).reshape(-1, 3)
+    V = np.asarray(vertices, np.float64)
+    Fc = np.asarray(faces, np.int64).reshape(-1, 3)
+    out = np.full(len(P), np.inf)
+    for lo in range(0, len(Fc), chunk):
+        tri = V[Fc[lo:lo + chunk]]                      # (f, 3, 3)
+        a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+        n = np.cross(b - a, c - a)
+        nn = np.einsum("ij,ij->i", n, n)
+        ok = nn > 0
+        for i, p in enumerate(P):
+            # inside the triangle's prism: the distance is the distance to its plane
+            ap = p - a
+            s = np.einsum("ij,ij->i", ap, n)
+            q = p - (s / np.where(ok, nn, 1.0))[:, None] * n  # projection onto the plane
+            w0 = np.einsum("ij,ij->i", np.cross(b - q, c - q), n)
+            w1 = np.einsum("ij,ij->i", np.cross(c - q, a - q), n)
+            w2 = np.einsum("ij,ij->i", np.cross(a - q, b - q), n)
+            inside = ok & (w0 >= 0) & (w1 >= 0) & (w2 >= 0)
+            d2 = np.minimum(np.minimum(_segment_distance2(p, a, b), _segment_distance2(p, b, c)),
+                            _segment_distance2(p, c, a))
+            d2 = np.where(inside, s * s / np.where(ok, nn, 1.0), d2)
+            out[i] = min(out[i], float(np.sqrt(d2.min()))) if len(d2) else out[i]
+    return out
+
+
+def radiance_bound(emission: np.ndarray, albedo: np.ndarray, specular: np.ndarray, exponent: np.ndarray,
+                   point_intensity: np.ndarray, point_distance: np.ndarray) -> float:
+    """Upper bound ``C`` on the reflected radiance of any vertex of the depth-3 estimator (the firefly clamp).
+
+    Rule (all quantities per scene, maxima over RGB channels)::
+
+        C = (1 + rho_e) * (Le_max + P) + P,    P = sum_l max_m f_m I_l / d_lm^2
+
+    * ``Le_max`` - the largest emitted radiance of any material (area lights);
+    * ``rho_e``  - the largest albedo (``kd + ks``) of an *emissive* material (0 for the usual black emitters);
+    * ``f_m``   - the largest BSDF value of material ``m``: ``kd/pi + ks (e + 2)/(2 pi)`` (``1/pi`` for a white
+      Lambertian surface; a glossy lobe's peak is higher);
+    * ``I_l``, ``d_lm`` - intensity of point light ``l`` and its distance to the nearest surface of material ``m``.
+
+    Why: an energy-conserving BSDF (albedo <= 1) reflects at most the largest radiance arriving over the hemisphere,
+    and a point light adds at most ``f_m I / d^2`` at a surface of material ``m`` at distance ``d``. At the second vertex ``x2`` (direct light only) that gives
+    ``L_r(x2) <= Le_max + P``; the radiance leaving ``x2`` towards ``x1`` is ``Le(x2) + L_r(x2) <= (1 + rho_e)(Le_max
+    + P)`` (an emitter reflects too only when its albedo is non-zero), and ``x1`` adds its own point-light term
+    ``P``. The true value never exceeds ``C``, so clamping an estimate at ``C`` only removes the part of a rare
+    sample (a 1/r^2 spike of next-event estimation) that no pixel can legitimately reach.
+
+    Args:
+        emission, albedo, specular: (M, 3) per material; exponent: (M,) Phong exponents.
+        point_intensity: (L, 3) point-light intensities; point_distance: (L, M) distance of light ``l`` to the
+            nearest surface of material ``m`` (``inf`` for an unused material), or (L,) one distance per light
+            (e.g. a declared minimum distance) used for every material.
+
+    Returns:
+        ``C`` (a positive float; ``inf`` when a point light touches a surface, i.e. no bound).
+    """
+    em = np.asarray(emission, np.float64).reshape(-1, 3)
+    kd = np.asarray(albedo, np.float64).reshape(-1, 3)
+    ks = np.asarray(specular, np.float64).reshape(-1, 3)
+    e = np.asarray(exponent, np.float64).reshape(-1)
+    emissive = em.max(axis=1) > 0
+    le_max = float(em.max()) if len(em) else 0.0
+    rho_e = float((kd + ks)[emissive].max()) if emissive.any() else 0.0
+    inten = np.asarray(point_intensity, np.float64).reshape(-1, 3)
+    p = 0.0
+    if len(inten):
+        f = (kd / np.pi + ks * ((e + 2) / (2 * np.pi))[:, None]).max(axis=1)  # (M,)
+        d = np.asarray(point_distance, np.float64).reshape(len(inten), -1)
+        d = np.broadcast_to(d, (len(inten), len(f)))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            per = np.where(f[None, :] > 0, f[None, :] * inten.max(axis=1)[:, None] / np.square(d), 0.0)
+        p = float(per.max(axis=1).sum())
+    c = (1.0 + rho_e) * (le_max + p) + p
+    return c if c > 0 else float("inf")

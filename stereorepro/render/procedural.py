@@ -105,6 +105,21 @@ class MeshBuilder:
         return {m for m, _ in self._mats}
 
 
+def _luminaire(b: MeshBuilder, x0: float, z0: float, size_x: float, size_z: float, ceiling_y: float, drop: float,
+               emitter: str, housing: str):
+    """Ceiling panel light: an emitting quad ``drop`` below the ceiling, closed above by four housing sides.
+
+    Area lights are two-sided; a bare panel just under the ceiling lights the ceiling from its back side at grazing
+    angles, a bright halo whose next-event estimates near the panel's edge have an unbounded 1/r^2 term (fireflies).
+    The housing encloses the back side, so only the downward face can reach anything.
+    """
+    y = ceiling_y - drop
+    b.quad((x0, y, z0), (size_x, 0, 0), (0, 0, size_z), emitter)
+    for p0, u in (((x0, y, z0), (size_x, 0, 0)), ((x0, y, z0 + size_z), (size_x, 0, 0)),
+                  ((x0, y, z0), (0, 0, size_z)), ((x0 + size_x, y, z0), (0, 0, size_z))):
+        b.quad(p0, u, (0, drop, 0), housing)
+
+
 def _table(b: MeshBuilder, x, z, y=0.0, top="wood", legs="metal", w=1.2, d=0.6, h=0.75):
     b.box((x - w / 2, y + h - 0.04, z - d / 2), (x + w / 2, y + h, z + d / 2), top)
     for sx in (-1, 1):
@@ -185,8 +200,13 @@ def living_room() -> MeshBuilder:
     b.box((-W, 0.0, -D - 0.1), (W, Ht, -D), "wall")
     b.box((-W, 0.0, D), (W, Ht, D + 0.1), "wall")
     b.quad((W - 0.01, 0.9, -1.0), (0, 0, 2.0), (0, 1.4, 0), "window")            # window (sky light)
+    # casing: sill, head and jambs touch the window's edges and close the 1 cm gap behind it (the emitter is
+    # two-sided: open, its back lit the wall around it at grazing angles - a halo of fireflies)
     b.box((W - 0.08, 0.85, -1.05), (W, 0.9, 1.05), "trim")
-    b.quad((-0.6, Ht - 0.01, -0.6), (1.2, 0, 0), (0, 0, 1.2), "ceiling_light")
+    b.box((W - 0.08, 2.3, -1.05), (W, 2.35, 1.05), "trim")
+    b.box((W - 0.08, 0.9, -1.05), (W, 2.3, -1.0), "trim")
+    b.box((W - 0.08, 0.9, 1.0), (W, 2.3, 1.05), "trim")
+    _luminaire(b, -0.6, -0.6, 1.2, 1.2, Ht, 0.01, "ceiling_light", "trim")
     b.box((-2.0, 0.0, -1.8), (1.6, 0.01, 1.2), "rug")
     # sofa against the back wall, facing +z
     b.box((-1.6, 0.0, -3.4), (1.2, 0.45, -2.5), "fabric")
@@ -255,7 +275,7 @@ def classroom() -> MeshBuilder:
     b.box((-2.05, 0.85, -D), (2.05, 0.9, -D + 0.1), "trim")
     for x in (-2.5, 0.0, 2.5):
         for z in (-2.0, 1.5):
-            b.quad((x - 0.6, Ht - 0.02, z - 0.3), (1.2, 0, 0), (0, 0, 0.6), "ceiling_light")
+            _luminaire(b, x - 0.6, z - 0.3, 1.2, 0.6, Ht, 0.02, "ceiling_light", "trim")
     _table(b, -1.8, -3.3, top="wood", legs="wood", w=1.6, d=0.8, h=0.78)  # teacher's desk
     _chair(b, -1.8, -3.9, facing=1.0)
     for row in range(5):

@@ -1,0 +1,651 @@
+// Fused backward reprojection (stereo and temporal), the native twin of stereorepro.reproject.backward_reproject
+// (hard tests, float32) and of temporal_reproject (warp + temporal_blend in the same pass).
+//
+// One pass per destination pixel: unproject with the destination depth, project into the source camera, read the
+// 2x2 bilinear taps (or the nearest one), run the accept tests (in frame, source surface, position, normal,
+// finite values), renormalise the accepted weights and write values / valid / reason / confidence (stereo) or the
+// blended colour / history length / valid (temporal). Conventions: stereorepro/camera.py.
+//
+// Bit-parity with the torch reference matters for the accept decisions (d² <= thr² ties), so the float32
+// arithmetic below follows the torch code operation by operation, in the same order, without FMA contraction:
+//   wx = ((P00*u + P01*v) + P02) + kt0 * (1/z),  u_s = wx / wz,  x = u_s - 0.5,  x0 = floor(x),  fx = x - x0
+//   q  = ((M[i,0]*u + M[i,1]*v) + M[i,2]) * z + t[i]
+//   px = z_s * ((Ki00*ut + Ki01*vt) + Ki02),  py = z_s * (Ki11*vt + Ki12)
+//   d² = ((qx-px)² + (qy-py)²) + (qz-z_s)²,   |dn|² = (dn0² + dn1²) + dn2²
+// The camera matrices (P, kt, M, t, Ks_inv) are composed in Python by reproject._compose_cameras (float64, then
+// cast), the same helper the torch path uses. Layout: NCHW, C-contiguous, CPU.
+#if defined(__clang__)
+#pragma clang fp contract(off)
+#elif defined(__GNUC__)
+#pragma GCC optimize("fp-contract=off")
+#endif
+
+#include <nanobind/nanobind.h>
+#include <nanobind/ndarray.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+#include <immintrin.h>
+#define SR_AVX2_PATH 1
+#define SR_AVX2 __attribute__((target("avx2")))  // deliberately not "fma": nothing may be fused
+#endif
+
+namespace nb = nanobind;
+
+namespace {
+
+using CF = nb::ndarray<const float, nb::c_contig, nb::device::cpu>;
+using OF = nb::ndarray<float, nb::c_contig, nb::device::cpu>;
+using OB = nb::ndarray<bool, nb::c_contig, nb::device::cpu>;
+using OU8 = nb::ndarray<uint8_t, nb::c_contig, nb::device::cpu>;
+
+// Values of stereorepro.reproject.Reason.
+enum : uint8_t { KEPT = 0, NO_SURFACE_DST = 1, BEHIND_CAMERA = 2, OUT_OF_FRAME = 3, NO_SURFACE_SRC = 4,
+                 POSITION = 5, NORMAL = 6, NONFINITE = 7 };
+
+constexpr int kMaxStackChannels = 16;
+
+// ---- shape checks (the Python layer checks first; these guard direct calls) ---------------------------------
+template <class A>
+void expect_shape(const A &a, const char *name, std::initializer_list<int64_t> want) {
+    if (a.ndim() != want.size())
+        throw std::invalid_argument(std::string("reproject: ") + name + " must be " + std::to_string(want.size()) +
+                                    "-D, got " + std::to_string(a.ndim()) + "-D");
+    size_t d = 0;
+    for (int64_t w : want) {
+        if (w >= 0 && (int64_t)a.shape(d) != w)
+            throw std::invalid_argument(std::string("reproject: ") + name + " has size " +
+                                        std::to_string(a.shape(d)) + " in dim " + std::to_string(d) +
+                                        ", expected " + std::to_string(w));
+        ++d;
+    }
+}
+
+// ---- per-batch-item inputs ---------------------------------------------------------------------------------
+struct Camera {  // row-major 3x3 matrices, composed in Python
+    const float *P, *kt, *M, *t, *Ki;
+};
+
+struct Source {  // one batch item of the source view
+    const float *chan[kMaxStackChannels];  // value planes (history colour and length may live in two arrays)
+    const float *depth, *n0, *n1, *n2;
+    int64_t C, Hs, Ws;
+};
+
+struct Dest {  // one batch item of the destination view
+    const float *depth, *n0, *n1, *n2;
+    int64_t H, W;
+};
+
+struct Tests {
+    float pos_thr2, nrm_thr2;
+};
+
+inline bool finitef(float x) { return std::isfinite(x); }
+
+// One tap at integer source pixel (xi, yi) with bilinear weight w > 0. Returns its reason code; accumulates the
+// weighted values into num / den when it passes every test. q: destination point in the source frame; nd: the
+// destination normal (sanitised).
+template <int NC>
+inline uint8_t tap(const Source &s, const Camera &cam, const Tests &th, float xi, float yi, float w, float qx,
+                   float qy, float qz, float nd0, float nd1, float nd2, float &den, float *num) {
+    const bool in_frame = (xi >= 0.0f) & (xi <= (float)(s.Ws - 1)) & (yi >= 0.0f) & (yi <= (float)(s.Hs - 1));
+    if (!in_frame) return OUT_OF_FRAME;
+    const int64_t idx = (int64_t)yi * s.Ws + (int64_t)xi;
+    const int64_t C = NC > 0 ? NC : s.C;
+    // finite values: the channel sum is finite (any NaN/Inf makes it non-finite), summed in channel order
+    float vals[NC > 0 ? NC : kMaxStackChannels];
+    float vsum = 0.0f;
+    for (int64_t c = 0; c < C; ++c) {
+        vals[c] = s.chan[c][idx];
+        vsum += vals[c];
+    }
+    const bool finite = finitef(vsum);
+    const float zr = s.depth[idx];
+    const bool src_ok = finitef(zr) & (zr > 0.0f);
+    const float zs = src_ok ? zr : 1.0f;
+    float m0 = s.n0[idx], m1 = s.n1[idx], m2 = s.n2[idx];
+    m0 = finitef(m0) ? m0 : 0.0f;
+    m1 = finitef(m1) ? m1 : 0.0f;
+    m2 = finitef(m2) ? m2 : 0.0f;
+    const float ut = xi + 0.5f, vt = yi + 0.5f;
+    const float px = zs * ((cam.Ki[0] * ut + cam.Ki[1] * vt) + cam.Ki[2]);
+    const float py = zs * (cam.Ki[4] * vt + cam.Ki[5]);
+    const float dx = qx - px, dy = qy - py, dz = qz - zs;
+    const float dp2 = (dx * dx + dy * dy) + dz * dz;
+    const float e0 = m0 - nd0, e1 = m1 - nd1, e2 = m2 - nd2;
+    const float dn2 = (e0 * e0 + e1 * e1) + e2 * e2;
+    const bool pos_ok = dp2 <= th.pos_thr2;
+    const bool nrm_ok = dn2 <= th.nrm_thr2;
+    // first failing test, in the order of the torch code's overrides
+    const uint8_t code = !src_ok ? NO_SURFACE_SRC : !pos_ok ? POSITION : !nrm_ok ? NORMAL : !finite ? NONFINITE : KEPT;
+    if (code == KEPT) {
+        den += w;
+        for (int64_t c = 0; c < C; ++c) num[c] += w * vals[c];
+    }
+    return code;
+}
+
+// Where a row's results go: C value rows, confidence, reason and valid (one byte, 0/1), each W long.
+struct RowOut {
+    float *num[kMaxStackChannels];
+    float *den;
+    uint8_t *reason;
+    uint8_t *valid;
+};
+
+// Warp one destination pixel (x, y); writes its results at position x of the row outputs.
+template <int NC, bool BILINEAR>
+inline void warp_pixel(const Source &s, const Dest &d, const Camera &cam, const Tests &th, int64_t x, int64_t y,
+                       const RowOut &o) {
+    const int64_t C = NC > 0 ? NC : s.C;
+    float num[NC > 0 ? NC : kMaxStackChannels];
+    for (int64_t c = 0; c < C; ++c) num[c] = 0.0f;
+    auto invalid = [&](uint8_t reason, float den) {
+        for (int64_t c = 0; c < C; ++c) o.num[c][x] = 0.0f;
+        o.den[x] = den;
+        o.reason[x] = reason;
+        o.valid[x] = 0;
+    };
+    const int64_t p = y * d.W + x;
+    const float zr = d.depth[p];
+    if (!(finitef(zr) & (zr > 0.0f))) return invalid(NO_SURFACE_DST, 0.0f);
+    const float inv_z = 1.0f / zr;
+    const float uc = (float)x + 0.5f, vc = (float)y + 0.5f;
+    const float *P = cam.P, *kt = cam.kt, *M = cam.M, *t = cam.t;
+    const float wx = ((P[0] * uc + P[1] * vc) + P[2]) + kt[0] * inv_z;
+    const float wy = ((P[3] * uc + P[4] * vc) + P[5]) + kt[1] * inv_z;
+    const float wz = ((P[6] * uc + P[7] * vc) + P[8]) + kt[2] * inv_z;
+    if (!(wz > 0.0f)) return invalid(BEHIND_CAMERA, 0.0f);
+    float u = wx / wz, v = wy / wz;
+    if (!(finitef(u) & finitef(v))) return invalid(BEHIND_CAMERA, 0.0f);
+    u = std::min(std::max(u, -4.0f), (float)s.Ws + 4.0f);
+    v = std::min(std::max(v, -4.0f), (float)s.Hs + 4.0f);
+    const float qx = ((M[0] * uc + M[1] * vc) + M[2]) * zr + t[0];
+    const float qy = ((M[3] * uc + M[4] * vc) + M[5]) * zr + t[1];
+    const float qz = ((M[6] * uc + M[7] * vc) + M[8]) * zr + t[2];
+    float nd0 = d.n0[p], nd1 = d.n1[p], nd2 = d.n2[p];
+    nd0 = finitef(nd0) ? nd0 : 0.0f;
+    nd1 = finitef(nd1) ? nd1 : 0.0f;
+    nd2 = finitef(nd2) ? nd2 : 0.0f;
+
+    float den = 0.0f;
+    uint8_t worst = KEPT;  // max code over taps of non-zero weight; zero-weight taps contribute nothing at all
+    if (BILINEAR) {
+        const float fxs = u - 0.5f, fys = v - 0.5f;
+        const float x0 = std::floor(fxs), y0 = std::floor(fys);
+        const float fx = fxs - x0, fy = fys - y0;
+        const float x1 = x0 + 1.0f, y1 = y0 + 1.0f;
+        const float w[4] = {(1.0f - fx) * (1.0f - fy), fx * (1.0f - fy), (1.0f - fx) * fy, fx * fy};
+        const float xs[4] = {x0, x1, x0, x1}, ys[4] = {y0, y0, y1, y1};
+        for (int k = 0; k < 4; ++k) {
+            if (!(w[k] > 0.0f)) continue;
+            const uint8_t code = tap<NC>(s, cam, th, xs[k], ys[k], w[k], qx, qy, qz, nd0, nd1, nd2, den, num);
+            worst = std::max(worst, code);
+        }
+    } else {
+        worst = tap<NC>(s, cam, th, std::floor(u), std::floor(v), 1.0f, qx, qy, qz, nd0, nd1, nd2, den, num);
+    }
+    if (!(den > 0.0f)) return invalid(worst, den);
+    for (int64_t c = 0; c < C; ++c) o.num[c][x] = num[c] / den;
+    o.den[x] = den;
+    o.reason[x] = KEPT;
+    o.valid[x] = 1;
+}
+
+#ifdef SR_AVX2_PATH
+// ---- AVX2 path: 8 destination pixels at a time, gathers for the taps. Same operations in the same order as the
+// scalar path (IEEE mul/add/div/floor are lane-wise identical; target avx2 without fma, so nothing is fused).
+// Rejected taps are read at clamped indices (as the torch code does) and masked, so lanes never branch.
+namespace v8 {
+SR_AVX2 inline __m256 sel(__m256 m, __m256 a, __m256 b) { return _mm256_blendv_ps(b, a, m); }  // m ? a : b
+SR_AVX2 inline __m256 isfinite(__m256 x) {
+    const __m256 abs = _mm256_and_ps(x, _mm256_castsi256_ps(_mm256_set1_epi32(0x7fffffff)));
+    return _mm256_cmp_ps(abs, _mm256_set1_ps(3.40282347e38f), _CMP_LE_OQ);
+}
+SR_AVX2 inline __m256 fin0(__m256 x) { return _mm256_and_ps(x, isfinite(x)); }  // non-finite -> +0
+SR_AVX2 inline __m256 add(__m256 a, __m256 b) { return _mm256_add_ps(a, b); }
+SR_AVX2 inline __m256 sub(__m256 a, __m256 b) { return _mm256_sub_ps(a, b); }
+SR_AVX2 inline __m256 mul(__m256 a, __m256 b) { return _mm256_mul_ps(a, b); }
+SR_AVX2 inline __m256 set(float a) { return _mm256_set1_ps(a); }
+SR_AVX2 inline __m256 band(__m256 a, __m256 b) { return _mm256_and_ps(a, b); }
+SR_AVX2 inline __m256 gt(__m256 a, __m256 b) { return _mm256_cmp_ps(a, b, _CMP_GT_OQ); }
+SR_AVX2 inline __m256 ge(__m256 a, __m256 b) { return _mm256_cmp_ps(a, b, _CMP_GE_OQ); }
+SR_AVX2 inline __m256 le(__m256 a, __m256 b) { return _mm256_cmp_ps(a, b, _CMP_LE_OQ); }
+
+struct Consts {
+    __m256 Ki0, Ki1, Ki2, Ki4, Ki5, wm1, wm2, hm1, thr_p, thr_n;
+    __m256i Wsi;
+};
+
+// Source data at 8 taps: C value channels, depth and normal.
+template <int NC>
+struct Taps {
+    __m256 vals[NC > 0 ? NC : kMaxStackChannels];
+    __m256 z, n0, n1, n2;
+};
+
+// 8 taps at clamped (xi, yi): 8-lane gathers.
+template <int NC>
+SR_AVX2 inline void gather_taps(const Source &s, const Consts &k, __m256 xi, __m256 yi, Taps<NC> &t) {
+    const int64_t C = NC > 0 ? NC : s.C;
+    const __m256 zero = _mm256_setzero_ps();
+    const __m256i xc = _mm256_cvttps_epi32(_mm256_min_ps(_mm256_max_ps(xi, zero), k.wm1));
+    const __m256i yc = _mm256_cvttps_epi32(_mm256_min_ps(_mm256_max_ps(yi, zero), k.hm1));
+    const __m256i idx = _mm256_add_epi32(_mm256_mullo_epi32(yc, k.Wsi), xc);
+    for (int64_t c = 0; c < C; ++c) t.vals[c] = _mm256_i32gather_ps(s.chan[c], idx, 4);
+    t.z = _mm256_i32gather_ps(s.depth, idx, 4);
+    t.n0 = _mm256_i32gather_ps(s.n0, idx, 4);
+    t.n1 = _mm256_i32gather_ps(s.n1, idx, 4);
+    t.n2 = _mm256_i32gather_ps(s.n2, idx, 4);
+}
+
+// The horizontally adjacent taps (x0, yi) and (x0 + 1, yi) of 8 pixels with one 64-bit load per pixel and plane
+// (half the gathered elements). Needs Ws >= 2. The pair starts at xp = clamp(x0, 0, Ws - 2); where x0 = Ws - 1 the
+// x0 tap is the pair's second element, where x0 = -1 the x0 + 1 tap is its first; other out-of-frame taps read
+// some in-frame pixel and are masked by the caller.
+template <int NC>
+SR_AVX2 inline void gather_pairs(const Source &s, const Consts &k, __m256 x0, __m256 yi, Taps<NC> &a, Taps<NC> &b) {
+    const int64_t C = NC > 0 ? NC : s.C;
+    const __m256 zero = _mm256_setzero_ps();
+    const __m256i xp = _mm256_cvttps_epi32(_mm256_min_ps(_mm256_max_ps(x0, zero), k.wm2));
+    const __m256i yc = _mm256_cvttps_epi32(_mm256_min_ps(_mm256_max_ps(yi, zero), k.hm1));
+    const __m256i idx = _mm256_add_epi32(_mm256_mullo_epi32(yc, k.Wsi), xp);
+    const __m128i lo = _mm256_castsi256_si128(idx), hi = _mm256_extracti128_si256(idx, 1);
+    const __m256 a_from_b = _mm256_cmp_ps(x0, k.wm2, _CMP_GT_OQ);   // x0 = Ws - 1
+    const __m256 b_from_a = _mm256_cmp_ps(x0, zero, _CMP_LT_OQ);    // x0 = -1
+    auto load = [&](const float *plane, __m256 &va, __m256 &vb) SR_AVX2 {
+        const double *base = reinterpret_cast<const double *>(plane);  // 8-byte loads at float offsets
+        const __m256 g0 = _mm256_castpd_ps(_mm256_i32gather_pd(base, lo, 4));  // a0 b0 a1 b1 | a2 b2 a3 b3
+        const __m256 g1 = _mm256_castpd_ps(_mm256_i32gather_pd(base, hi, 4));  // a4 b4 a5 b5 | a6 b6 a7 b7
+        const __m256 ea = _mm256_castpd_ps(_mm256_permute4x64_pd(
+            _mm256_castps_pd(_mm256_shuffle_ps(g0, g1, _MM_SHUFFLE(2, 0, 2, 0))), _MM_SHUFFLE(3, 1, 2, 0)));
+        const __m256 eb = _mm256_castpd_ps(_mm256_permute4x64_pd(
+            _mm256_castps_pd(_mm256_shuffle_ps(g0, g1, _MM_SHUFFLE(3, 1, 3, 1))), _MM_SHUFFLE(3, 1, 2, 0)));
+        va = sel(a_from_b, eb, ea);
+        vb = sel(b_from_a, ea, eb);
+    };
+    for (int64_t c = 0; c < C; ++c) load(s.chan[c], a.vals[c], b.vals[c]);
+    load(s.depth, a.z, b.z);
+    load(s.n0, a.n0, b.n0);
+    load(s.n1, a.n1, b.n1);
+    load(s.n2, a.n2, b.n2);
+}
+
+// Accept tests, reason code and accumulation of 8 taps at (xi, yi) with weights w (see the scalar tap()).
+template <int NC>
+SR_AVX2 inline void tap(const Source &s, const Consts &k, const Taps<NC> &g, __m256 xi, __m256 yi, __m256 w,
+                        __m256 pixel_ok, __m256 qx, __m256 qy, __m256 qz, __m256 nd0, __m256 nd1, __m256 nd2,
+                        __m256 &den, __m256 *num, __m256 &worst) {
+    const int64_t C = NC > 0 ? NC : s.C;
+    const __m256 zero = _mm256_setzero_ps(), one = set(1.0f);
+    const __m256 in_frame = band(band(ge(xi, zero), le(xi, k.wm1)), band(ge(yi, zero), le(yi, k.hm1)));
+    __m256 vsum = zero;
+    for (int64_t c = 0; c < C; ++c) vsum = add(vsum, g.vals[c]);
+    const __m256 finite = isfinite(vsum);
+    const __m256 src_ok = band(isfinite(g.z), gt(g.z, zero));
+    const __m256 zs = sel(src_ok, g.z, one);
+    const __m256 m0 = fin0(g.n0), m1 = fin0(g.n1), m2 = fin0(g.n2);
+    const __m256 ut = add(xi, set(0.5f)), vt = add(yi, set(0.5f));
+    const __m256 px = mul(zs, add(add(mul(k.Ki0, ut), mul(k.Ki1, vt)), k.Ki2));
+    const __m256 py = mul(zs, add(mul(k.Ki4, vt), k.Ki5));
+    const __m256 dx = sub(qx, px), dy = sub(qy, py), dz = sub(qz, zs);
+    const __m256 dp2 = add(add(mul(dx, dx), mul(dy, dy)), mul(dz, dz));
+    const __m256 e0 = sub(m0, nd0), e1 = sub(m1, nd1), e2 = sub(m2, nd2);
+    const __m256 dn2 = add(add(mul(e0, e0), mul(e1, e1)), mul(e2, e2));
+    const __m256 pos_ok = le(dp2, k.thr_p), nrm_ok = le(dn2, k.thr_n);
+    __m256 code = sel(finite, zero, set(NONFINITE));
+    code = sel(nrm_ok, code, set(NORMAL));
+    code = sel(pos_ok, code, set(POSITION));
+    code = sel(src_ok, code, set(NO_SURFACE_SRC));
+    const __m256 wpos = gt(w, zero);
+    code = sel(band(in_frame, wpos), code, band(wpos, set(OUT_OF_FRAME)));
+    worst = _mm256_max_ps(worst, code);
+    const __m256 hard = band(band(band(pixel_ok, in_frame), band(src_ok, finite)), band(pos_ok, nrm_ok));
+    const __m256 ws = band(w, hard);  // w or +0, as w * hard.float() in torch
+    den = add(den, ws);
+    for (int64_t c = 0; c < C; ++c) num[c] = add(num[c], mul(ws, band(g.vals[c], finite)));
+}
+
+// Warps pixels [0, W - W % 8) of row y; returns the first pixel not done.
+template <int NC, bool BILINEAR>
+SR_AVX2 int64_t warp_row(const Source &s, const Dest &d, const Camera &cam, const Tests &th, int64_t y,
+                         const RowOut &o) {
+    const int64_t C = NC > 0 ? NC : s.C;
+    const __m256 zero = _mm256_setzero_ps(), one = set(1.0f), m4 = set(-4.0f), half = set(0.5f);
+    __m256 P[9], M[9], kt[3], t[3];
+    for (int i = 0; i < 9; ++i) P[i] = set(cam.P[i]), M[i] = set(cam.M[i]);
+    for (int i = 0; i < 3; ++i) kt[i] = set(cam.kt[i]), t[i] = set(cam.t[i]);
+    Consts k;
+    k.Ki0 = set(cam.Ki[0]), k.Ki1 = set(cam.Ki[1]), k.Ki2 = set(cam.Ki[2]), k.Ki4 = set(cam.Ki[4]);
+    k.Ki5 = set(cam.Ki[5]);
+    k.wm1 = set((float)(s.Ws - 1)), k.wm2 = set((float)(s.Ws - 2)), k.hm1 = set((float)(s.Hs - 1));
+    const bool pairs = s.Ws >= 2;
+    Taps<NC> ga, gb;
+    k.thr_p = set(th.pos_thr2), k.thr_n = set(th.nrm_thr2);
+    k.Wsi = _mm256_set1_epi32((int32_t)s.Ws);
+    const __m256 umax = set((float)s.Ws + 4.0f), vmax = set((float)s.Hs + 4.0f);
+    const __m256 vc = set((float)y + 0.5f);
+    const __m256i iota = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+    int64_t x = 0;
+    for (; x + 8 <= d.W; x += 8) {
+        const int64_t p = y * d.W + x;
+        const __m256 uc = add(_mm256_cvtepi32_ps(_mm256_add_epi32(_mm256_set1_epi32((int32_t)x), iota)), half);
+        const __m256 zr = _mm256_loadu_ps(d.depth + p);
+        const __m256 dst_ok = band(isfinite(zr), gt(zr, zero));
+        const __m256 z = sel(dst_ok, zr, one);
+        const __m256 inv_z = _mm256_div_ps(one, z);
+        const __m256 wx = add(add(add(mul(P[0], uc), mul(P[1], vc)), P[2]), mul(kt[0], inv_z));
+        const __m256 wy = add(add(add(mul(P[3], uc), mul(P[4], vc)), P[5]), mul(kt[1], inv_z));
+        __m256 wz = add(add(add(mul(P[6], uc), mul(P[7], vc)), P[8]), mul(kt[2], inv_z));
+        __m256 front = gt(wz, zero);
+        wz = sel(front, wz, one);
+        __m256 u = _mm256_div_ps(wx, wz), v = _mm256_div_ps(wy, wz);
+        front = band(front, band(isfinite(u), isfinite(v)));
+        u = _mm256_min_ps(_mm256_max_ps(sel(front, u, m4), m4), umax);
+        v = _mm256_min_ps(_mm256_max_ps(sel(front, v, m4), m4), vmax);
+        const __m256 qx = add(mul(add(add(mul(M[0], uc), mul(M[1], vc)), M[2]), z), t[0]);
+        const __m256 qy = add(mul(add(add(mul(M[3], uc), mul(M[4], vc)), M[5]), z), t[1]);
+        const __m256 qz = add(mul(add(add(mul(M[6], uc), mul(M[7], vc)), M[8]), z), t[2]);
+        const __m256 nd0 = fin0(_mm256_loadu_ps(d.n0 + p));
+        const __m256 nd1 = fin0(_mm256_loadu_ps(d.n1 + p));
+        const __m256 nd2 = fin0(_mm256_loadu_ps(d.n2 + p));
+        const __m256 pixel_ok = band(dst_ok, front);
+        if (_mm256_movemask_ps(pixel_ok) == 0) {  // nothing to warp (e.g. sky): no taps, only reasons
+            for (int l = 0; l < 8; ++l) warp_pixel<NC, BILINEAR>(s, d, cam, th, x + l, y, o);
+            continue;
+        }
+        __m256 den = zero, worst = zero;
+        __m256 num[NC > 0 ? NC : kMaxStackChannels];
+        for (int64_t c = 0; c < C; ++c) num[c] = zero;
+        if (BILINEAR) {
+            const __m256 fxs = sub(u, half), fys = sub(v, half);
+            const __m256 x0 = _mm256_floor_ps(fxs), y0 = _mm256_floor_ps(fys);
+            const __m256 fx = sub(fxs, x0), fy = sub(fys, y0);
+            const __m256 x1 = add(x0, one), y1 = add(y0, one);
+            const __m256 gx = sub(one, fx), gy = sub(one, fy);
+            const __m256 ys[2] = {y0, y1}, wy[2] = {gy, fy};
+            for (int r = 0; r < 2; ++r) {  // taps in torch's order: (x0, y0), (x1, y0), (x0, y1), (x1, y1)
+                if (pairs) {
+                    gather_pairs<NC>(s, k, x0, ys[r], ga, gb);
+                } else {
+                    gather_taps<NC>(s, k, x0, ys[r], ga);
+                    gather_taps<NC>(s, k, x1, ys[r], gb);
+                }
+                tap<NC>(s, k, ga, x0, ys[r], mul(gx, wy[r]), pixel_ok, qx, qy, qz, nd0, nd1, nd2, den, num, worst);
+                tap<NC>(s, k, gb, x1, ys[r], mul(fx, wy[r]), pixel_ok, qx, qy, qz, nd0, nd1, nd2, den, num, worst);
+            }
+        } else {
+            const __m256 xi = _mm256_floor_ps(u), yi = _mm256_floor_ps(v);
+            gather_taps<NC>(s, k, xi, yi, ga);
+            tap<NC>(s, k, ga, xi, yi, one, pixel_ok, qx, qy, qz, nd0, nd1, nd2, den, num, worst);
+        }
+        const __m256 has_w = gt(den, zero);
+        const __m256 safe_den = sel(has_w, den, one);
+        for (int64_t c = 0; c < C; ++c)
+            _mm256_storeu_ps(o.num[c] + x, band(_mm256_div_ps(num[c], safe_den), has_w));
+        _mm256_storeu_ps(o.den + x, den);
+        __m256 reason = sel(front, worst, set(BEHIND_CAMERA));
+        reason = sel(dst_ok, reason, set(NO_SURFACE_DST));
+        reason = _mm256_andnot_ps(has_w, reason);
+        alignas(32) int32_t r[8];
+        _mm256_store_si256((__m256i *)r, _mm256_cvttps_epi32(reason));
+        const int vm = _mm256_movemask_ps(has_w);
+        for (int l = 0; l < 8; ++l) {
+            o.reason[x + l] = (uint8_t)r[l];
+            o.valid[x + l] = (uint8_t)((vm >> l) & 1);
+        }
+    }
+    return x;
+}
+}  // namespace v8
+
+bool use_avx2() {
+    static const bool ok = __builtin_cpu_supports("avx2");
+    return ok;
+}
+#endif
+
+template <int NC, bool BILINEAR>
+void warp_row(const Source &s, const Dest &d, const Camera &cam, const Tests &th, int64_t y, const RowOut &o,
+              bool vector) {
+    int64_t x = 0;
+#ifdef SR_AVX2_PATH
+    if (vector) x = v8::warp_row<NC, BILINEAR>(s, d, cam, th, y, o);
+#endif
+    for (; x < d.W; ++x) warp_pixel<NC, BILINEAR>(s, d, cam, th, x, y, o);
+}
+
+// ---- sinks: where a warped row goes ------------------------------------------------------------------------
+// Stereo: the row outputs are the output arrays themselves.
+struct StereoSink {
+    float *values;  // (B, C, H, W)
+    bool *valid;
+    uint8_t *reason;
+    float *conf;
+    int64_t C, H, W;
+    static constexpr bool needs_scratch = false;
+    RowOut row(int64_t b, int64_t y, float *) const {
+        RowOut o;
+        for (int64_t c = 0; c < C; ++c) o.num[c] = values + ((b * C + c) * H + y) * W;
+        const int64_t i = (b * H + y) * W;
+        o.den = conf + i;
+        o.reason = reason + i;
+        o.valid = reinterpret_cast<uint8_t *>(valid + i);  // bool is one byte holding 0 or 1
+        return o;
+    }
+    void finish(int64_t, int64_t, const RowOut &) const {}
+};
+
+// Temporal: warp [history colour, history length] into scratch rows, then temporal_blend with a bool confidence.
+struct TemporalSink {
+    const float *current;  // (B, C-1, H, W)
+    float *color;          // (B, C-1, H, W)
+    float *len;            // (B, 1, H, W)
+    bool *valid;
+    float alpha, max_history;
+    bool warmup;
+    int64_t C, H, W;
+    static constexpr bool needs_scratch = true;
+    RowOut row(int64_t b, int64_t y, float *scratch) const {  // scratch: (C + 2) * W floats
+        RowOut o;
+        for (int64_t c = 0; c < C; ++c) o.num[c] = scratch + c * W;
+        o.den = scratch + C * W;
+        o.reason = reinterpret_cast<uint8_t *>(scratch + (C + 1) * W);
+        o.valid = reinterpret_cast<uint8_t *>(valid + (b * H + y) * W);
+        return o;
+    }
+    void finish(int64_t b, int64_t y, const RowOut &o) const {
+        // same operations as reproject.temporal_blend: a = max(1/(max(n, 0) + 1), alpha) (warmup) or alpha,
+        // out = (1 - a)·hist + a·cur where valid else cur, n_out = min(n + 1, max_history) where valid else 1.
+        const int64_t Cc = C - 1, row = (b * H + y) * W;
+        const float *n = o.num[Cc];
+        const uint8_t *v = o.valid;
+        float *lo = len + row, *a = o.den;  // the confidence row is not needed any more: reuse it for a
+        for (int64_t x = 0; x < W; ++x) {
+            a[x] = warmup ? std::max(1.0f / (std::max(n[x], 0.0f) + 1.0f), alpha) : alpha;
+            lo[x] = v[x] ? std::min(n[x] + 1.0f, max_history) : 1.0f;
+        }
+        for (int64_t c = 0; c < Cc; ++c) {
+            const int64_t off = ((b * Cc + c) * H + y) * W;
+            const float *h = o.num[c], *cur = current + off;
+            float *out = color + off;
+            for (int64_t x = 0; x < W; ++x) out[x] = v[x] ? (1.0f - a[x]) * h[x] + a[x] * cur[x] : cur[x];
+        }
+    }
+};
+
+struct Batch {  // pointers and strides shared by all rows
+    std::vector<const float *> chan;  // B * C value planes
+    const float *src_depth, *src_normal, *dst_depth, *dst_normal;
+    const float *P, *kt, *M, *t, *Ki;
+    int64_t B, C, Hs, Ws, H, W;
+};
+
+template <int NC, bool BILINEAR, class Sink>
+void run_rows(const Batch &bt, const Tests &th, const Sink &sink) {
+    const int64_t rows = bt.B * bt.H, HWs = bt.Hs * bt.Ws, HW = bt.H * bt.W;
+    bool vector = false;
+#ifdef SR_AVX2_PATH
+    vector = use_avx2() && HWs < (int64_t(1) << 31) && bt.Ws < (int64_t(1) << 24) && bt.Hs < (int64_t(1) << 24) &&
+             bt.W < (int64_t(1) << 24);
+#endif
+#ifdef STEREOREPRO_OPENMP
+#pragma omp parallel
+#endif
+    {
+        std::vector<float> scratch(Sink::needs_scratch ? (bt.C + 2) * bt.W : 0);
+#ifdef STEREOREPRO_OPENMP
+#pragma omp for schedule(dynamic, 4)
+#endif
+        for (int64_t r = 0; r < rows; ++r) {
+            const int64_t b = r / bt.H, y = r % bt.H;
+            Source s;
+            s.C = bt.C;
+            s.Hs = bt.Hs;
+            s.Ws = bt.Ws;
+            for (int64_t c = 0; c < bt.C; ++c) s.chan[c] = bt.chan[b * bt.C + c];
+            s.depth = bt.src_depth + b * HWs;
+            s.n0 = bt.src_normal + (b * 3 + 0) * HWs;
+            s.n1 = bt.src_normal + (b * 3 + 1) * HWs;
+            s.n2 = bt.src_normal + (b * 3 + 2) * HWs;
+            Dest d;
+            d.depth = bt.dst_depth + b * HW;
+            d.n0 = bt.dst_normal + (b * 3 + 0) * HW;
+            d.n1 = bt.dst_normal + (b * 3 + 1) * HW;
+            d.n2 = bt.dst_normal + (b * 3 + 2) * HW;
+            d.H = bt.H;
+            d.W = bt.W;
+            const Camera cam{bt.P + 9 * b, bt.kt + 3 * b, bt.M + 9 * b, bt.t + 3 * b, bt.Ki + 9 * b};
+            const RowOut o = sink.row(b, y, scratch.data());
+            warp_row<NC, BILINEAR>(s, d, cam, th, y, o, vector);
+            sink.finish(b, y, o);
+        }
+    }
+}
+
+template <class Sink>
+void dispatch(const Batch &bt, const Tests &th, bool bilinear, const Sink &sink) {
+    nb::gil_scoped_release release;
+    if (bt.C == 3) {
+        bilinear ? run_rows<3, true>(bt, th, sink) : run_rows<3, false>(bt, th, sink);
+    } else if (bt.C == 4) {
+        bilinear ? run_rows<4, true>(bt, th, sink) : run_rows<4, false>(bt, th, sink);
+    } else {
+        bilinear ? run_rows<0, true>(bt, th, sink) : run_rows<0, false>(bt, th, sink);
+    }
+}
+
+// Checks the geometry arrays shared by both kernels and fills bt (except chan and C).
+void check_geometry(Batch &bt, const CF &src_depth, const CF &src_normal, const CF &P, const CF &kt, const CF &M,
+                    const CF &t, const CF &Ks_inv, const CF &dst_depth, const CF &dst_normal) {
+    expect_shape(src_depth, "src_depth", {bt.B, 1, -1, -1});
+    bt.Hs = src_depth.shape(2);
+    bt.Ws = src_depth.shape(3);
+    expect_shape(src_normal, "src_normal", {bt.B, 3, bt.Hs, bt.Ws});
+    expect_shape(P, "P", {bt.B, 9});
+    expect_shape(kt, "kt", {bt.B, 3});
+    expect_shape(M, "M", {bt.B, 9});
+    expect_shape(t, "t", {bt.B, 3});
+    expect_shape(Ks_inv, "Ks_inv", {bt.B, 9});
+    expect_shape(dst_depth, "dst_depth", {bt.B, 1, -1, -1});
+    bt.H = dst_depth.shape(2);
+    bt.W = dst_depth.shape(3);
+    expect_shape(dst_normal, "dst_normal", {bt.B, 3, bt.H, bt.W});
+    bt.src_depth = src_depth.data();
+    bt.src_normal = src_normal.data();
+    bt.dst_depth = dst_depth.data();
+    bt.dst_normal = dst_normal.data();
+    bt.P = P.data();
+    bt.kt = kt.data();
+    bt.M = M.data();
+    bt.t = t.data();
+    bt.Ki = Ks_inv.data();
+}
+
+void reproject(CF src_values, CF src_depth, CF src_normal, CF P, CF kt, CF M, CF t, CF Ks_inv, CF dst_depth,
+               CF dst_normal, float pos_thr2, float nrm_thr2, bool bilinear, OF out_values, OB out_valid,
+               OU8 out_reason, OF out_confidence) {
+    if (src_values.ndim() != 4) throw std::invalid_argument("reproject: src_values must be 4-D (B, C, Hs, Ws)");
+    Batch bt;
+    bt.B = src_values.shape(0);
+    bt.C = src_values.shape(1);
+    if (bt.C < 1 || bt.C > kMaxStackChannels)
+        throw std::invalid_argument("reproject: src_values must have 1.." + std::to_string(kMaxStackChannels) +
+                                    " channels, got " + std::to_string(bt.C));
+    check_geometry(bt, src_depth, src_normal, P, kt, M, t, Ks_inv, dst_depth, dst_normal);
+    expect_shape(src_values, "src_values", {bt.B, bt.C, bt.Hs, bt.Ws});
+    expect_shape(out_values, "out_values", {bt.B, bt.C, bt.H, bt.W});
+    expect_shape(out_valid, "out_valid", {bt.B, 1, bt.H, bt.W});
+    expect_shape(out_reason, "out_reason", {bt.B, 1, bt.H, bt.W});
+    expect_shape(out_confidence, "out_confidence", {bt.B, 1, bt.H, bt.W});
+    const int64_t HWs = bt.Hs * bt.Ws;
+    bt.chan.resize(bt.B * bt.C);
+    for (int64_t i = 0; i < bt.B * bt.C; ++i) bt.chan[i] = src_values.data() + i * HWs;
+    const StereoSink sink{out_values.data(), out_valid.data(), out_reason.data(), out_confidence.data(), bt.C,
+                          bt.H, bt.W};
+    dispatch(bt, Tests{pos_thr2, nrm_thr2}, bilinear, sink);
+}
+
+void temporal_reproject(CF current, CF history_color, CF history_len, CF prev_depth, CF prev_normal, CF P, CF kt,
+                        CF M, CF t, CF Ks_inv, CF depth, CF normal, float pos_thr2, float nrm_thr2, bool bilinear,
+                        float alpha, bool warmup, float max_history, OF out_color, OF out_len, OB out_valid) {
+    if (history_color.ndim() != 4)
+        throw std::invalid_argument("temporal_reproject: history_color must be 4-D (B, C, Hs, Ws)");
+    Batch bt;
+    bt.B = history_color.shape(0);
+    const int64_t Cc = history_color.shape(1);
+    bt.C = Cc + 1;
+    if (Cc < 1 || bt.C > kMaxStackChannels)
+        throw std::invalid_argument("temporal_reproject: history_color must have 1.." +
+                                    std::to_string(kMaxStackChannels - 1) + " channels");
+    check_geometry(bt, prev_depth, prev_normal, P, kt, M, t, Ks_inv, depth, normal);
+    expect_shape(history_color, "history_color", {bt.B, Cc, bt.Hs, bt.Ws});
+    expect_shape(history_len, "history_len", {bt.B, 1, bt.Hs, bt.Ws});
+    expect_shape(current, "current", {bt.B, Cc, bt.H, bt.W});
+    expect_shape(out_color, "out_color", {bt.B, Cc, bt.H, bt.W});
+    expect_shape(out_len, "out_len", {bt.B, 1, bt.H, bt.W});
+    expect_shape(out_valid, "out_valid", {bt.B, 1, bt.H, bt.W});
+    const int64_t HWs = bt.Hs * bt.Ws;
+    bt.chan.resize(bt.B * bt.C);
+    for (int64_t b = 0; b < bt.B; ++b) {
+        for (int64_t c = 0; c < Cc; ++c) bt.chan[b * bt.C + c] = history_color.data() + (b * Cc + c) * HWs;
+        bt.chan[b * bt.C + Cc] = history_len.data() + b * HWs;
+    }
+    const TemporalSink sink{current.data(), out_color.data(), out_len.data(), out_valid.data(), alpha, max_history,
+                            warmup, bt.C, bt.H, bt.W};
+    dispatch(bt, Tests{pos_thr2, nrm_thr2}, bilinear, sink);
+}
+
+}  // namespace
+
+void bind_reproject(nb::module_ &m) {
+    m.def("reproject", &reproject, nb::arg("src_values").noconvert(), nb::arg("src_depth").noconvert(),
+          nb::arg("src_normal").noconvert(), nb::arg("P").noconvert(), nb::arg("kt").noconvert(),
+          nb::arg("M").noconvert(), nb::arg("t").noconvert(), nb::arg("Ks_inv").noconvert(),
+          nb::arg("dst_depth").noconvert(), nb::arg("dst_normal").noconvert(), nb::arg("pos_thr2"),
+          nb::arg("nrm_thr2"), nb::arg("bilinear"), nb::arg("out_values").noconvert(),
+          nb::arg("out_valid").noconvert(), nb::arg("out_reason").noconvert(), nb::arg("out_confidence").noconvert(),
+          "Fused hard backward reprojection (float32, NCHW, C-contiguous CPU arrays; no copies are made).\n"
+          "Camera arrays P, M, Ks_inv are (B, 9) row-major and kt, t are (B, 3), composed by "
+          "stereorepro.reproject._compose_cameras. pos_thr2 / nrm_thr2 are the float32 squared thresholds.\n"
+          "Writes out_values (B, C, H, W), out_valid (B, 1, H, W) bool, out_reason (B, 1, H, W) uint8 and "
+          "out_confidence (B, 1, H, W) in place.");
+    m.def("temporal_reproject", &temporal_reproject, nb::arg("current").noconvert(),
+          nb::arg("history_color").noconvert(), nb::arg("history_len").noconvert(),
+          nb::arg("prev_depth").noconvert(), nb::arg("prev_normal").noconvert(), nb::arg("P").noconvert(),
+          nb::arg("kt").noconvert(), nb::arg("M").noconvert(), nb::arg("t").noconvert(),
+          nb::arg("Ks_inv").noconvert(), nb::arg("depth").noconvert(), nb::arg("normal").noconvert(),
+          nb::arg("pos_thr2"), nb::arg("nrm_thr2"), nb::arg("bilinear"), nb::arg("alpha"), nb::arg("warmup"),
+          nb::arg("max_history"), nb::arg("out_color").noconvert(), nb::arg("out_len").noconvert(),
+          nb::arg("out_valid").noconvert(),
+          "Fused temporal reprojection: warps [history_color, history_len] like `reproject` and blends with "
+          "`current` in the same pass (a = max(1/(n+1), alpha) with warmup, else alpha). Writes out_color, "
+          "out_len and out_valid in place.");
+}

@@ -1,0 +1,569 @@
+"""Native kernels (stereorepro._core) against their torch twins, and backend selection.
+
+Parity policy: colours within 1e-5; ``valid`` / ``reason`` identical except at exact threshold ties (a distance
+that lands on the squared threshold and rounds differently), which are counted and must stay <= 0.01 % of the
+pixels. The kernels follow the torch arithmetic operation by operation, so in practice there are none.
+
+Temporal variant (measured at 1280x720, see the report of the change): one fused pass
+(``_core.temporal_reproject``: warp [history colour, length] and blend) was faster than ``reproject`` with C = 4
+followed by ``_core.temporal_blend`` (an extra concatenation and an intermediate write); the fused kernel is the
+one used, the two-pass variant is kept in ``stereorepro.native._temporal_two_pass`` for benchmarks and is checked
+equal here.
+"""
+
+import math
+
+import pytest
+import torch
+
+from stereorepro import StereoReprojection, TemporalReprojection, native
+from stereorepro._checks import ShapeError
+from stereorepro.reproject import (
+    Reason,
+    backward_reproject,
+    stereo_reproject,
+    temporal_blend,
+    temporal_reproject,
+)
+from stereorepro.synthetic import camera_pair, default_scene, raycast
+
+if not native.available():
+    pytest.skip("stereorepro._core without the reprojection kernels", allow_module_level=True)
+
+from stereorepro.native import _core, native_backward_reproject, native_temporal_reproject  # noqa: E402
+from test_reproject import ARGS, plane_pair, scene_pair  # noqa: E402
+
+MAX_TIE_FRACTION = 1e-4  # 0.01 %
+TIES = {"pixels": 0, "mismatches": 0}  # running totals over this module, reported by test_zz_tie_summary
+
+
+def assert_parity(ref, got, what=""):
+    """ref / got: (values, valid, reason[, confidence]). Returns the number of valid/reason mismatches (ties)."""
+    values_r, valid_r, reason_r = ref[:3]
+    values_g, valid_g, reason_g = got[:3]
+    assert values_g.shape == values_r.shape and values_g.dtype == values_r.dtype, what
+    assert valid_g.dtype == torch.bool and reason_g.dtype == torch.uint8, what
+    mismatch = (valid_r != valid_g) | (reason_r != reason_g)
+    n_pix = valid_r.numel()
+    n_bad = int(mismatch.sum())
+    TIES["pixels"] += n_pix
+    TIES["mismatches"] += n_bad
+    assert n_bad <= MAX_TIE_FRACTION * n_pix, f"{what}: {n_bad} valid/reason mismatches of {n_pix} pixels"
+    same = (~mismatch).expand_as(values_r)
+    assert torch.isfinite(values_g).all(), what
+    err = (values_r - values_g).abs()[same]
+    assert err.numel() == 0 or float(err.max()) <= 1e-5, f"{what}: colour error {float(err.max())}"
+    if len(ref) > 3 and len(got) > 3:
+        cerr = (ref[3] - got[3]).abs()[~mismatch]
+        assert cerr.numel() == 0 or float(cerr.max()) <= 1e-6, what
+    return n_bad
+
+
+def both_stereo(inp, pos=0.01, nrm=0.1, sampling="bilinear"):
+    args = [inp[a] for a in ARGS]
+    ref = backward_reproject(*args, pos, nrm, sampling)
+    got = native_backward_reproject(*args, pos, nrm, sampling)
+    return ref, got
+
+
+# --- the hard cases of tests/test_reproject.py, as input builders ------------------------------------------------
+def _no_surface_dst():
+    inp = plane_pair()
+    for i, z in enumerate([float("inf"), float("nan"), 0.0, -1.0]):
+        inp["dst_depth"][0, 0, i, 3] = z
+    return inp, 0.01, 0.1
+
+
+def _no_surface_src():
+    inp = plane_pair(shift_px=1)
+    inp["src_depth"][..., 4] = float("inf")
+    inp["src_depth"][..., 2] = float("nan")
+    return inp, 0.01, 0.1
+
+
+def _behind_turned():
+    inp = plane_pair()
+    inp["src_cam_from_world"] = torch.diag(torch.tensor([-1.0, 1.0, -1.0, 1.0]))[None]
+    return inp, 100.0, 10.0
+
+
+def _behind_moved():
+    inp = plane_pair()
+    inp["src_cam_from_world"] = inp["src_cam_from_world"].clone()
+    inp["src_cam_from_world"][:, 2, 3] = -3.0
+    return inp, 100.0, 10.0
+
+
+def _degenerate(z):
+    def make():
+        inp = plane_pair()
+        inp["dst_depth"][0, 0, 2, 3] = z
+        inp["src_depth"][0, 0, 2, 2] = z
+        return inp, 0.01, 0.1
+    return make
+
+
+def _out_of_frame():
+    inp = plane_pair()
+    inp["src_cam_from_world"] = inp["src_cam_from_world"].clone()
+    inp["src_cam_from_world"][:, 0, 3] = 100.0
+    return inp, 1e3, 10.0
+
+
+def _nonfinite_rejected():
+    inp = plane_pair(shift_px=1)
+    inp["src_color"][..., 7] = float("nan")
+    inp["src_color"][0, 0, :, 2] = float("inf")
+    inp["src_depth"][..., 2] = 5.0
+    return inp, 0.01, 0.1
+
+
+def _nonfinite_accepted(shift):
+    def make():
+        inp = plane_pair(shift_px=shift)
+        inp["src_color"][0, 1, 2, 4] = float("nan") if shift == 1 else float("inf")
+        inp["src_normal"][0, 0, 3, 3] = float("nan")
+        inp["dst_normal"][0, 2, 4, 4] = float("inf")
+        return inp, 0.1, 0.1
+    return make
+
+
+def _all_rejected():
+    inp = plane_pair(H=4, W=5, shift_px=0.5)
+    inp["src_depth"] = inp["src_depth"] * 2
+    return inp, 0.01, 0.1
+
+
+def _grazing():
+    H, W = 24, 32
+    from stereorepro.camera import PinholeCamera, look_at
+    K = torch.tensor([[[40.0, 0, 16], [0, 40.0, 12], [0, 0, 1]]], dtype=torch.float64)
+    head = look_at(torch.tensor([[0.0, 0.02, 0.0]], dtype=torch.float64),
+                   torch.tensor([[0.0, 0.0, -10.0]], dtype=torch.float64),
+                   torch.tensor([[0.0, 1.0, 0.0]], dtype=torch.float64))
+    moved = head.clone()
+    moved[:, 0, 3] -= 0.01
+    scene = default_scene()
+    gd, gs = raycast(PinholeCamera(K, head, H, W), scene), raycast(PinholeCamera(K, moved, H, W), scene)
+    inp = dict(src_color=gs["color"].float(), src_depth=gs["depth"].float(), src_normal=gs["normal"].float(),
+               src_K=K, src_cam_from_world=moved, dst_depth=gd["depth"].float(), dst_normal=gd["normal"].float(),
+               dst_K=K, dst_cam_from_world=head)
+    return inp, 0.05, 0.1
+
+
+def _far_from_origin(dz):
+    def make():
+        o = torch.tensor([12345.678, -9876.54321, 11111.1111], dtype=torch.float64)
+        inp = plane_pair(H=6, W=9, shift_px=1.0)
+        for k in ("src_cam_from_world", "dst_cam_from_world"):
+            T = inp[k].double().clone()
+            T[:, :3, 3] -= o
+            inp[k] = T
+        inp["src_depth"] = inp["src_depth"] + dz
+        return inp, 1e-3, 0.01
+    return make
+
+
+def _per_item_batch():
+    a, *_ = scene_pair(forward=0.0)
+    b, *_ = scene_pair(forward=0.3, yaw=3.0)
+    return {k: torch.cat([a[k], b[k]]) for k in ARGS}, 0.05, 0.2
+
+
+def _identity():
+    inp, gd, *_ = scene_pair(baseline=0.065)
+    dst, _ = camera_pair(36, 48)
+    inp.update(src_color=gd["color"].float(), src_depth=gd["depth"].float(), src_normal=gd["normal"].float(),
+               src_K=dst.K.float(), src_cam_from_world=dst.cam_from_world.float())
+    return inp, 1e-6, 1e-6
+
+
+def _single(hw):
+    def make():
+        H, W = hw
+        return plane_pair(H=H, W=W, shift_px=0.0 if W == 1 else 1.0), 0.01, 0.1
+    return make
+
+
+HARD_CASES = {
+    "integer_shift_1": lambda: (plane_pair(H=5, W=9, shift_px=1), 0.01, 0.1),
+    "integer_shift_3": lambda: (plane_pair(H=5, W=9, shift_px=3), 0.01, 0.1),
+    "fractional_shift": lambda: (plane_pair(H=5, W=9, shift_px=1.25), 0.1, 0.1),
+    "fractional_shift_b2": lambda: (plane_pair(H=5, W=9, shift_px=0.37, B=2), 0.01, 0.1),
+    "no_surface_dst": _no_surface_dst,
+    "no_surface_src": _no_surface_src,
+    "behind_turned": _behind_turned,
+    "behind_moved": _behind_moved,
+    **{f"degenerate_{z}": _degenerate(z) for z in [0.0, 1e-12, -1e-12, math.inf, -math.inf, math.nan, 1e30]},
+    "out_of_frame": _out_of_frame,
+    "nonfinite_rejected": _nonfinite_rejected,
+    "nonfinite_accepted_nan": _nonfinite_accepted(1),
+    "nonfinite_accepted_inf": _nonfinite_accepted(0.5),
+    "all_rejected": _all_rejected,
+    "grazing": _grazing,
+    "far_near": _far_from_origin(5e-4),
+    "far_far": _far_from_origin(2e-3),
+    "per_item_batch": _per_item_batch,
+    "identity": _identity,
+    "analytic_scene": lambda: (scene_pair(H=72, W=96)[0], 0.15, 0.2),
+    "moving_scene": lambda: (scene_pair(H=36, W=48, forward=0.2, yaw=2.0)[0], 0.05, 0.3),
+    **{f"single_{h}x{w}": _single((h, w)) for h, w in [(1, 9), (7, 1), (1, 1)]},
+}
+
+
+def random_scene(H, W, seed, B=1):
+    g = torch.Generator().manual_seed(seed)
+    r = torch.rand(4, generator=g).tolist()
+    dst, src = camera_pair(H, W, B, baseline=0.02 + 0.2 * r[0], forward=0.6 * r[1] - 0.3, yaw_deg=8 * r[2] - 4)
+    scene = default_scene()
+    gd, gs = raycast(dst, scene), raycast(src, scene)
+    inp = dict(src_color=gs["color"].float() * (0.5 + torch.rand(gs["color"].shape, generator=g)),
+               src_depth=gs["depth"].float(), src_normal=gs["normal"].float(), src_K=src.K,
+               src_cam_from_world=src.cam_from_world, dst_depth=gd["depth"].float(),
+               dst_normal=gd["normal"].float(), dst_K=dst.K, dst_cam_from_world=dst.cam_from_world)
+    pos, nrm = 0.01 + 0.2 * r[3], 0.05 + 0.5 * float(torch.rand((), generator=g))
+    return inp, pos, nrm
+
+
+RESOLUTIONS = [(1, 17), (13, 1), (1, 1), (36, 48), (71, 129), (97, 203)]
+
+
+class TestNativeStereo:
+    def test_smoke(self):
+        values, valid, reason, conf = native_backward_reproject(*[plane_pair()[a] for a in ARGS], 0.01, 0.1)
+        assert values.shape == (1, 3, 6, 8) and valid.dtype == torch.bool and reason.dtype == torch.uint8
+        assert conf.shape == (1, 1, 6, 8) and conf.dtype == torch.float32
+
+    def test_cardinality(self):
+        src = plane_pair(H=6, W=8, B=2)
+        dst = plane_pair(H=5, W=7, B=2)
+        inp = {**{k: v for k, v in src.items() if k.startswith("src")},
+               **{k: v for k, v in dst.items() if k.startswith("dst")}}
+        for C in (1, 3, 5):
+            inp["src_color"] = torch.rand(2, C, 6, 8)
+            ref, got = both_stereo(inp)
+            assert got[0].shape == (2, C, 5, 7)
+            assert_parity(ref, got, f"C={C}")
+
+    def test_exceptions(self):
+        inp = plane_pair()
+        args = [inp[a] for a in ARGS]
+        with pytest.raises(TypeError, match="float32"):
+            native_backward_reproject(*[a.double() if a.dim() == 4 else a for a in args], 0.01, 0.1)
+        with pytest.raises(ValueError, match="soft"):
+            native_backward_reproject(*args, 0.01, 0.1, soft=True)
+        with pytest.raises(ValueError, match="sampling"):
+            native_backward_reproject(*args, 0.01, 0.1, sampling="bicubic")
+        bad = dict(inp, src_depth=torch.zeros(1, 1, 5, 8))
+        with pytest.raises(ShapeError, match="src_depth"):
+            native_backward_reproject(*[bad[a] for a in ARGS], 0.01, 0.1)
+        # direct kernel calls: shapes are checked, outputs must be exactly right (noconvert: no hidden copies)
+        B, C, H, W = 1, 3, 6, 8
+        P, kt, M, t, Ki = native._cameras(*[inp[a] for a in ("src_K", "src_cam_from_world", "dst_K",
+                                                               "dst_cam_from_world")])
+        ins = [inp["src_color"], inp["src_depth"], inp["src_normal"], P, kt, M, t, Ki, inp["dst_depth"],
+               inp["dst_normal"], 1e-4, 1e-2, True]
+        outs = [torch.empty(B, C, H, W), torch.empty(B, 1, H, W, dtype=torch.bool),
+                torch.empty(B, 1, H, W, dtype=torch.uint8), torch.empty(B, 1, H, W)]
+        _core.reproject(*ins, *outs)
+        with pytest.raises(ValueError, match="out_values"):
+            _core.reproject(*ins, torch.empty(B, C, H, W + 1), *outs[1:])
+        with pytest.raises(ValueError, match="src_normal"):
+            _core.reproject(*ins[:2], torch.empty(B, 3, H, W + 1), *ins[3:], *outs)
+        with pytest.raises(TypeError):  # non-contiguous output: rejected, not written to a temporary
+            _core.reproject(*ins, torch.empty(B, C, W, H).transpose(-1, -2), *outs[1:])
+        with pytest.raises(TypeError):  # wrong output dtype
+            _core.reproject(*ins, outs[0], outs[1].to(torch.uint8), *outs[2:])
+        with pytest.raises(TypeError):  # non-contiguous input: the Python layer must make it contiguous
+            _core.reproject(inp["src_color"].transpose(-1, -2).contiguous().transpose(-1, -2), *ins[1:], *outs)
+
+    def test_noncontiguous_inputs_handled(self):
+        inp, *_ = scene_pair()
+        odd = dict(inp)
+        for k in ("src_color", "src_normal", "dst_normal"):
+            odd[k] = inp[k].contiguous(memory_format=torch.channels_last)
+        odd["src_depth"] = inp["src_depth"].transpose(-1, -2).contiguous().transpose(-1, -2)
+        odd["dst_depth"] = torch.cat([inp["dst_depth"], inp["dst_depth"]], 1)[:, :1]
+        assert not odd["src_depth"].is_contiguous() and not odd["src_color"].is_contiguous()
+        got = native_backward_reproject(*[odd[a] for a in ARGS], 0.05, 0.2)
+        ref = native_backward_reproject(*[inp[a] for a in ARGS], 0.05, 0.2)
+        for a, b in zip(got, ref):
+            assert torch.equal(a, b)
+
+    @pytest.mark.parametrize("sampling", ["bilinear", "nearest"])
+    @pytest.mark.parametrize("case", sorted(HARD_CASES))
+    def test_parity_hard_cases(self, case, sampling):
+        inp, pos, nrm = HARD_CASES[case]()
+        ref, got = both_stereo(inp, pos, nrm, sampling)
+        assert_parity(ref, got, case)
+
+    def test_exact_where_torch_is_exact(self):
+        for shift in (1, 3):
+            inp = plane_pair(H=5, W=9, shift_px=shift)
+            out, valid, reason, _ = native_backward_reproject(*[inp[a] for a in ARGS], 0.01, 0.1)
+            assert torch.equal(out[..., shift:], inp["src_color"][..., :-shift])
+            assert (reason[..., :shift] == Reason.OUT_OF_FRAME).all() and valid[..., shift:].all()
+
+    @pytest.mark.parametrize("hw", RESOLUTIONS)
+    @pytest.mark.parametrize("sampling", ["bilinear", "nearest"])
+    def test_parity_random_scenes(self, hw, sampling):
+        for seed in range(3):
+            inp, pos, nrm = random_scene(*hw, seed=seed + 17 * hw[0] + hw[1])
+            ref, got = both_stereo(inp, pos, nrm, sampling)
+            assert_parity(ref, got, f"{hw} seed {seed}")
+
+    def test_parity_different_source_size(self):
+        src, *_ = scene_pair(H=40, W=56, forward=0.1)
+        dst, *_ = scene_pair(H=33, W=47)
+        inp = {**{k: v for k, v in src.items() if k.startswith("src")},
+               **{k: v for k, v in dst.items() if k.startswith("dst")}}
+        ref, got = both_stereo(inp, 0.1, 0.3)
+        assert_parity(ref, got, "Hs != H")
+
+    def test_module(self):
+        inp, *_ = scene_pair(forward=0.1)
+        args = [inp[a] for a in ARGS]
+        with torch.no_grad():
+            got = StereoReprojection(0.05, 0.3, backend="native")(*args)
+            ref = StereoReprojection(0.05, 0.3, backend="torch")(*args)
+        assert_parity(ref, got, "module")
+
+
+class TestNativeTemporal:
+    NAMES = TemporalReprojection.input_names
+
+    def _inputs(self, H=36, W=48, seed=0, n=3.0, forward=0.1):
+        inp, *_ = scene_pair(H=H, W=W, forward=forward)
+        g = torch.Generator().manual_seed(seed)
+        return dict(current_color=torch.rand(1, 3, H, W, generator=g), depth=inp["dst_depth"],
+                    normal=inp["dst_normal"], K=inp["dst_K"], cam_from_world=inp["dst_cam_from_world"],
+                    history_color=inp["src_color"],
+                    history_len=torch.randint(0, 20, (1, 1, H, W), generator=g).float() if n is None else
+                    torch.full((1, 1, H, W), n),
+                    prev_depth=inp["src_depth"], prev_normal=inp["src_normal"], prev_K=inp["src_K"],
+                    prev_cam_from_world=inp["src_cam_from_world"])
+
+    def _both(self, inp, pos=0.05, nrm=0.3, **kw):
+        args = [inp[n] for n in self.NAMES]
+        ref = temporal_reproject(*args, pos, nrm, backend="torch", **kw)
+        got = native_temporal_reproject(*args, pos, nrm, **kw)
+        return ref, got
+
+    def _parity(self, ref, got, what=""):
+        color_r, n_r, valid_r = ref
+        color_g, n_g, valid_g = got
+        u8 = torch.uint8
+        assert_parity((color_r, valid_r, valid_r.to(u8)), (color_g, valid_g, valid_g.to(u8)), what)
+        same = valid_r == valid_g
+        assert float((n_r - n_g).abs()[same].max()) <= 1e-5, what
+
+    def test_smoke(self):
+        color, n, valid = native_temporal_reproject(*[self._inputs()[k] for k in self.NAMES], 0.05, 0.3)
+        assert color.shape == (1, 3, 36, 48) and n.shape == (1, 1, 36, 48) and valid.dtype == torch.bool
+
+    def test_exceptions(self):
+        inp = self._inputs()
+        args = [inp[k] for k in self.NAMES]
+        with pytest.raises(TypeError, match="history_len"):
+            native_temporal_reproject(*[a.double() if k == "history_len" else a for k, a in zip(self.NAMES, args)],
+                                      0.05, 0.3)
+        with pytest.raises(ValueError, match="soft"):
+            native_temporal_reproject(*args, 0.05, 0.3, soft=True)
+        with pytest.raises(ShapeError, match="history_len"):  # checked by temporal_reproject before dispatch
+            temporal_reproject(*[torch.zeros(1, 2, 36, 48) if k == "history_len" else a
+                                 for k, a in zip(self.NAMES, args)], 0.05, 0.3, backend="native")
+        odd = {k: (v.contiguous(memory_format=torch.channels_last) if v.dim() == 4 and v.shape[1] == 3 else v)
+               for k, v in inp.items()}
+        for a, b in zip(native_temporal_reproject(*[odd[k] for k in self.NAMES], 0.05, 0.3),
+                        native_temporal_reproject(*args, 0.05, 0.3)):
+            assert torch.equal(a, b)
+
+    @pytest.mark.parametrize("kw", [dict(), dict(alpha=0.5, warmup=False), dict(alpha=1.0), dict(alpha=1e-9),
+                                    dict(max_history=4.0), dict(sampling="nearest")], ids=str)
+    def test_parity(self, kw):
+        for seed, n in [(0, 3.0), (1, 0.0), (2, None), (3, 1e9)]:
+            inp = self._inputs(seed=seed, n=n)
+            self._parity(*self._both(inp, **kw), f"{kw} n={n}")
+
+    def test_parity_hard_cases(self):
+        inp = self._inputs(n=4.0)
+        inp["history_color"] = inp["history_color"].clone()
+        inp["history_color"][..., 2, 2] = float("nan")
+        inp["history_color"][..., 5, 5] = float("inf")
+        inp["history_len"] = inp["history_len"].clone()
+        inp["history_len"][..., 7, 7] = float("nan")
+        inp["history_len"][..., 8, 8] = -3.0
+        inp["prev_depth"] = inp["prev_depth"].clone()
+        inp["prev_depth"][..., :3] = 40.0
+        inp["depth"] = inp["depth"].clone()
+        inp["depth"][..., 4, :] = float("nan")
+        self._parity(*self._both(inp), "hard")
+
+    @pytest.mark.parametrize("hw", RESOLUTIONS)
+    def test_parity_random_scenes(self, hw):
+        for seed in range(2):
+            s, pos, nrm = random_scene(*hw, seed=seed + 31 * hw[0] + hw[1])
+            g = torch.Generator().manual_seed(seed)
+            inp = dict(current_color=torch.rand(s["dst_depth"].shape[:1] + (3,) + hw, generator=g),
+                       depth=s["dst_depth"], normal=s["dst_normal"], K=s["dst_K"], cam_from_world=s["dst_cam_from_world"],
+                       history_color=s["src_color"],
+                       history_len=torch.randint(0, 30, s["src_depth"].shape, generator=g).float(),
+                       prev_depth=s["src_depth"], prev_normal=s["src_normal"], prev_K=s["src_K"],
+                       prev_cam_from_world=s["src_cam_from_world"])
+            self._parity(*self._both(inp, pos, nrm), f"{hw} seed {seed}")
+
+    def test_two_pass_variant_equals_fused(self):
+        inp = self._inputs(n=None)
+        args = [inp[k] for k in self.NAMES]
+        fused = native_temporal_reproject(*args, 0.05, 0.3)
+        two = native._temporal_two_pass(*args, 0.05, 0.3)
+        for a, b in zip(fused, two):
+            assert torch.equal(a, b)
+
+    def test_module(self):
+        inp = self._inputs(n=None)
+        args = [inp[k] for k in self.NAMES]
+        with torch.no_grad():
+            got = TemporalReprojection(0.05, 0.3, backend="native")(*args)
+            ref = TemporalReprojection(0.05, 0.3, backend="torch")(*args)
+        self._parity(ref, got, "module")
+
+
+class TestNativeBlend:
+    """The pre-existing ``_core.temporal_blend`` against :func:`stereorepro.reproject.temporal_blend` (bool mask,
+    finite inputs, n >= 0: the kernel does not clamp n at 0 and returns ``current`` exactly where a >= 1 even for a
+    non-finite history, where torch gives NaN)."""
+
+    def _inputs(self, seed=0, B=2, C=3, H=5, W=7):
+        g = torch.Generator().manual_seed(seed)
+        return (torch.rand(B, C, H, W, generator=g), torch.rand(B, C, H, W, generator=g),
+                torch.randint(0, 300, (B, 1, H, W), generator=g).float(),
+                torch.rand(B, 1, H, W, generator=g) > 0.3)
+
+    def _native(self, cur, hist, n, valid, alpha, warmup, cap):
+        out, n_out = torch.empty_like(cur), torch.empty_like(n)
+        _core.temporal_blend(cur, hist, n, valid, alpha, warmup, cap, out, n_out)
+        return out, n_out
+
+    def test_smoke(self):
+        out, n = self._native(*self._inputs(), 0.2, True, 255.0)
+        assert out.shape == (2, 3, 5, 7) and n.shape == (2, 1, 5, 7)
+
+    def test_exceptions(self):
+        cur, hist, n, valid = self._inputs()
+        with pytest.raises(ValueError, match="history"):
+            self._native(cur, hist[..., :-1].contiguous(), n, valid, 0.2, True, 255.0)
+        with pytest.raises(TypeError):
+            _core.temporal_blend(cur, hist, n, valid, 0.2, True, 255.0, torch.empty_like(cur).double(),
+                                 torch.empty_like(n))
+
+    @pytest.mark.parametrize("alpha,warmup,cap", [(0.2, True, 255.0), (0.2, False, 255.0), (1.0, True, 255.0),
+                                                  (1e-9, True, 10.0), (0.5, True, 1.0)])
+    def test_parity(self, alpha, warmup, cap):
+        for seed in range(3):
+            cur, hist, n, valid = self._inputs(seed)
+            ref = temporal_blend(cur, hist, n, valid, alpha, warmup, cap)
+            got = self._native(cur, hist, n, valid, alpha, warmup, cap)
+            assert (ref[0] - got[0]).abs().max() <= 1e-6 and torch.equal(ref[1], got[1])
+
+
+class TestBackendSelection:
+    def _stereo_inputs(self):
+        inp, *_ = scene_pair(H=12, W=16)
+        return inp
+
+    def test_select(self, monkeypatch):
+        monkeypatch.delenv(native.ENV_VAR, raising=False)
+        inp = self._stereo_inputs()
+        imgs = [inp[a] for a in ARGS if inp[a].dim() == 4]
+        cams = [inp[a] for a in ARGS if inp[a].dim() == 3]
+        assert native.select_backend("auto", imgs, cams) == "native"
+        assert native.select_backend("torch", imgs, cams) == "torch"
+        assert native.select_backend("native", imgs, cams) == "native"
+        assert native.select_backend("auto", imgs, cams, soft=True) == "torch"
+        assert native.select_backend("auto", [x.double() for x in imgs], cams) == "torch"
+        assert native.select_backend("auto", [x.half() for x in imgs], cams) == "torch"
+        grad = [imgs[0].clone().requires_grad_(True)] + imgs[1:]
+        assert native.select_backend("auto", grad, cams) == "torch"
+        with torch.no_grad():
+            assert native.select_backend("auto", grad, cams) == "native"
+        thr = torch.tensor(0.05, requires_grad=True)
+        assert native.select_backend("auto", imgs, cams + [thr]) == "torch"
+        with pytest.raises(RuntimeError, match="float32"):
+            native.select_backend("native", [x.double() for x in imgs], cams)
+        with pytest.raises(RuntimeError, match="soft"):
+            native.select_backend("native", imgs, cams, soft=True)
+        with pytest.raises(RuntimeError, match="requires grad"):
+            native.select_backend("native", grad, cams)
+        with pytest.raises(RuntimeError, match="CPU"):
+            native.select_backend("native", imgs + [torch.zeros(1, device="meta")], cams)
+        with pytest.raises(ValueError, match="backend"):
+            native.select_backend("cuda", imgs, cams)
+        with pytest.raises(ValueError, match="backend"):
+            StereoReprojection(0.05, 0.3, backend="fast")
+
+    def test_env_var(self, monkeypatch):
+        inp = self._stereo_inputs()
+        imgs = [inp[a] for a in ARGS if inp[a].dim() == 4]
+        monkeypatch.setenv(native.ENV_VAR, "torch")
+        assert native.select_backend("native", imgs) == "torch"
+        monkeypatch.setenv(native.ENV_VAR, "native")
+        assert native.select_backend("torch", imgs) == "native"
+        with pytest.raises(RuntimeError, match=native.ENV_VAR):
+            native.select_backend("auto", [x.double() for x in imgs])
+        monkeypatch.setenv(native.ENV_VAR, "AUTO")
+        assert native.select_backend("torch", imgs) == "native"
+        monkeypatch.setenv(native.ENV_VAR, "gpu")
+        with pytest.raises(ValueError, match=native.ENV_VAR):
+            native.select_backend("auto", imgs)
+
+    def test_dispatch(self, monkeypatch):
+        """Which implementation the functions and modules run, observed by counting native calls."""
+        monkeypatch.delenv(native.ENV_VAR, raising=False)
+        calls = []
+        real_s, real_t = native.native_backward_reproject, native.native_temporal_reproject
+        monkeypatch.setattr(native, "native_backward_reproject", lambda *a, **k: calls.append("s") or real_s(*a, **k))
+        monkeypatch.setattr(native, "native_temporal_reproject", lambda *a, **k: calls.append("t") or real_t(*a, **k))
+        inp = self._stereo_inputs()
+        args = [inp[a] for a in ARGS]
+        StereoReprojection(0.05, 0.3)(*args)
+        assert calls == ["s"]
+        StereoReprojection(0.05, 0.3, backend="torch")(*args)
+        StereoReprojection(0.05, 0.3, soft=True)(*args)
+        stereo_reproject(*[a.double() for a in args], 0.05, 0.3)
+        stereo_reproject(args[0].clone().requires_grad_(True), *args[1:], 0.05, 0.3)
+        assert calls == ["s"]
+        monkeypatch.setenv(native.ENV_VAR, "torch")
+        StereoReprojection(0.05, 0.3, backend="native")(*args)
+        assert calls == ["s"]
+        monkeypatch.delenv(native.ENV_VAR)
+        t = TestNativeTemporal()._inputs(H=12, W=16)
+        TemporalReprojection(0.05, 0.3)(*[t[k] for k in TemporalReprojection.input_names])
+        assert calls == ["s", "t"]
+        TemporalReprojection(0.05, 0.3, soft=True)(*[t[k] for k in TemporalReprojection.input_names])
+        assert calls == ["s", "t"]
+
+    def test_without_core(self, monkeypatch):
+        monkeypatch.delenv(native.ENV_VAR, raising=False)
+        monkeypatch.setattr(native, "_core", None)
+        assert not native.available()
+        inp = self._stereo_inputs()
+        args = [inp[a] for a in ARGS]
+        out = StereoReprojection(0.05, 0.3)(*args)  # auto: torch
+        ref = StereoReprojection(0.05, 0.3, backend="torch")(*args)
+        assert all(torch.equal(a, b) for a, b in zip(out, ref))
+        with pytest.raises(RuntimeError, match="not built"):
+            StereoReprojection(0.05, 0.3, backend="native")(*args)
+
+    def test_onnx_export_uses_torch(self, monkeypatch, tmp_path):
+        pytest.importorskip("onnx")
+        from stereorepro import export_onnx
+        monkeypatch.setenv(native.ENV_VAR, "native")  # even when forced, tracing/export runs the torch path
+        path = export_onnx(StereoReprojection(0.3, 0.3), tmp_path / "s.onnx")
+        assert path.exists()
+
+
+def test_zz_tie_summary():
+    """Threshold-tie mismatches over every parity comparison of this module (runs last in file order)."""
+    assert TIES["mismatches"] <= MAX_TIE_FRACTION * max(TIES["pixels"], 1)
+    print(f"\nnative parity: {TIES['mismatches']} valid/reason mismatches over {TIES['pixels']} pixels")

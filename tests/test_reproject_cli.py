@@ -1,0 +1,266 @@
+"""``stereorepro reproject`` and ``export-sequence``: external G-buffer directories, end to end from our tracer."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from stereorepro import SpatiotemporalReprojection, StereoReprojection
+from stereorepro.cli import main
+from stereorepro.render import read_exr, write_exr
+from stereorepro.reproject_cli import (
+    NO_HISTORY,
+    REQUIRED_CHANNELS,
+    SequenceError,
+    export_sequence,
+    load_sequence,
+    read_frame,
+    reproject_sequence,
+)
+
+W, H, N = 32, 18, 3
+
+
+@pytest.fixture(scope="module")
+def seq_dir(tmp_path_factory):
+    """Three stereo frames of living_room at 32x18, 1 spp, written by our tracer (full channel set)."""
+    return export_sequence("living_room", [0, 2, 4], W, H, tmp_path_factory.mktemp("seq"), spp=1, seed=3, workers=2)
+
+
+@pytest.fixture
+def work_dir(seq_dir, tmp_path):
+    """A private, mutable copy of the sequence."""
+    d = tmp_path / "in"
+    shutil.copytree(seq_dir, d)
+    return d
+
+
+def _frames(d):
+    return sorted(p.name for p in d.iterdir())
+
+
+class TestReprojectCli:
+    def test_smoke(self, seq_dir, tmp_path, capsys):
+        out = tmp_path / "out"
+        assert main(["reproject", "--input", str(seq_dir), "--out", str(out)]) == 0
+        assert "mean discarded" in capsys.readouterr().out
+        names = _frames(out)
+        assert names == sorted([f"{i:04d}_{e}_reprojected.exr" for i in range(N) for e in ("left", "right")]
+                               + ["summary.json"])
+        ch = read_exr(out / "0001_left_reprojected.exr")
+        assert set(ch) == {"R", "G", "B", "valid", "reason", "history_len"}
+        assert ch["R"].shape == (H, W)
+        assert set(np.unique(ch["valid"])) <= {0.0, 1.0}
+        summary = json.loads((out / "summary.json").read_text())
+        assert summary["mode"] == "both" and summary["frames"] == N and len(summary["per_frame"]) == N
+        # thresholds come from cameras.json: scene values, position scaled by 180 / height
+        assert summary["position_threshold"] == pytest.approx(0.05 * 180 / H)
+
+    def test_cardinality(self, seq_dir, tmp_path):
+        for mode, eye, want in (("stereo", None, {"left"}), ("temporal", "both", {"left", "right"}),
+                                ("temporal", None, {"right"})):
+            out = tmp_path / f"{mode}{eye}"
+            args = ["reproject", "--input", str(seq_dir), "--out", str(out), "--mode", mode, "--quiet"]
+            assert main(args + (["--eye", eye] if eye else [])) == 0
+            eyes = {n.split("_")[1] for n in _frames(out) if n.endswith(".exr")}
+            assert eyes == want and len(_frames(out)) == N * len(want) + 1
+            ch = read_exr(out / f"0000_{sorted(want)[0]}_reprojected.exr")
+            assert ("history_len" in ch) == (mode == "temporal")
+
+    def test_stereo_matches_module(self, seq_dir, tmp_path):
+        out = tmp_path / "o"
+        reproject_sequence(seq_dir, out, "stereo", position_threshold=0.4, normal_threshold=0.3)
+        seq = load_sequence(seq_dir)
+        L, R = read_frame(seq, 1, "left"), read_frame(seq, 1, "right")
+        color, valid, reason = StereoReprojection(0.4, 0.3)(R["color"], R["depth"], R["normal"], R["K"],
+                                                             R["cam_from_world"], L["depth"], L["normal"], L["K"],
+                                                             L["cam_from_world"])
+        ch = read_exr(out / "0001_left_reprojected.exr")
+        np.testing.assert_array_equal(np.stack([ch["R"], ch["G"], ch["B"]]), color[0].numpy())
+        np.testing.assert_array_equal(ch["valid"], valid[0, 0].float().numpy())
+        np.testing.assert_array_equal(ch["reason"], reason[0, 0].float().numpy())
+        assert 0.5 < valid.float().mean() < 1.0  # a real stereo pair: most pixels kept, some discarded
+
+    def test_both_matches_driver(self, seq_dir, tmp_path):
+        out = tmp_path / "o"
+        summary = reproject_sequence(seq_dir, out, "both")
+        seq = load_sequence(seq_dir)
+        st = SpatiotemporalReprojection(seq.position_threshold, seq.normal_threshold)
+        for i in range(N):
+            L, R = read_frame(seq, i, "left"), read_frame(seq, i, "right")
+            right = st.right(R["color"], R["depth"], R["normal"], R["K"], R["cam_from_world"])
+            mask = st.left_trace_mask(L["depth"], L["normal"], L["K"], L["cam_from_world"])
+            left = st.left(L["color"])
+        for eye, img in (("left", left), ("right", right)):
+            ch = read_exr(out / f"{N - 1:04d}_{eye}_reprojected.exr")
+            np.testing.assert_array_equal(np.stack([ch["R"], ch["G"], ch["B"]]), img[0].numpy())
+        assert summary["per_frame"][-1]["left"]["discard_pct"] == pytest.approx(100 * mask.float().mean().item())
+
+    def test_temporal_first_frame(self, seq_dir, tmp_path):
+        out = tmp_path / "o"
+        reproject_sequence(seq_dir, out, "temporal", eye="left")
+        first, second = read_exr(out / "0000_left_reprojected.exr"), read_exr(out / "0001_left_reprojected.exr")
+        seq = load_sequence(seq_dir)
+        np.testing.assert_array_equal(first["R"], read_frame(seq, 0, "left")["color"][0, 0].numpy())
+        assert (first["valid"] == 0).all() and (first["reason"] == NO_HISTORY).all()
+        assert (first["history_len"] == 1).all()
+        assert second["history_len"].max() == 2 and second["valid"].mean() > 0.5
+
+    def test_extra_channels_ignored(self, work_dir, tmp_path):
+        ch = read_exr(work_dir / "0000_left.exr")
+        assert {"P.X", "P.Y", "P.Z"} <= set(ch)  # our tracer writes positions: ignored by the reader
+        ch["albedo.R"] = np.zeros((H, W), np.float32)
+        write_exr(work_dir / "0000_left.exr", ch)
+        assert main(["reproject", "--input", str(work_dir), "--out", str(tmp_path / "o"), "--quiet"]) == 0
+
+    def test_device(self, seq_dir, tmp_path):
+        if not torch.cuda.is_available():
+            pytest.skip("no CUDA device")
+        cpu, gpu = tmp_path / "cpu", tmp_path / "gpu"
+        reproject_sequence(seq_dir, cpu, "both")
+        reproject_sequence(seq_dir, gpu, "both", device="cuda")
+        for name in _frames(cpu):
+            if name.endswith(".exr"):
+                a, b = read_exr(cpu / name), read_exr(gpu / name)
+                np.testing.assert_allclose(a["R"], b["R"], rtol=1e-4, atol=1e-5)
+                assert (a["valid"] != b["valid"]).mean() < 1e-2  # threshold ties may flip a few pixels
+
+
+class TestReprojectCliExceptions:
+    """Every user error: exit code 2, one line naming the file (and frame/key), nothing written."""
+
+    def _fails(self, capsys, inp, out, *extra) -> str:
+        assert main(["reproject", "--input", str(inp), "--out", str(out), "--quiet", *extra]) == 2
+        assert not out.exists()  # nothing partial: the output directory is not even created
+        return capsys.readouterr().err
+
+    def test_missing_channel(self, work_dir, tmp_path, capsys):
+        ch = read_exr(work_dir / "0002_right.exr")
+        del ch["N.Z"]
+        write_exr(work_dir / "0002_right.exr", ch)
+        err = self._fails(capsys, work_dir, tmp_path / "o")
+        assert "0002_right.exr" in err and "N.Z" in err and "missing channel" in err
+
+    def test_size_mismatch(self, work_dir, tmp_path, capsys):
+        ch = {k: v[:-2] for k, v in read_exr(work_dir / "0001_left.exr").items()}
+        write_exr(work_dir / "0001_left.exr", ch)
+        err = self._fails(capsys, work_dir, tmp_path / "o")
+        assert "0001_left.exr" in err and f"{W}x{H - 2}" in err and f"{W}x{H}" in err
+
+    def test_malformed_json(self, work_dir, tmp_path, capsys):
+        cams = work_dir / "cameras.json"
+        good = json.loads(cams.read_text())
+        cams.write_text(cams.read_text()[:-5])
+        err = self._fails(capsys, work_dir, tmp_path / "o")
+        assert "cameras.json" in err and "malformed JSON" in err
+
+        bad = json.loads(json.dumps(good))
+        bad["frames"][1]["right"]["K"] = [[1, 0, 0], [0, 1, 0]]
+        cams.write_text(json.dumps(bad))
+        err = self._fails(capsys, work_dir, tmp_path / "o")
+        assert "frames[1].right.K" in err and "3x3" in err
+
+        bad = json.loads(json.dumps(good))
+        bad["frames"][2]["left"]["cam_from_world"][0][0] = "x"
+        cams.write_text(json.dumps(bad))
+        assert "frames[2].left.cam_from_world" in self._fails(capsys, work_dir, tmp_path / "o")
+
+        bad = json.loads(json.dumps(good))
+        bad["frames"][0]["left"]["cam_from_world"][0][0] = 2.0  # scaled: not rigid
+        cams.write_text(json.dumps(bad))
+        assert "rigid" in self._fails(capsys, work_dir, tmp_path / "o")
+
+        bad = json.loads(json.dumps(good))
+        del bad["frames"][0]["right"]
+        cams.write_text(json.dumps(bad))
+        assert "frames[0]: missing key 'right'" in self._fails(capsys, work_dir, tmp_path / "o")
+
+        bad = json.loads(json.dumps(good))
+        bad["frames"][0]["left"]["k"] = bad["frames"][0]["left"]["K"]  # a typo is an error, not silence
+        cams.write_text(json.dumps(bad))
+        assert "unknown key" in self._fails(capsys, work_dir, tmp_path / "o")
+
+    def test_frame_count(self, work_dir, tmp_path, capsys):
+        cams = work_dir / "cameras.json"
+        good = json.loads(cams.read_text())
+        fewer = dict(good, frames=good["frames"][:2])
+        cams.write_text(json.dumps(fewer))
+        err = self._fails(capsys, work_dir, tmp_path / "o")
+        assert "lists 2 frame(s)" in err and "0002_left.exr" in err
+        cams.write_text(json.dumps(good))
+        (work_dir / "0001_left.exr").unlink()
+        err = self._fails(capsys, work_dir, tmp_path / "o")
+        assert "0001_left.exr" in err and "missing" in err
+        # temporal on the right eye alone does not need the left files
+        assert main(["reproject", "--input", str(work_dir), "--out", str(tmp_path / "r"), "--mode", "temporal",
+                     "--quiet"]) == 0
+
+    def test_options(self, work_dir, tmp_path, capsys):
+        cams = work_dir / "cameras.json"
+        doc = json.loads(cams.read_text())
+        del doc["reprojection"]
+        cams.write_text(json.dumps(doc))
+        err = self._fails(capsys, work_dir, tmp_path / "o")
+        assert "--position-threshold is required" in err
+        err = self._fails(capsys, work_dir, tmp_path / "o", "--position-threshold", "0.1", "--eye", "left")
+        assert "--eye applies to --mode temporal" in err
+        assert main(["reproject", "--input", str(work_dir), "--out", str(tmp_path / "o"), "--quiet",
+                     "--position-threshold", "0.1", "--normal-threshold", "0.2"]) == 0
+        with pytest.raises(SystemExit):
+            main(["reproject", "--input", str(work_dir), "--out", str(tmp_path / "x"), "--alpha", "-1"])
+        with pytest.raises(SequenceError, match="not a directory"):
+            load_sequence(tmp_path / "nope")
+
+    def test_existing_output_untouched_on_error(self, work_dir, tmp_path, capsys):
+        out = tmp_path / "o"
+        out.mkdir()
+        (out / "keep.txt").write_text("x")
+        (work_dir / "0000_right.exr").write_bytes(b"not an exr")
+        assert main(["reproject", "--input", str(work_dir), "--out", str(out), "--quiet"]) == 2
+        assert "0000_right.exr" in capsys.readouterr().err
+        assert _frames(out) == ["keep.txt"]
+
+    def test_failure_mid_sequence_leaves_nothing(self, work_dir, tmp_path, monkeypatch):
+        import stereorepro.reproject_cli as rc
+
+        real = rc.read_frame
+
+        def flaky(seq, frame, eye, device=None):
+            if frame == 2:
+                raise SequenceError(f"{seq.path(frame, eye)}: simulated read failure")
+            return real(seq, frame, eye, device)
+
+        monkeypatch.setattr(rc, "read_frame", flaky)
+        out = tmp_path / "o"
+        out.mkdir()
+        with pytest.raises(SequenceError, match="0002_"):
+            reproject_sequence(work_dir, out, "both")
+        assert _frames(out) == []  # frames 0 and 1 were staged, never moved in
+
+
+class TestExportSequence:
+    def test_smoke(self, tmp_path, capsys):
+        out = tmp_path / "seq"
+        assert main(["export-sequence", "--scene", "atrium", "--frames", "2", "--stride", "5",
+                     "--resolution", "16x9", "--out", str(out)]) == 0
+        doc = json.loads((out / "cameras.json").read_text())
+        assert doc["meta"]["scene_frames"] == [0, 5] and len(doc["frames"]) == 2
+        ch = read_exr(out / "0001_right.exr")
+        assert set(REQUIRED_CHANNELS) <= set(ch) and ch["R"].shape == (9, 16)
+        seq = load_sequence(out)
+        assert (seq.height, seq.width) == (9, 16)
+        # cameras round-trip exactly (float64 in JSON)
+        from stereorepro import load_scene
+
+        left, _ = load_scene("atrium").stereo_cameras(5, 16, 9)
+        assert torch.equal(seq.cameras[1]["left"].cam_from_world, left.cam_from_world)
+
+    def test_exceptions(self, tmp_path, capsys):
+        assert main(["export-sequence", "--scene", "nope", "--out", str(tmp_path / "a")]) == 2
+        assert main(["export-sequence", "--scene", "atrium", "--frames", "7", "--stride", "10",
+                     "--out", str(tmp_path / "a")]) == 2
+        assert "exceed" in capsys.readouterr().err
