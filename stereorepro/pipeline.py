@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from . import native as _native
 from ._checks import check_shape
 from .reproject import StereoReprojection, TemporalReprojection, backward_reproject, temporal_blend
 
@@ -49,6 +50,17 @@ class EyeState:
     cam_from_world: Tensor
 
 
+def _warp(values, depth_src, normal_src, K_src, T_src, depth_dst, normal_dst, K_dst, T_dst, module, backend):
+    """:func:`~stereorepro.backward_reproject` through the native kernel when the backend rules allow it."""
+    args = (values, depth_src, normal_src, K_src, T_src, depth_dst, normal_dst, K_dst, T_dst,
+            module.position_threshold, module.normal_threshold, module.sampling)
+    if _native.select_backend(backend, (values, depth_src, normal_src, depth_dst, normal_dst),
+                              (K_src, T_src, K_dst, T_dst, module.position_threshold, module.normal_threshold)
+                              ) == "native":
+        return _native.native_backward_reproject(*args)
+    return backward_reproject(*args)
+
+
 class SpatiotemporalReprojection:
     """Stateful driver of stereo + temporal reprojection (paper §4.1).
 
@@ -61,6 +73,7 @@ class SpatiotemporalReprojection:
         sampling: ``"bilinear"`` (paper) or ``"nearest"``.
         stereo: reproject the right eye into the left (else the left eye is traced in full).
         temporal: accumulate over time (else every frame starts afresh).
+        backend: ``"auto"`` | ``"torch"`` | ``"native"`` for the warps (see :mod:`stereorepro.native`).
 
     Example (one frame; ``trace`` is your renderer)::
 
@@ -72,7 +85,8 @@ class SpatiotemporalReprojection:
 
     def __init__(self, position_threshold: float, normal_threshold: float, alpha: float = 0.2,
                  warmup: bool = True, max_history: float = 255.0, sampling: str = "bilinear",
-                 stereo: bool = True, temporal: bool = True):
+                 stereo: bool = True, temporal: bool = True, backend: str = "auto"):
+        self.backend = _native.check_backend(backend)
         self.stereo_module = StereoReprojection(position_threshold, normal_threshold, sampling)
         self.temporal_module = TemporalReprojection(position_threshold, normal_threshold, alpha, warmup,
                                                     max_history, sampling)
@@ -103,9 +117,8 @@ class SpatiotemporalReprojection:
             return color, ones, None, None
         m = self.temporal_module
         values = torch.cat([state.color.float(), state.history_len.float()], 1)
-        warped, valid, reason, _ = backward_reproject(
-            values, state.depth, state.normal, state.K, state.cam_from_world, depth, normal, K, cam_from_world,
-            m.position_threshold, m.normal_threshold, m.sampling)
+        warped, valid, reason, _ = _warp(values, state.depth, state.normal, state.K, state.cam_from_world, depth,
+                                         normal, K, cam_from_world, m, self.backend)
         out, n = temporal_blend(color, warped[:, :3], warped[:, 3:4], valid, m.alpha, m.warmup, m.max_history)
         return out, n, valid, reason
 
@@ -145,9 +158,8 @@ class SpatiotemporalReprojection:
         r = self.right_state
         m = self.stereo_module
         values = torch.cat([r.color.float(), r.history_len.float()], 1)
-        warped, valid, reason, _ = backward_reproject(values, r.depth, r.normal, r.K, r.cam_from_world, depth,
-                                                      normal, K, cam_from_world, m.position_threshold,
-                                                      m.normal_threshold, m.sampling)
+        warped, valid, reason, _ = _warp(values, r.depth, r.normal, r.K, r.cam_from_world, depth, normal, K,
+                                         cam_from_world, m, self.backend)
         self._stereo_out = (warped[:, :3], warped[:, 3:4])
         self.stereo_valid, self.stereo_reason = valid, reason
         return ~valid

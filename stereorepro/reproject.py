@@ -254,7 +254,8 @@ def backward_reproject(
         wts = torch.ones_like(u)
     T = xi.shape[1]
     in_frame = (xi >= 0) & (xi <= Ws - 1) & (yi >= 0) & (yi <= Hs - 1)
-    index = (yi.clamp(0, Hs - 1) * Ws + xi.clamp(0, Ws - 1)).to(torch.int64)  # BxTxHxW
+    # integer arithmetic: float32 would be exact only below 2^24 source pixels
+    index = yi.clamp(0, Hs - 1).to(torch.int64) * Ws + xi.clamp(0, Ws - 1).to(torch.int64)  # BxTxHxW
 
     # --- sanitise the source once (cheaper than per tap), then gather values, depth, normals and a flag
     # channel at the taps: (B, C+5, T, H, W). Non-finite values and missing surfaces become finite
@@ -411,11 +412,12 @@ def temporal_blend(
     cd = _compute_dtype(current_color, history_color)
     cur = current_color.to(cd)
     hist = history_color.to(cd)
-    n = history_len.to(cd)
+    n = history_len.to(cd).clamp_min(0.0)
     one = torch.ones((), dtype=cd, device=cur.device)
     a_min = _as_scalar(alpha, n).clamp(0.0, 1.0)
-    a = torch.maximum(1.0 / (n.clamp_min(0.0) + 1.0), a_min) if warmup else a_min.expand_as(n)
-    blended = (1.0 - a) * hist + a * cur
+    a = torch.maximum(1.0 / (n + 1.0), a_min) if warmup else a_min.expand_as(n)
+    # a == 1 gives exactly the current sample, even where the history is not finite
+    blended = torch.where(a >= 1.0, cur, (1.0 - a) * hist + a * cur)
     n_next = torch.minimum(n + 1.0, _as_scalar(max_history, n))
     if confidence.dtype == torch.bool:
         out = torch.where(confidence, blended, cur)

@@ -1,5 +1,5 @@
 // Temporal blending (the paper's 20 % EMA with BMFR-style warm-up), the native twin of
-// stereorepro.temporal.temporal_blend. Layout: NCHW float32, C-contiguous.
+// stereorepro.reproject.temporal_blend (same rules: n clamped at 0, alpha clamped to [0, 1]). Layout: NCHW float32, C-contiguous.
 #include <nanobind/nanobind.h>
 #include <nanobind/ndarray.h>
 #include <algorithm>
@@ -38,8 +38,9 @@ static void temporal_blend(CF current, CF history, CF history_len, CB valid, flo
         for (int64_t i = 0; i < B * hw; ++i) {
             const int64_t b = i / hw, p = i % hw;
             const bool v = val[i];
-            const float n = v ? len[i] : 0.0f;
-            const float a = v ? (warmup ? std::max(1.0f / (n + 1.0f), alpha) : alpha) : 1.0f;
+            const float n = v ? std::max(len[i], 0.0f) : 0.0f;
+            const float a_min = std::min(std::max(alpha, 0.0f), 1.0f);
+            const float a = v ? (warmup ? std::max(1.0f / (n + 1.0f), a_min) : a_min) : 1.0f;
             for (int64_t c = 0; c < C; ++c) {
                 const int64_t k = (b * C + c) * hw + p;
                 // a == 1 must give exactly the current sample, even if history is not finite.
