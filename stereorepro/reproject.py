@@ -210,18 +210,83 @@ def backward_reproject(
     # with M = R K_dst^-1 and P = K_src M. Entries within 1e-12 of an integer are snapped, so identical cameras
     # give P = I and t = 0 exactly: identity warps and integer-pixel shifts are bit-exact.
     M, t, P, kt, Ks_inv = _compose_cameras(src_K, src_cam_from_world, dst_K, dst_cam_from_world, cd)
+    feats = _source_features(src_values, src_depth, src_normal, cd)
+    warp = dict(feats=feats, C=C, Hs=Hs, Ws=Ws, cams=(M, t, P, kt, Ks_inv), position_threshold=position_threshold,
+                normal_threshold=normal_threshold, sampling=sampling, soft=soft, temperature=temperature,
+                out_dtype=src_values.dtype)
+    rows = _row_block(B, H, W, (src_values, src_depth, src_normal, dst_depth, dst_normal, src_K, dst_K,
+                                src_cam_from_world, dst_cam_from_world, position_threshold, normal_threshold))
+    if rows >= H:
+        return _warp_rows(dst_depth=dst_depth, dst_normal=dst_normal, row0=0, **warp)
+    # Inference on large images: destination rows in blocks, so that the per-tap intermediates stay in cache
+    # (the op is memory-bound). Results are bit-identical to one block (same arithmetic per pixel).
+    values = torch.empty(B, C, H, W, dtype=src_values.dtype, device=dev)
+    valid = torch.empty(B, 1, H, W, dtype=torch.bool, device=dev)
+    reason = torch.empty(B, 1, H, W, dtype=torch.uint8, device=dev)
+    den = torch.empty(B, 1, H, W, dtype=cd, device=dev)
+    for r0 in range(0, H, rows):
+        r1 = min(H, r0 + rows)
+        out = _warp_rows(dst_depth=dst_depth[:, :, r0:r1], dst_normal=dst_normal[:, :, r0:r1], row0=r0, **warp)
+        for buf, o in zip((values, valid, reason, den), out):
+            buf[:, :, r0:r1] = o
+    return values, valid, reason, den
+
+
+#: Destination pixels per block in blocked inference (see :func:`backward_reproject`).
+BLOCK_PIXELS = 1 << 16
+
+
+def _row_block(B: int, H: int, W: int, inputs) -> int:
+    """Rows per block: all rows when gradients or tracing need one graph, else ~BLOCK_PIXELS pixels."""
+    if _tracing_or_exporting():
+        return H
+    if torch.is_grad_enabled() and any(isinstance(x, Tensor) and x.requires_grad for x in inputs):
+        return H
+    return max(1, BLOCK_PIXELS // max(1, B * W))
+
+
+def _tracing_or_exporting() -> bool:
+    return torch.jit.is_tracing() or torch.onnx.is_in_onnx_export() or torch.compiler.is_compiling()
+
+
+def _source_features(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, cd: torch.dtype) -> Tensor:
+    """The source, sanitised once, as gatherable rows: (B, C+5, Hs·Ws) = values, depth, normal, flags.
+
+    Non-finite values and missing surfaces become finite placeholders that the flags reject, so a rejected tap
+    can never leak NaN/Inf (0 · NaN = NaN). Flags: bit 0 = has a surface, bit 1 = finite values.
+    """
+    B, C, Hs, Ws = src_values.shape
+    zero = torch.zeros((), dtype=cd, device=src_values.device)
+    one = torch.ones((), dtype=cd, device=src_values.device)
+    sv = src_values.to(cd)
+    sv_finite = torch.isfinite(sv.sum(1, keepdim=True))  # any NaN/Inf in a pixel makes its sum non-finite
+    sz = src_depth.to(cd)
+    s_ok = has_surface(sz)
+    flags = s_ok.to(cd) + 2.0 * sv_finite.to(cd)
+    return torch.cat([torch.where(sv_finite, sv, zero), torch.where(s_ok, sz, one),
+                      _finite_or_zero(src_normal.to(cd)), flags], 1).reshape(B, C + 5, Hs * Ws)
+
+
+def _warp_rows(feats: Tensor, C: int, Hs: int, Ws: int, cams, dst_depth: Tensor, dst_normal: Tensor, row0: int,
+               position_threshold, normal_threshold, sampling: str, soft: bool, temperature: float,
+               out_dtype: torch.dtype) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Reproject destination rows ``row0 .. row0 + h`` (dst_depth (B, 1, h, W)); see :func:`backward_reproject`."""
+    M, t, P, kt, Ks_inv = cams
+    cd = feats.dtype
+    dev = dst_depth.device
+    B = feats.shape[0]
+    H, W = dst_depth.shape[-2:]
     m = M.reshape(B, 3, 3, 1, 1)  # m[:, :, j] is column j as (B, 3, 1, 1)
     t = t.reshape(B, 3, 1, 1)
     p = P.reshape(B, 9, 1, 1)  # p[:, 3*i+j : 3*i+j+1] is P[i, j]
     kt = kt.reshape(B, 3, 1, 1)
-
     # --- destination pixels → source pixels and source-camera points.
     z_dst = dst_depth.to(cd)
     dst_ok = has_surface(z_dst)  # Bx1xHxW
     one = torch.ones((), dtype=cd, device=dev)
     z_dst = torch.where(dst_ok, z_dst, one)
     inv_z = 1.0 / z_dst
-    v_c = torch.arange(H, device=dev, dtype=cd).view(1, 1, H, 1) + 0.5
+    v_c = torch.arange(H, device=dev, dtype=cd).view(1, 1, H, 1) + (row0 + 0.5)
     u_c = torch.arange(W, device=dev, dtype=cd).view(1, 1, 1, W) + 0.5
     wx = p[:, 0:1] * u_c + p[:, 1:2] * v_c + p[:, 2:3] + kt[:, 0:1] * inv_z  # Bx1xHxW
     wy = p[:, 3:4] * u_c + p[:, 4:5] * v_c + p[:, 5:6] + kt[:, 1:2] * inv_z
@@ -257,17 +322,7 @@ def backward_reproject(
     # integer arithmetic: float32 would be exact only below 2^24 source pixels
     index = yi.clamp(0, Hs - 1).to(torch.int64) * Ws + xi.clamp(0, Ws - 1).to(torch.int64)  # BxTxHxW
 
-    # --- sanitise the source once (cheaper than per tap), then gather values, depth, normals and a flag
-    # channel at the taps: (B, C+5, T, H, W). Non-finite values and missing surfaces become finite
-    # placeholders that the flags reject, so a rejected tap can never leak NaN/Inf (0 * NaN = NaN).
     zero = torch.zeros((), dtype=cd, device=dev)
-    sv = src_values.to(cd)
-    sv_finite = torch.isfinite(sv.sum(1, keepdim=True))  # any NaN/Inf in a pixel makes its sum non-finite
-    sz = src_depth.to(cd)
-    s_ok = has_surface(sz)
-    flags = s_ok.to(cd) + 2.0 * sv_finite.to(cd)  # bit 0: surface, bit 1: finite values
-    feats = torch.cat([torch.where(sv_finite, sv, zero), torch.where(s_ok, sz, one),
-                       _finite_or_zero(src_normal.to(cd)), flags], 1).reshape(B, C + 5, Hs * Ws)
     g = torch.gather(feats, 2, index.reshape(B, 1, T * H * W).expand(B, C + 5, T * H * W))
     g = g.reshape(B, C + 5, T, H, W)
     g_val = g[:, :C]
@@ -323,7 +378,7 @@ def backward_reproject(
     reason = torch.where(front, reason, u8(Reason.BEHIND_CAMERA))
     reason = torch.where(dst_ok, reason, u8(Reason.NO_SURFACE_DST))
     reason = torch.where(valid, u8(Reason.KEPT), reason)
-    return values.to(src_values.dtype), valid, reason, den
+    return values.to(out_dtype), valid, reason, den
 
 
 def stereo_reproject(
