@@ -29,6 +29,8 @@ test-all: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) bench/reproject.py
+	$(PY) bench/tracer.py
+	$(PY) bench/stereo_cost.py
 
 clean:
 	rm -rf build $(VENV) .pytest_cache
