@@ -63,6 +63,7 @@ class Reason(enum.IntEnum):
     POSITION = 5  #: |P_src − P_dst| > position_threshold (occlusion / disocclusion)
     NORMAL = 6  #: |N_src − N_dst| > normal_threshold
     NONFINITE = 7  #: the source tap's values are NaN or Inf
+    NO_HISTORY = 8  #: no previous frame to reproject from (first frame of an accumulation)
 
 
 #: Figure 1 colours (RGB in [0, 1]) by reason: green = position, cyan = normal, red = out of frame.
@@ -75,6 +76,7 @@ REASON_COLORS = {
     Reason.POSITION: (0.0, 1.0, 0.0),
     Reason.NORMAL: (0.0, 1.0, 1.0),
     Reason.NONFINITE: (1.0, 1.0, 0.0),
+    Reason.NO_HISTORY: (1.0, 1.0, 1.0),
 }
 
 _SAMPLINGS = ("bilinear", "nearest")
@@ -184,7 +186,8 @@ def backward_reproject(
             ``sigmoid((thr² − d²) / (2·temperature·thr²))`` (≈ a sigmoid in (thr − d) / (temperature·thr)), so
             that the output is differentiable in the thresholds. ``valid`` and ``reason`` still report the hard
             decision at the current thresholds.
-        temperature: softness relative to the threshold (dimensionless), used when ``soft``.
+        temperature: softness relative to the threshold (dimensionless), used when ``soft``. Soft colours are
+            renormalised by ``max(accepted weight, SOFT_DEN_FLOOR)`` so that gradients stay bounded.
         check: validate shapes/dtypes (public boundary).
 
     Returns:
@@ -216,7 +219,7 @@ def backward_reproject(
                 out_dtype=src_values.dtype)
     rows = _row_block(B, H, W, (src_values, src_depth, src_normal, dst_depth, dst_normal, src_K, dst_K,
                                 src_cam_from_world, dst_cam_from_world, position_threshold, normal_threshold))
-    if rows >= H:
+    if rows is None:
         return _warp_rows(dst_depth=dst_depth, dst_normal=dst_normal, row0=0, **warp)
     # Inference on large images: destination rows in blocks, so that the per-tap intermediates stay in cache
     # (the op is memory-bound). Results are bit-identical to one block (same arithmetic per pixel).
@@ -232,17 +235,21 @@ def backward_reproject(
     return values, valid, reason, den
 
 
+#: Smallest accepted weight the soft path divides by (see :func:`backward_reproject`).
+SOFT_DEN_FLOOR = 1e-3
+
 #: Destination pixels per block in blocked inference (see :func:`backward_reproject`).
 BLOCK_PIXELS = 1 << 16
 
 
-def _row_block(B: int, H: int, W: int, inputs) -> int:
-    """Rows per block: all rows when gradients or tracing need one graph, else ~BLOCK_PIXELS pixels."""
+def _row_block(B: int, H: int, W: int, inputs) -> int | None:
+    """Rows per block; None = one block (gradients or tracing need one graph, or the image is small)."""
     if _tracing_or_exporting():
-        return H
+        return None
     if torch.is_grad_enabled() and any(isinstance(x, Tensor) and x.requires_grad for x in inputs):
-        return H
-    return max(1, BLOCK_PIXELS // max(1, B * W))
+        return None
+    rows = max(1, BLOCK_PIXELS // max(1, B * W))
+    return None if rows >= H else rows
 
 
 def _tracing_or_exporting() -> bool:
@@ -362,7 +369,10 @@ def _warp_rows(feats: Tensor, C: int, Hs: int, Ws: int, cams, dst_depth: Tensor,
     den = ws.sum(1, keepdim=True)  # Bx1xHxW
     num = (ws.unsqueeze(1) * g_val).sum(2)  # BxCxHxW (g_val is finite: sanitised above)
     has_w = den > 0
-    values = torch.where(has_w, num / torch.where(has_w, den, one), zero)
+    # Soft weights can be tiny but positive; dividing by them gives gradients of ~num/den² that overflow. The soft
+    # path renormalises by max(den, SOFT_DEN_FLOOR): a pixel that is all but rejected fades to 0 instead.
+    den_safe = den.clamp_min(SOFT_DEN_FLOOR) if soft else torch.where(has_w, den, one)
+    values = torch.where(has_w, num / den_safe, zero)
     valid = (wts * hard.to(cd)).sum(1, keepdim=True) > 0
 
     # --- reason codes (uint8): first failing test per tap; invalid pixel -> max over taps with weight > 0.

@@ -30,7 +30,7 @@ Modes (``--mode``)
   ``valid``/``reason`` are the stereo test's.
 
 Outputs (``--out DIR``): ``{frame:04d}_{eye}_reprojected.exr`` with channels ``R, G, B``, ``valid`` (0/1),
-``reason`` (:class:`~stereorepro.Reason` codes as floats; 255 = no history, the first frame of an accumulation)
+``reason`` (:class:`~stereorepro.Reason` codes as floats; ``Reason.NO_HISTORY`` on the first frame of an accumulation)
 and, for temporal and both, ``history_len``; and ``summary.json`` (per-frame discard percentage and counts per
 reason). Everything is validated before anything is written; outputs are staged and moved into place only when
 every frame has succeeded, so a failure leaves no partial output.
@@ -53,13 +53,16 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .cli import parse_resolution
+from .reproject import Reason
+
 __all__ = ["REQUIRED_CHANNELS", "NO_HISTORY", "SequenceError", "EyeCamera", "FrameSequence", "load_sequence",
            "read_frame", "reproject_sequence", "export_sequence", "register"]
 
 #: Channels every input EXR must have (others are ignored).
 REQUIRED_CHANNELS = ("R", "G", "B", "Z", "N.X", "N.Y", "N.Z")
 #: ``reason`` value of a pixel with no history to reproject (first frame of a temporal accumulation).
-NO_HISTORY = 255
+NO_HISTORY = int(Reason.NO_HISTORY)
 EYES = ("left", "right")
 MODES = ("stereo", "temporal", "both")
 _FILE_RE = re.compile(r"^(\d{4,})_(left|right)\.exr$")
@@ -251,15 +254,6 @@ def load_sequence(input_dir, eyes: tuple[str, ...] = EYES) -> FrameSequence:
                 raise SequenceError(f"{p}: size {W}x{H} differs from {first.name}: {size[1]}x{size[0]} "
                                     "(all frames and eyes must have one size)")
     return FrameSequence(root, tuple(cams), size[0], size[1], thr["position_threshold"], thr["normal_threshold"])
-
-
-@dataclass(frozen=True)
-class _Eye:
-    color: Tensor  # (1, 3, H, W)
-    depth: Tensor  # (1, 1, H, W)
-    normal: Tensor  # (1, 3, H, W)
-    K: Tensor  # (1, 3, 3) float64
-    cam_from_world: Tensor  # (1, 4, 4) float64
 
 
 def read_frame(seq: FrameSequence, frame: int, eye: str, device=None) -> dict[str, Tensor]:
@@ -569,14 +563,6 @@ def _positive(s: str) -> float:
     return v
 
 
-def _size(s: str) -> tuple[int, int]:
-    import argparse
-
-    m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", s)
-    if not m or int(m.group(1)) < 1 or int(m.group(2)) < 1:
-        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT (e.g. 320x180), got {s!r}")
-    return int(m.group(1)), int(m.group(2))
-
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("reproject", help="stereo/temporal reprojection of a directory of EXR frames",
@@ -604,7 +590,7 @@ def register(subparsers) -> None:
     p.add_argument("--frames", type=int, default=8, help="number of frames")
     p.add_argument("--start", type=int, default=0, help="first scene frame")
     p.add_argument("--stride", type=int, default=1, help="scene frames between exported frames")
-    p.add_argument("--resolution", type=_size, default=(320, 180), metavar="WxH")
+    p.add_argument("--resolution", type=parse_resolution, default=(320, 180), metavar="WxH")
     p.add_argument("--spp", type=int, default=1)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--workers", type=int, default=None)

@@ -439,6 +439,25 @@ class TestSoftReprojection:
         assert torch.equal(valid, valid_s)
         assert (soft - hard).abs()[valid.expand_as(hard)].median() < 1e-5
 
+    def test_gradients_finite_when_nearly_rejected(self):
+        """Soft weights of ~1e-30 (far beyond the thresholds) must not give inf/NaN gradients (num/den²)."""
+        inp, *_ = scene_pair(forward=0.3, yaw=2.0)
+        for dt in (torch.float32, torch.float64):
+            thr = torch.tensor([2e-3, 1e-3], dtype=dt, requires_grad=True)
+            x = {k: (v.to(dt) if v.is_floating_point() else v) for k, v in inp.items()}
+            x["src_color"] = x["src_color"].clone().requires_grad_(True)
+            out, *_ = run(x, pos=thr[0], nrm=thr[1], soft=True, temperature=0.05)
+            (out.square().mean()).backward()
+            assert torch.isfinite(out).all() and torch.isfinite(thr.grad).all()
+            assert torch.isfinite(x["src_color"].grad).all()
+        m = TemporalReprojection(1e-3, 1e-3, soft=True, temperature=0.05)
+        t = dict(zip(TemporalReprojection.input_names, example_inputs(m, height=24, width=32)))
+        t["current_color"].requires_grad_(True)
+        color, n, _ = m(*t.values())
+        (color.square().mean() + n.mean()).backward()
+        for p in m.parameters():
+            assert torch.isfinite(p.grad).all()
+
     def test_learnable_thresholds(self):
         m = StereoReprojection(0.05, 0.3, soft=True)
         assert {n for n, _ in m.named_parameters()} == {"position_threshold", "normal_threshold"}

@@ -1,0 +1,157 @@
+"""The used-by examples in smoke mode, and the device/dtype support table of docs/used_by.md.
+
+Each example is imported from ``examples/`` as a module and run as ``main(["--smoke", "--out", tmp])`` (< 60 s
+each on 2 cores); assertions are on the JSON it writes.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from stereorepro import StereoReprojection, TemporalReprojection, export_onnx, temporal_reproject
+from stereorepro.onnx_export import example_inputs
+
+EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
+
+
+def load_example(name: str):
+    spec = importlib.util.spec_from_file_location(f"examples_{name}", EXAMPLES / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod  # dataclasses resolve annotations through sys.modules
+    spec.loader.exec_module(mod)
+    return mod
+
+
+class TestExamples:
+    def test_onnx_deploy(self, tmp_path):
+        res = load_example("onnx_deploy").main(["--smoke", "--out", str(tmp_path)])
+        saved = json.loads((tmp_path / "onnx_deploy.json").read_text())
+        assert saved["max_abs_diff_all"] == res["max_abs_diff_all"]
+        assert saved["max_abs_diff_all"] <= 1e-5
+        assert all(v == 0 for v in saved["mask_mismatch_pixels"].values())
+        assert saved["onnxruntime_imported_torch"] is False  # the deployment process ran without torch
+
+    @pytest.mark.slow  # ~25 s of CPU, but 70-110 s wall measured on the shared 2-core machine
+    def test_denoiser_preprocess(self, tmp_path):
+        load_example("denoiser_preprocess").main(["--smoke", "--out", str(tmp_path)])
+        res = json.loads((tmp_path / "denoiser_preprocess.json").read_text())
+        methods = res["methods"]
+        assert set(methods) == {"unet_plain", "unet_reprojected", "input_1spp", "accumulated"}
+        assert methods["unet_plain"]["input_channels"] == 9 and methods["unet_reprojected"]["input_channels"] == 14
+        for m in methods.values():
+            assert np.isfinite(m["rmse_mean"]) and m["rmse_mean"] > 0
+            assert m["effective_spp_median"] > 0
+        assert methods["input_1spp"]["effective_spp_median"] == 1.0  # the input is the ladder's first rung
+
+    def test_train_thresholds(self, tmp_path):
+        load_example("train_thresholds").main(["--smoke", "--out", str(tmp_path)])
+        res = json.loads((tmp_path / "train_thresholds.json").read_text())
+        learned, hand = res["learned"], res["hand_set"]
+        assert learned["position_threshold"] > 0 and learned["normal_threshold"] > 0
+        assert 0 < learned["alpha"] <= 1
+        assert learned != hand  # the optimiser moved them
+        for label in ("hand_set", "learned"):
+            h = res["held_out"][label]
+            assert np.isfinite(h["rmse_mean"]) and h["effective_spp_median"] > 0
+
+
+# ---------------------------------------------------------------------------------------------- support table
+MODULES = {"stereo": lambda: StereoReprojection(0.05, 0.2, backend="torch"),
+           "temporal": lambda: TemporalReprojection(0.05, 0.2, backend="torch")}
+LOW = {"float16": torch.float16, "bfloat16": torch.bfloat16}
+
+
+def _inputs(module, dtype, device, cameras=torch.float64):
+    """Synthetic inputs: images in ``dtype``, cameras in ``cameras``."""
+    xs = example_inputs(module, height=24, width=32, dtype=torch.float64)
+    return tuple((x.to(cameras) if x.shape[-2:] in ((3, 3), (4, 4)) else x.to(dtype)).to(device) for x in xs)
+
+
+class TestSupportTable:
+    """Backs the ✅ of docs/used_by.md: every cell marked tested here is one of these tests."""
+
+    @pytest.mark.parametrize("kind", sorted(MODULES))
+    def test_float(self, kind, device, dtype):
+        module = MODULES[kind]().to(device)
+        out = module(*_inputs(module, dtype, device))
+        ref = module.cpu()(*_inputs(module, torch.float64, "cpu"))
+        assert out[0].dtype == dtype and out[0].device.type == device.type
+        torch.testing.assert_close(out[0].double().cpu(), ref[0], atol=1e-4, rtol=1e-4)
+        assert torch.equal(out[-1].cpu(), ref[-1])
+
+    @pytest.mark.parametrize("kind", sorted(MODULES))
+    @pytest.mark.parametrize("low", sorted(LOW))
+    def test_low_precision_color(self, kind, low, device):
+        """float16/bfloat16 colour with float32 G-buffers: same decisions, output in the colour's dtype."""
+        module = MODULES[kind]().to(device)
+        ref = module(*_inputs(module, torch.float32, device))
+        xs = tuple(x.to(LOW[low]) if name.endswith("color") else x
+                   for name, x in zip(module.input_names, _inputs(module, torch.float32, device)))
+        out = module(*xs)
+        assert out[0].dtype == LOW[low] and torch.equal(out[-1], ref[-1])
+        tol = 2e-3 if low == "float16" else 1.6e-2  # half an ulp at 1.0, relative
+        torch.testing.assert_close(out[0].float(), ref[0], atol=tol, rtol=tol)
+
+    @pytest.mark.parametrize("kind", sorted(MODULES))
+    @pytest.mark.parametrize("low", sorted(LOW))
+    def test_low_precision_all(self, kind, low, device):
+        """Every image input in float16/bfloat16 runs, but depth quantisation flips accept decisions near the
+        limits (measured on these inputs: float16 ~2 %, bfloat16 ~11 % of pixels): keep depth in float32."""
+        module = MODULES[kind]().to(device)
+        out = module(*_inputs(module, LOW[low], device))
+        ref = module(*_inputs(module, torch.float32, device))
+        assert out[0].dtype == LOW[low] and torch.isfinite(out[0]).all()
+        assert (out[-1] == ref[-1]).float().mean() > (0.95 if low == "float16" else 0.8)
+
+    def test_autograd(self):
+        """Soft tests: gradients w.r.t. thresholds and alpha, checked numerically in float64."""
+        m = TemporalReprojection(0.05, 0.2, soft=True)
+        xs = _inputs(m, torch.float64, "cpu", cameras=torch.float64)
+        xs = tuple(x[..., :12, :16] if x.dim() == 4 else x for x in xs)  # small crop: fast gradcheck
+
+        def f(pos, nrm, alpha):
+            return temporal_reproject(*xs, pos, nrm, alpha, soft=True, temperature=0.3)[0]
+
+        # alpha away from the warm-up kink at 1/(n+1) = 0.25 (history length 3 in the example inputs)
+        params = [torch.tensor(v, dtype=torch.float64, requires_grad=True) for v in (0.08, 0.3, 0.35)]
+        assert torch.autograd.gradcheck(f, params, eps=1e-6, atol=1e-5)
+        loss = m(*_inputs(m, torch.float32, "cpu"))[0].square().mean()
+        loss.backward()
+        assert all(p.grad is not None and torch.isfinite(p.grad) for p in m.parameters())
+
+    @pytest.mark.parametrize("kind", sorted(MODULES))
+    @pytest.mark.parametrize("dt", ["float32", "float64", "float16"])
+    def test_onnx(self, kind, dt, tmp_path):
+        ort = pytest.importorskip("onnxruntime")
+        dtype = getattr(torch, dt)
+        module = MODULES[kind]()
+        xs = example_inputs(module, height=12, width=16, dtype=dtype)
+        path = export_onnx(module, tmp_path / "m.onnx", inputs=xs)
+        sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+        xs2 = example_inputs(module, height=20, width=28, dtype=dtype, seed=1)  # another size: symbolic H, W
+        outs = sess.run(None, {n: x.numpy() for n, x in zip(module.input_names, xs2)})
+        with torch.no_grad():
+            ref = module(*xs2)
+        for o, r in zip(outs, ref):
+            assert o.dtype == r.numpy().dtype
+            np.testing.assert_allclose(o.astype(np.float64), r.double().numpy(), atol=1e-5, rtol=0)
+
+    def test_cuda_matches_cpu(self):
+        if not torch.cuda.is_available():
+            pytest.skip("no CUDA device")
+        for kind in sorted(MODULES):
+            module = MODULES[kind]()
+            cpu = module(*_inputs(module, torch.float32, "cpu"))
+            gpu = module.cuda()(*_inputs(module, torch.float32, "cuda"))
+            assert gpu[0].is_cuda
+            valid = (cpu[-1] == gpu[-1].cpu()).float().mean()
+            assert valid > 0.999
+            both = (cpu[-1] & gpu[-1].cpu()).expand_as(cpu[0])
+            torch.testing.assert_close(gpu[0].cpu()[both], cpu[0][both], atol=1e-4, rtol=1e-4)
