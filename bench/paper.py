@@ -53,17 +53,31 @@ def main(argv=None) -> int:
     ap.add_argument("--ladder-spp", type=int, default=16)
     ap.add_argument("--out", default="runs/paper")
     ap.add_argument("--name", default="paper", help="results file name under bench/results/")
+    ap.add_argument("--metric", choices=("hdr", "ldr"), default="ldr")
+    ap.add_argument("--reanalyse", action="store_true",
+                    help="reuse each scene's cached renders (renderer version from its results.json), no rendering")
+    ap.add_argument("--analysis-out", default=None, help="write experiment outputs here instead of --out (cache stays)")
     args = ap.parse_args(argv)
     w, h = args.resolution
     runs = {}
     for scene in args.scenes:
-        cfg = ExperimentConfig(scene=scene, out=str(Path(args.out) / scene), frames=args.frames, width=w, height=h,
-                               reference_spp=args.reference_spp, ladder_spp=args.ladder_spp)
+        run_dir = Path(args.out) / scene
+        version = None
+        if args.reanalyse:
+            import json
+
+            version = json.loads((run_dir / "results.json").read_text())["code"]
+        out_dir = Path(args.analysis_out) / scene if args.analysis_out else run_dir
+        cfg = ExperimentConfig(scene=scene, out=str(out_dir), frames=args.frames, width=w, height=h,
+                               reference_spp=args.reference_spp, ladder_spp=args.ladder_spp, metric=args.metric,
+                               renderer_version=version, cache_dir=str(run_dir / "cache"))
         r = run_experiment(cfg)
         runs[scene] = {k: r[k] for k in ("table1", "table2", "table2_variants", "thresholds", "frames", "resolution",
-                                          "reference_spp", "ladder_spp", "timing_ms", "cost", "flags", "wall_s")}
+                                          "reference_spp", "ladder_spp", "timing_ms", "cost", "flags", "wall_s",
+                                          "bias", "metric", "code")}
     lines = [f"Ours: {args.frames} frames at {w}×{h}, reference {args.reference_spp} spp, ladder 1..{args.ladder_spp} "
-             f"spp. Paper: 60 frames at 1280×720, 4096-spp references.", "",
+             f"spp, {args.metric.upper()} RMSE. Paper: 60 frames at 1280×720, 4096-spp references. "
+             f"Cells: avg [min, max].", "",
              "| scene (paper row) | stereo discard % ours | paper | temporal discard % ours | paper | "
              "stereo spp ours | paper | temporal spp ours | paper | stereo+temporal spp ours | paper |",
              "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]

@@ -14,6 +14,12 @@ The 1-spp rung of each eye is the renderer's 1-spp input. The schemes then run o
 * ``temporal``: the right eye accumulated over time (EMA, 20 %); evaluated on the right eye;
 * ``stereo_temporal``: temporal on the right eye, stereo R → L, left-eye temporal filling; evaluated on the left.
 
+Metric: RMSE of images clamped to [0, 1] by default (``metric="ldr"``, display-referred), or of linear radiance
+(``"hdr"``). Under HDR RMSE, antialiased edges of directly visible emitters (radiance ≈ 5–6 beside ≈ 0.2) dominate
+the error of any resampling scheme: on the Living Room the stereo scheme fed with *noise-free* references still has
+an HDR RMSE equal to 16-spp noise, so effective spp stays near 1–3 whatever the noise reduction. The paper does not
+say which it used; its numbers fit display-referred images. Both are one flag apart; the README reports both.
+
 Variants (nearest sampling, other alphas) run on the same renders, so what each step of accuracy costs shows
 side by side. Quality is RMSE against the reference turned into effective spp with the eye's ladder
 (:mod:`stereorepro.metrics`); matching against a ladder scored on the same reference cancels the reference's
@@ -98,6 +104,12 @@ class ExperimentConfig:
     force: bool = False
     progress: bool = True
     cache_dir: str | None = None  #: default: <out>/cache
+    #: Renderer version used in cache keys; None = a hash of the current renderer sources. Set it to a run's
+    #: recorded ``code`` to re-analyse that run's cached renders after the renderer changed (no re-rendering).
+    renderer_version: str | None = None
+    #: ``"hdr"``: RMSE of linear radiance; ``"ldr"``: RMSE after clamping to [0, 1] (display-referred), applied alike
+    #: to the method's images, the ladder and the reference.
+    metric: str = "ldr"
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -250,6 +262,10 @@ def _schemes(cfg: ExperimentConfig) -> list[Scheme]:
     return out
 
 
+def _metric_image(x: torch.Tensor, metric: str) -> torch.Tensor:
+    return x.clamp(0.0, 1.0) if metric == "ldr" else x
+
+
 def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
     """Run the experiment and write its outputs into ``cfg.out``. Returns the ``results.json`` content."""
     from tqdm.auto import tqdm
@@ -257,6 +273,8 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
     from .render import PathTracer
     from .scenes import load_scene
 
+    if cfg.metric not in ("hdr", "ldr"):
+        raise ValueError(f"metric must be 'hdr' or 'ldr', got {cfg.metric!r}")
     if cfg.ladder_spp < 2:
         raise ValueError("ladder_spp must be >= 2")
     if cfg.reference_spp < cfg.ladder_spp:
@@ -273,10 +291,15 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
     nrm_thr = float(scene.normal_threshold)
     tracer = PathTracer(scene, seed=cfg.seed, workers=cfg.workers)
     cache = RenderCache(Path(cfg.cache_dir) if cfg.cache_dir else out / "cache", force=cfg.force)
-    base_key = {"scene": _scene_fingerprint(scene), "code": _code_version(), "seed": cfg.seed, "w": W, "h": H}
+    code = cfg.renderer_version or _code_version()
+    base_key = {"scene": _scene_fingerprint(scene), "code": code, "seed": cfg.seed, "w": W, "h": H}
     schemes = _schemes(cfg)
     drivers = {s.name: SpatiotemporalReprojection(pos_thr, nrm_thr, alpha=s.alpha, sampling=s.sampling,
                                                   stereo=s.stereo, temporal=s.temporal) for s in schemes}
+    # The same schemes fed with the noise-free references: their error is the resampling bias alone (bilinear blur
+    # compounded over frames, edges), the part of the error that more samples cannot remove.
+    clean = {s.name: SpatiotemporalReprojection(pos_thr, nrm_thr, alpha=s.alpha, sampling=s.sampling,
+                                                stereo=s.stereo, temporal=s.temporal) for s in schemes if s.paper}
     per_frame = []
     timing = {k: [] for k in ("trace_1spp_ms", "gbuffer_ms", "trace_left_discards_ms", "reference_ms")}
     timing.update({f"reproject_{s.name}_ms": [] for s in schemes})
@@ -294,11 +317,12 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
         timing["reference_ms"] += [L.ms_reference, R.ms_reference]
         has_surface = {e: torch.isfinite(d.depth) & (d.depth > 0) for e, d in eyes.items()}
         row = {"frame": f, "discard_pct": {}, "rmse": {}, "effective_spp": {}, "flags": {},
-               "ladder_rmse": {}, "no_surface_pct": {}}
+               "ladder_rmse": {}, "no_surface_pct": {}, "rmse_noise_free": {}}
         ladder_spp = list(range(1, cfg.ladder_spp + 1))
         ladder_err = {}
         for e, d in eyes.items():
-            errs = rmse(torch.cat(d.ladder), d.reference.expand(len(d.ladder), -1, -1, -1)).tolist()
+            errs = rmse(_metric_image(torch.cat(d.ladder), cfg.metric),
+                        _metric_image(d.reference, cfg.metric).expand(len(d.ladder), -1, -1, -1)).tolist()
             ladder_err[e] = errs
             row["ladder_rmse"]["left" if e == LEFT else "right"] = errs
             row["no_surface_pct"]["left" if e == LEFT else "right"] = 100.0 * float((~has_surface[e]).float().mean())
@@ -313,10 +337,18 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
             timing[f"reproject_{s.name}_ms"].append((t2 - t0) * 1e3 if s.stereo else (t1 - t0) * 1e3)
             img = left_out if s.eye == LEFT else right_out
             d = eyes[s.eye]
-            err = float(rmse(img, d.reference)[0])
+            err = float(rmse(_metric_image(img, cfg.metric), _metric_image(d.reference, cfg.metric))[0])
             spp, flags = effective_spp_many(torch.tensor([err]), torch.tensor(ladder_spp, dtype=torch.float64),
                                             torch.tensor(ladder_err[s.eye], dtype=torch.float64))
             row["rmse"][s.name] = err
+            if s.name in clean:
+                c = clean[s.name]
+                c_right = c.right(R.reference, R.depth, R.normal, R.K, R.cam_from_world)
+                c.left_trace_mask(L.depth, L.normal, L.K, L.cam_from_world)
+                c_left = c.left(L.reference)
+                row["rmse_noise_free"][s.name] = float(rmse(_metric_image(c_left if s.eye == LEFT else c_right,
+                                                                          cfg.metric),
+                                                            _metric_image(d.reference, cfg.metric))[0])
             row["effective_spp"][s.name] = float(spp[0])
             row["flags"][s.name] = flags[0]
             if s.name == "stereo":
@@ -350,17 +382,21 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
     table2 = {s.name: _stats([r["effective_spp"][s.name] for r in per_frame]) for s in schemes}
     timing_ms = {k: float(np.median(v)) if v else None for k, v in timing.items()}
     cost = _cost_table(schemes, table2, timing_ms, cfg)
+    bias = {k: {"rmse_noise_free": _stats([r["rmse_noise_free"][k] for r in per_frame]),
+                "bias_share_of_mse": _stats([(r["rmse_noise_free"][k] / r["rmse"][k]) ** 2 for r in per_frame
+                                             if r["rmse"][k] > 0])} for k in clean}
+    bias["ladder_top_rmse"] = _stats([r["ladder_rmse"]["left"][-1] for r in per_frame])
     results = {
         "scene": scene.name, "effects": sorted(scene.effects), "frames": frames, "resolution": f"{W}x{H}",
-        "reference_spp": cfg.reference_spp, "ladder_spp": cfg.ladder_spp, "seed": cfg.seed,
+        "reference_spp": cfg.reference_spp, "ladder_spp": cfg.ladder_spp, "seed": cfg.seed, "metric": cfg.metric,
         "thresholds": {"position": pos_thr, "normal": nrm_thr, "position_scene": float(scene.position_threshold),
                        "scale": scale},
         "table1": table1,
         "table2": {k: table2[k] for k in ("stereo", "temporal", "stereo_temporal")},
         "table2_variants": {k: v for k, v in table2.items() if k not in ("stereo", "temporal", "stereo_temporal")},
-        "timing_ms": timing_ms, "cost": cost, "per_frame": per_frame,
+        "timing_ms": timing_ms, "cost": cost, "bias": bias, "per_frame": per_frame,
         "flags": _flag_counts(per_frame), "cache": {"hits": cache.hits, "misses": cache.misses},
-        "wall_s": wall, "version": __version__, "code": base_key["code"],
+        "wall_s": wall, "version": __version__, "code": code,
     }
     _write_outputs(out, results, per_frame, keep, cfg)
     return results
@@ -419,7 +455,8 @@ def tables_markdown(results: dict) -> str:
              f"{results['resolution']}", "", "| | Avg | Min | Max |", "|---|---:|---:|---:|"]
     for k in ("stereo", "temporal"):
         lines.append(f"| {k} | {_fmt(t1[k]['avg'])} | {_fmt(t1[k]['min'])} | {_fmt(t1[k]['max'])} |")
-    lines += ["", f"**Table 2** — effective spp (RMSE, reference {results['reference_spp']} spp, ladder 1..."
+    lines += ["", f"**Table 2** — effective spp ({results.get('metric', 'hdr').upper()} RMSE, reference "
+              f"{results['reference_spp']} spp, ladder 1..."
               f"{results['ladder_spp']} spp)", "",
               "| | Stereo Avg | Min | Max | Temporal Avg | Min | Max | Stereo+temporal Avg | Min | Max |",
               "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
@@ -524,6 +561,17 @@ def _write_outputs(out: Path, results: dict, per_frame, keep, cfg) -> None:
               "| scheme | Avg | Min | Max |", "|---|---:|---:|---:|"]
     for kk, v in results["table2_variants"].items():
         report.append(f"| {kk} | {_fmt(v['avg'])} | {_fmt(v['min'])} | {_fmt(v['max'])} |")
+    b = results["bias"]
+    report += ["", "## Resampling bias", "",
+               "Each scheme fed with the noise-free references instead of 1-spp images: its RMSE is pure bias "
+               "(bilinear blur compounded over frames, edges), the part more samples cannot remove.", "",
+               "| scheme | noise-free RMSE (avg) | share of the scheme's MSE (avg) |", "|---|---:|---:|"]
+    for kk in ("stereo", "temporal", "stereo_temporal"):
+        if kk in b:
+            report.append(f"| {kk} | {_fmt(b[kk]['rmse_noise_free']['avg'], 4)} | "
+                          f"{_fmt(100 * b[kk]['bias_share_of_mse']['avg'], 1)} % |")
+    report += ["", f"For scale: the left eye's {results['ladder_spp']}-spp RMSE averages "
+               f"{_fmt(b['ladder_top_rmse']['avg'], 4)}.", ""]
     report += ["", "## What accuracy costs in time", "",
                f"Median per frame: 1-spp trace of one eye {_fmt(t['trace_1spp_ms'], 1)} ms, G-buffer "
                f"{_fmt(t['gbuffer_ms'], 1)} ms, tracing only the left eye's discarded pixels "
@@ -568,7 +616,12 @@ def add_arguments(p: argparse.ArgumentParser, defaults: dict | None = None) -> N
     p.add_argument("--workers", type=int, default=None)
     p.add_argument("--exr", action="store_true", help="also write EXR frames of both eyes")
     p.add_argument("--force", action="store_true", help="recompute cached renders")
+    p.add_argument("--cache-dir", default=None, help="render cache (default: OUT/cache); runs may share one")
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--metric", choices=("hdr", "ldr"), default="ldr",
+                   help="RMSE on linear radiance (hdr) or on values clamped to [0, 1] (ldr, display-referred)")
+    p.add_argument("--renderer-version", default=None,
+                   help="cache key of a previous run's renderer (results.json 'code'): re-analyse its cached renders")
 
 
 def config_from_args(args) -> ExperimentConfig:
@@ -583,7 +636,8 @@ def config_from_args(args) -> ExperimentConfig:
     return ExperimentConfig(scene=args.scene, out=args.out, frames=args.frames, width=w, height=h,
                             reference_spp=args.reference_spp, ladder_spp=args.ladder_spp, seed=args.seed,
                             alphas=alphas, threshold_scale=scale, workers=args.workers, exr=args.exr,
-                            force=args.force, progress=not args.no_progress)
+                            force=args.force, progress=not args.no_progress, renderer_version=args.renderer_version, cache_dir=args.cache_dir,
+                            metric=args.metric)
 
 
 def _cmd(args) -> int:
