@@ -75,6 +75,15 @@ class TestExperiment:
         data, meta = cache.get_or_make(key, lambda: ({"x": __import__("numpy").zeros(3)}, {"ms": 2.0}))
         assert meta["ms"] == 2.0 and data["x"].sum() == 0
 
+    def test_metric_hdr_vs_ldr(self, first_run, tmp_path):
+        out, res = first_run
+        assert res["metric"] == "ldr"
+        hdr = run_experiment(ExperimentConfig(out=str(tmp_path), cache_dir=str(out / "cache"), metric="hdr", **SMALL))
+        assert hdr["cache"]["misses"] == 0  # same renders, only the error metric differs
+        assert hdr["per_frame"][0]["ladder_rmse"]["left"][0] > res["per_frame"][0]["ladder_rmse"]["left"][0]
+        with pytest.raises(ValueError, match="metric"):
+            run_experiment(ExperimentConfig(out=str(tmp_path), metric="srgb", **SMALL))
+
     def test_exceptions(self, tmp_path):
         with pytest.raises(ValueError, match="ladder_spp"):
             run_experiment(ExperimentConfig(out=str(tmp_path), **dict(SMALL, ladder_spp=1)))
