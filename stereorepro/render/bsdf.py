@@ -7,6 +7,11 @@
 
 All directions point away from the surface; ``n`` is the shading normal on the side of ``wo``. Shapes: N paths,
 vectors (N, 3), scalars (N,). A diffuse-only scene calls only the ``lambert_*`` functions.
+
+Transcendentals (``cos``, ``sin``, ``pow``) are evaluated in float64 and rounded to float32 (:func:`_cos`,
+:func:`_sin`, :func:`_pow`): numpy's float32 SIMD ``cos``/``sin`` differ from libm in the last bit for ~17 % of
+arguments, while float64 numpy and float64 libm agree, so the native kernels (``cpp_ext/src/shade_tracer.cpp``, which
+call float64 libm and cast) reproduce this module bit for bit. Everything else is float32.
 """
 
 from __future__ import annotations
@@ -18,6 +23,18 @@ __all__ = ["onb", "to_world", "lambert_sample", "lambert_pdf", "phong_eval", "ph
 
 _INV_PI = np.float32(1.0 / np.pi)
 _TWO_PI = np.float32(2.0 * np.pi)
+
+
+def _cos(x: np.ndarray) -> np.ndarray:
+    return np.cos(x.astype(np.float64)).astype(np.float32)
+
+
+def _sin(x: np.ndarray) -> np.ndarray:
+    return np.sin(x.astype(np.float64)).astype(np.float32)
+
+
+def _pow(x: np.ndarray, e: np.ndarray) -> np.ndarray:
+    return np.power(np.asarray(x).astype(np.float64), np.asarray(e).astype(np.float64)).astype(np.float32)
 
 
 def dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -47,7 +64,7 @@ def lambert_sample(n: np.ndarray, u1: np.ndarray, u2: np.ndarray) -> tuple[np.nd
     r = np.sqrt(u1)
     phi = _TWO_PI * u2
     cz = np.sqrt(np.maximum(np.float32(1) - u1, np.float32(0)))
-    return to_world(n, r * np.cos(phi), r * np.sin(phi), cz), cz
+    return to_world(n, r * _cos(phi), r * _sin(phi), cz), cz
 
 
 def lambert_pdf(cos_i: np.ndarray) -> np.ndarray:
@@ -70,7 +87,7 @@ def phong_eval(ks: np.ndarray, exponent: np.ndarray, n: np.ndarray, wo: np.ndarr
         f_s: (N, 3) BSDF value (without the cosine); pdf_s: (N,) solid-angle pdf of :func:`phong_sample`.
     """
     c = np.maximum(dot(_reflect(n, wo), wi), np.float32(0))
-    ce = np.power(c, exponent).astype(np.float32)
+    ce = _pow(c, exponent)
     base = ce * (np.float32(1) / _TWO_PI)
     return ks * (base * (exponent + 2))[:, None], base * (exponent + 1)
 
@@ -79,10 +96,10 @@ def phong_sample(exponent: np.ndarray, n: np.ndarray, wo: np.ndarray, u1: np.nda
                  ) -> np.ndarray:
     """Directions (N, 3) distributed as ``cos^e`` around the mirror direction of ``wo`` (may fall below the surface)."""
     r = _reflect(n, wo)
-    ca = np.power(u1, np.float32(1) / (exponent + 1)).astype(np.float32)
+    ca = _pow(u1, np.float32(1) / (exponent + 1))
     sa = np.sqrt(np.maximum(np.float32(1) - ca * ca, np.float32(0)))
     phi = _TWO_PI * u2
-    return to_world(r, sa * np.cos(phi), sa * np.sin(phi), ca)
+    return to_world(r, sa * _cos(phi), sa * _sin(phi), ca)
 
 
 def mixture_eval(kd, ks, exponent, p_spec, n, wo, wi):

@@ -42,6 +42,25 @@ deterministic and independent of ``spp``/``sample_offset``; they are counted as 
 Random numbers are counter-based (:mod:`stereorepro.render.rng`), so results are bit-identical whatever the batch
 size or number of workers. Work is split into contiguous pixel ranges, one per worker thread; every stage of a
 range runs in its thread (embreex and numpy's large-array loops release the GIL).
+
+Backends (``PathTracer(backend=...)``)
+--------------------------------------
+The stages other than intersection exist twice: in numpy (:meth:`PathTracer._trace_paths`, the reference) and in
+C++ (``stereorepro._core``: ``tracer_generate`` and ``TracerShader.shade1/shade2/accumulate`` from
+``cpp_ext/src/shade_tracer.cpp``, used by :meth:`PathTracer._trace_paths_native`). Intersection stays in embreex
+(:mod:`._embree`) for both; the native path calls it between its kernels on compacted structure-of-arrays
+batches. Both paths use the same random numbers and the same float32 operations in the same order (transcendentals
+in float64, see :mod:`.bsdf`), so radiance, ray counts and the rays themselves are bit-identical
+(``tests/test_render_native.py``).
+
+* ``backend="auto"`` (default): native when ``_core`` has the tracer kernels, else numpy;
+* ``"numpy"``: the reference; ``"native"``: the C++ stages (RuntimeError when ``_core`` lacks them);
+* the environment variable ``STEREOREPRO_BACKEND`` (``auto`` | ``numpy`` | ``native`` | ``torch``), when set,
+  overrides the argument, as it does for the reprojection kernels; ``"torch"`` there names the project's reference
+  path, which for the tracer is numpy (``"torch"`` is mapped to ``"numpy"``).
+
+The native kernels are single-threaded: parallelism is the worker threads over pixel ranges (one level), each
+running its own embreex queries and kernels with the GIL released.
 """
 
 from __future__ import annotations
@@ -63,7 +82,52 @@ from ._embree import TriangleBVH
 from .lights import EmitterTable, LightSet, luminance, point_mesh_distance, radiance_bound
 from .rng import DIM, path_keys, stream_key, uniform
 
-__all__ = ["PathTracer", "RenderResult", "ray_epsilon"]
+try:  # optional: the package works without the compiled core
+    from .. import _core
+except ImportError:  # pragma: no cover - depends on the build
+    _core = None
+
+__all__ = ["PathTracer", "RenderResult", "ray_epsilon", "native_available", "resolve_backend", "BACKENDS",
+           "ENV_VAR"]
+
+BACKENDS = ("auto", "numpy", "native", "torch")
+ENV_VAR = "STEREOREPRO_BACKEND"
+
+
+def native_available() -> bool:
+    """True when ``stereorepro._core`` is importable and has the tracer kernels."""
+    return _core is not None and hasattr(_core, "TracerShader") and hasattr(_core, "tracer_generate")
+
+
+def resolve_backend(backend: str = "auto") -> str:
+    """``"numpy"`` or ``"native"`` for a requested tracer backend (``STEREOREPRO_BACKEND`` overrides it when set;
+    ``"torch"`` means the reference path, numpy). Raises ValueError for an unknown name and RuntimeError when
+    ``"native"`` is asked for but ``_core`` lacks the kernels."""
+    if backend not in BACKENDS:
+        raise ValueError(f"PathTracer: backend must be one of {BACKENDS}, got {backend!r}")
+    env = os.environ.get(ENV_VAR, "").strip().lower()
+    if env:
+        if env not in BACKENDS:
+            raise ValueError(f"{ENV_VAR} must be one of {BACKENDS}, got {env!r}")
+        backend = env
+    if backend == "torch":
+        backend = "numpy"
+    if backend == "auto":
+        return "native" if native_available() else "numpy"
+    if backend == "native" and not native_available():
+        source = f" (from {ENV_VAR})" if env else ""
+        raise RuntimeError(f"PathTracer: backend='native'{source} is not possible: stereorepro._core with the "
+                           "tracer kernels is not built or not importable")
+    return backend
+
+
+def _tick(times: dict | None, name: str, t0: float) -> float:
+    """Stage profiling (off unless ``PathTracer._stage_times`` is a dict): add the time since ``t0`` to ``name``."""
+    if times is None:
+        return t0
+    t = time.perf_counter()
+    times[name] = times.get(name, 0.0) + (t - t0)
+    return t
 
 
 @dataclass(frozen=True)
@@ -136,6 +200,8 @@ class _Frame:
     dir_from_pix: np.ndarray  # (3, 3) float64: world direction (camera z = 1) = M @ [u, v, 1]
     lights: LightSet
     limit: float | None = None  # firefly clamp C (None: off)
+    shader: object = None       # _core.TracerShader of the frame's lights (native backend)
+    M32: np.ndarray | None = None  # (9,) float32 dir_from_pix, as _camera_dirs rounds it
 
 
 class PathTracer:
@@ -150,6 +216,9 @@ class PathTracer:
             scene's ``[render] radiance_clamp`` when it is > 0, else the bound of
             :func:`~stereorepro.render.lights.radiance_bound` (per frame for moving lights); a positive number is
             the limit itself; ``None`` disables clamping (unbiased). :meth:`radiance_limit` reports the value.
+        backend: ``"auto"`` (default), ``"numpy"`` (reference), ``"native"`` (C++ shading stages) or ``"torch"``
+            (= ``"numpy"``); ``STEREOREPRO_BACKEND`` overrides it (see the module docstring). The resolved choice is
+            :attr:`backend` (``"numpy"`` or ``"native"``); both give bit-identical results.
 
     Only the effects the scene declares are simulated: the glossy lobe is evaluated only when ``"glossy" in
     scene.effects``; lights are merged once per tracer unless ``"moving_light" in scene.effects`` (then once per
@@ -157,7 +226,8 @@ class PathTracer:
     """
 
     def __init__(self, scene, seed: int = 0, workers: int | None = None, max_batch: int = 1 << 16,
-                 clamp: str | float | None = "auto"):
+                 clamp: str | float | None = "auto", backend: str = "auto"):
+        self.backend = resolve_backend(backend)
         if workers is None:
             try:
                 workers = len(os.sched_getaffinity(0))
@@ -206,8 +276,10 @@ class PathTracer:
         self.stats["bvh_builds"] += 1
         self._emitters = EmitterTable(self.vertices, self.faces, self.emission[self.face_material])
         self._materials = mats
-        self._lights_cache: tuple[int | None, LightSet, float | None] | None = None
+        self._lights_cache: tuple | None = None
         self._lock = threading.Lock()
+        self._stage_times: dict | None = None  # set to {} to accumulate per-stage seconds (profiling)
+        self._ws_free: list[dict] = []  # scratch arrays of the native path, one set per concurrent worker
 
     # ------------------------------------------------------------------ lights
     def lights(self, frame: int) -> LightSet:
@@ -219,16 +291,35 @@ class PathTracer:
         return self._prepare_lights(frame)[1]
 
     def _prepare_lights(self, frame: int) -> tuple[LightSet, float | None]:
+        return self._prepare_lights_full(frame)[:2]
+
+    def _prepare_lights_full(self, frame: int) -> tuple[LightSet, float | None, object]:
         key = int(frame) if self.moving_light else None
         cache = self._lights_cache
         if cache is not None and cache[0] == key:
-            return cache[1], cache[2]
+            return cache[1], cache[2], cache[3]
         pos, inten = self.scene.point_lights(0 if key is None else key)
         ls = LightSet(self._emitters, pos, inten)
         limit = self._limit(pos, inten)
+        shader = self._make_shader(ls) if self.backend == "native" else None
         self.stats["light_prepare"] += 1
-        self._lights_cache = (key, ls, limit)
-        return ls, limit
+        self._lights_cache = (key, ls, limit, shader)
+        return ls, limit, shader
+
+    def _make_shader(self, ls: LightSet):
+        """The native stages' tables (scene materials + this light set), as contiguous arrays."""
+        nm = len(self.kd)
+        f32 = np.float32
+        if self.glossy:
+            ks, ex, ps = self.ks, self.exponent, self.p_spec
+        else:
+            ks, ex, ps = np.zeros((nm, 3), f32), np.zeros(nm, f32), np.zeros(nm, f32)
+        c = np.ascontiguousarray
+        return _core.TracerShader(
+            c(self.face_normal, f32), c(self.face_material, np.int32), c(self.kd, f32), c(ks, f32), c(ex, f32),
+            c(ps, f32), c(self.emission, f32), c(self.mat_emissive, bool), float(self.eps), bool(self.glossy),
+            bool(ls.empty), c(ls.cdf, np.float64), c(ls.prob, np.float64), c(ls._table, f32), int(ls.num_area),
+            c(ls.point_pos, f32), c(ls.point_int, f32), c(ls.pdf_area_face, f32))
 
     def _limit(self, pos: np.ndarray, inten: np.ndarray) -> float | None:
         if self.clamp is None:
@@ -286,22 +377,40 @@ class PathTracer:
             from tqdm import tqdm
             bar = tqdm(total=int(spp) * len(pixels), unit="path", unit_scale=True, desc="render")
 
+        native = self.backend == "native"
+
         def work(lo_hi):
             lo, hi = lo_hi
             c = {"primary": 0, "secondary": 0, "shadow": 0}
             m = hi - lo
             k = max(1, self.max_batch // max(m, 1))
-            for s0 in range(0, int(spp), k):
-                kk = min(k, int(spp) - s0)
-                pix = np.tile(pixels[lo:hi], kk)
-                samp = np.repeat(np.arange(s0, s0 + kk, dtype=np.int64) + int(sample_offset), m)
-                contrib = self._trace_paths(fr, pix, samp, c).reshape(kk, m, 3)
-                view = acc[lo:hi]
-                for j in range(kk):  # fixed summation order: bit-identical whatever the chunking
-                    view += contrib[j]
-                if bar is not None:
+            slot = None
+            if native:
+                with self._lock:
+                    slot = {"ws": self._ws_free.pop() if self._ws_free else None}
+            try:
+                for s0 in range(0, int(spp), k):
+                    kk = min(k, int(spp) - s0)
+                    pix = np.tile(pixels[lo:hi], kk)
+                    samp = np.repeat(np.arange(s0, s0 + kk, dtype=np.int64) + int(sample_offset), m)
+                    if native:
+                        slot["ws"] = self._workspace(len(pix), slot["ws"])
+                        contrib = self._trace_paths_native(fr, pix, samp, c, slot["ws"])
+                    else:
+                        contrib = self._trace_paths(fr, pix, samp, c)
+                    contrib = contrib.reshape(kk, m, 3)
+                    t0 = time.perf_counter() if self._stage_times is not None else 0.0
+                    view = acc[lo:hi]
+                    for j in range(kk):  # fixed summation order: bit-identical whatever the chunking
+                        view += contrib[j]
+                    _tick(self._stage_times, "accumulate_frame", t0)
+                    if bar is not None:
+                        with self._lock:
+                            bar.update(kk * m)
+            finally:
+                if slot is not None and slot["ws"] is not None:
                     with self._lock:
-                        bar.update(kk * m)
+                        self._ws_free.append(slot["ws"])
             return c
 
         for c in self._run(work, self._ranges(len(pixels))):
@@ -349,8 +458,9 @@ class PathTracer:
         K = camera.K[0].detach().cpu().double().numpy()
         wfc = camera.world_from_cam[0].detach().cpu().double().numpy()
         M = wfc[:3, :3] @ np.linalg.inv(K)
-        lights, limit = self._prepare_lights(frame) if need_lights else (None, None)
-        fr = _Frame(stream_key(self.seed, int(frame), int(eye)), W, wfc[:3, 3].astype(np.float32), M, lights, limit)
+        lights, limit, shader = self._prepare_lights_full(frame) if need_lights else (None, None, None)
+        fr = _Frame(stream_key(self.seed, int(frame), int(eye)), W, wfc[:3, 3].astype(np.float32), M, lights, limit,
+                    shader, np.ascontiguousarray(M.astype(np.float32).reshape(9)))
         return fr, pixels, H, W
 
     def _ranges(self, n):
@@ -379,6 +489,8 @@ class PathTracer:
         return self.face_material[prim], fn * sign[:, None]
 
     def _gbuffer(self, fr: _Frame, pixels, H, W, counts) -> dict:
+        if self.backend == "native":
+            return self._gbuffer_native(fr, pixels, H, W, counts)
         depth = np.full(H * W, np.inf, np.float32)
         normal = np.zeros((H * W, 3), np.float32)
         position = np.zeros((H * W, 3), np.float32)
@@ -411,6 +523,35 @@ class PathTracer:
 
         return {"depth": img(depth, 1), "normal": img(normal, 3), "position": img(position, 3),
                 "albedo": img(albedo, 3), "material_id": img(matid, 1)}
+
+    def _gbuffer_native(self, fr: _Frame, pixels, H, W, counts) -> dict:
+        """:meth:`_gbuffer` with the ray set-up and the writes in ``_core`` (same values; planar outputs, no
+        transposes)."""
+        HW = H * W
+        depth = np.full(HW, np.inf, np.float32)
+        planes = {k: np.zeros((3, HW), np.float32) for k in ("normal", "position", "albedo")}
+        matid = np.full(HW, -1, np.int32)
+        pixels = np.ascontiguousarray(pixels, np.int64)
+        fn, fm, kd = (np.ascontiguousarray(x) for x in (self.face_normal, self.face_material, self.kd))
+
+        def work(lo_hi):
+            lo, hi = lo_hi
+            pix = pixels[lo:hi]
+            o = np.empty((len(pix), 3), np.float32)
+            d = np.empty((len(pix), 3), np.float32)
+            _core.tracer_gbuffer_rays(W, pix, fr.M32, fr.center, o, d)
+            t, prim = self._bvh.intersect(o, d)
+            _core.tracer_gbuffer_write(pix, d, np.ascontiguousarray(t, np.float32), np.ascontiguousarray(prim, np.int32),
+                                       fr.center, fn, fm, kd, depth, planes["normal"], planes["position"],
+                                       planes["albedo"], matid)
+            return len(pix)
+
+        for c in self._run(work, self._ranges(len(pixels))):
+            counts["gbuffer"] += c
+        out = {k: torch.from_numpy(v.reshape(1, 3, H, W)) for k, v in planes.items()}
+        out["depth"] = torch.from_numpy(depth.reshape(1, 1, H, W))
+        out["material_id"] = torch.from_numpy(matid.reshape(1, 1, H, W))
+        return out
 
     # The stages of one wavefront batch ------------------------------------------------------------
     def _bsdf_eval(self, mat, n, wo, wi):
@@ -454,15 +595,19 @@ class PathTracer:
         L = np.zeros((N, 3), np.float32)
         if N == 0:
             return L
+        tm = self._stage_times
+        t0 = time.perf_counter() if tm is not None else 0.0
         keys = path_keys(fr.key, pix, samp)
         # --- generate
         px = (pix % fr.width).astype(np.float32) + uniform(keys, DIM["jitter_x"])
         py = (pix // fr.width).astype(np.float32) + uniform(keys, DIM["jitter_y"])
         d = _normalize(self._camera_dirs(fr, px, py))
         o = np.broadcast_to(fr.center, d.shape)
+        t0 = _tick(tm, "generate", t0)
         # --- intersect
         t, prim = self._bvh.intersect(o, d)
         counts["primary"] += N
+        t0 = _tick(tm, "intersect_primary", t0)
         i1 = np.flatnonzero(prim >= 0)
         if len(i1) == 0:
             return L
@@ -493,8 +638,10 @@ class PathTracer:
         if len(live):
             o2 = P1[live] + n1v[live] * self.eps
             d2 = wi2[live]
+            t0 = _tick(tm, "shade_x1", t0)
             t2, prim2 = self._bvh.intersect(o2, d2)
             counts["secondary"] += len(live)
+            t0 = _tick(tm, "intersect_bounce", t0)
             h = np.flatnonzero(prim2 >= 0)
             if len(h):
                 j2 = live[h]
@@ -520,13 +667,16 @@ class PathTracer:
                     ok, so, sd, st, val = self._nee(fr, P2, n2, -d2h, mat2, k1[j2],
                                                     (DIM["light2"], DIM["light2_u"], DIM["light2_v"]), mis=False)
                     shadow.append((np.flatnonzero(ok), so[ok], sd[ok], st[ok], val[ok]))
+        t0 = _tick(tm, "shade_x2" if len(live) else "shade_x1", t0)
         # --- shadow: both sets in one occlusion query
         if shadow and sum(len(x[0]) for x in shadow):
             so = np.concatenate([x[1] for x in shadow])
             sd = np.concatenate([x[2] for x in shadow])
             st = np.concatenate([x[3] for x in shadow])
+            t0 = _tick(tm, "shade_x2", t0)
             vis = ~self._bvh.occluded(so, sd, st)
             counts["shadow"] += len(so)
+            t0 = _tick(tm, "intersect_shadow", t0)
             n_first = len(shadow[0][0])
             # Each path has at most one shadow ray per set: plain fancy-index adds are exact.
             a = np.flatnonzero(vis[:n_first])
@@ -538,4 +688,73 @@ class PathTracer:
         if len(j2):
             R1[j2] += thr * (E2 + _clamp_radiance(R2, fr.limit))
         L[i1] += _clamp_radiance(R1, fr.limit)
+        _tick(tm, "accumulate", t0)
+        return L
+
+    def _workspace(self, n: int, ws: dict | None = None) -> dict:
+        """Scratch arrays of the native path for batches of up to ``n`` paths: ``ws`` when it is large enough, else
+        new ones (reused between batches and renders through ``_ws_free``, about 150 bytes per path: fresh
+        multi-megabyte arrays cost page faults on every batch)."""
+        if ws is None or len(ws["keys"]) < n:
+            f32, rows = np.float32, lambda k, c=3: np.empty((k, c), f32)
+            ws = {"keys": np.empty(n, np.uint64), "o": rows(n), "d": rows(n), "thr": rows(n),
+                  "pdfb": np.empty(n, f32), "sh_o": rows(2 * n), "sh_d": rows(2 * n), "sh_val": rows(2 * n),
+                  "sh_t": np.empty(2 * n, f32), "sh_path": np.empty(2 * n, np.int32), "b_o": rows(n), "b_d": rows(n),
+                  "b_path": np.empty(n, np.int32), "E2": rows(n), "hit2": np.empty(n, np.uint8)}
+        return ws
+
+    def _trace_paths_native(self, fr: _Frame, pix: np.ndarray, samp: np.ndarray, counts: dict,
+                            ws: dict | None = None) -> np.ndarray:
+        """The native twin of :meth:`_trace_paths` (same arguments, bit-identical result): C++ stages from
+        ``_core`` between the three embreex queries (primary, bounce, one occlusion query for both shadow sets)."""
+        N = len(pix)
+        f32 = np.float32
+        if N == 0:
+            return np.zeros((0, 3), f32)
+        tm = self._stage_times
+        t0 = time.perf_counter() if tm is not None else 0.0
+        sh = fr.shader
+        pix = np.ascontiguousarray(pix, np.int64)
+        samp = np.ascontiguousarray(samp, np.int64)
+        ws = self._workspace(N, ws)
+        keys, o, d = ws["keys"][:N], ws["o"][:N], ws["d"][:N]
+        _core.tracer_generate(fr.key, fr.width, pix, samp, fr.M32, fr.center, keys, o, d)
+        t0 = _tick(tm, "generate", t0)
+        t, prim = self._bvh.intersect(o, d)
+        counts["primary"] += N
+        t0 = _tick(tm, "intersect_primary", t0)
+        t = np.ascontiguousarray(t, f32)
+        prim = np.ascontiguousarray(prim, np.int32)
+        L = np.empty((N, 3), f32)  # returned: never a workspace buffer
+        thr, pdfb = ws["thr"][:N], ws["pdfb"][:N]
+        cap = 2 * N  # at most one shadow ray per path and set
+        sh_o, sh_d, sh_val, sh_t, sh_path = (ws[k][:cap] for k in ("sh_o", "sh_d", "sh_val", "sh_t", "sh_path"))
+        b_o, b_d, b_path = ws["b_o"][:N], ws["b_d"][:N], ws["b_path"][:N]
+        n1, nb = sh.shade1(keys, d, t, prim, fr.center, L, thr, pdfb, sh_o, sh_d, sh_t, sh_val, sh_path,
+                           b_o, b_d, b_path)
+        t0 = _tick(tm, "shade_x1", t0)
+        ns = n1
+        E2, hit2 = ws["E2"][:N], ws["hit2"][:N]
+        if nb:
+            bo, bd = b_o[:nb], b_d[:nb]
+            t2, prim2 = self._bvh.intersect(bo, bd)
+            counts["secondary"] += nb
+            t0 = _tick(tm, "intersect_bounce", t0)
+            ns += sh.shade2(keys, bo, bd, b_path[:nb], np.ascontiguousarray(t2, f32),
+                            np.ascontiguousarray(prim2, np.int32), pdfb, E2, hit2, sh_o, sh_d, sh_t, sh_val, sh_path,
+                            n1)
+            t0 = _tick(tm, "shade_x2", t0)
+        else:
+            E2.fill(0)
+            hit2.fill(0)
+        if ns:
+            occ = np.ascontiguousarray(self._bvh.occluded(sh_o[:ns], sh_d[:ns], sh_t[:ns]), bool)
+            counts["shadow"] += ns
+            t0 = _tick(tm, "intersect_shadow", t0)
+        else:
+            occ = np.zeros(0, bool)
+        limit = fr.limit
+        sh.accumulate(prim, hit2, thr, E2, sh_path[:ns], sh_val[:ns], occ, n1,
+                      float(f32(limit)) if limit is not None else 0.0, limit is not None, L)
+        _tick(tm, "accumulate", t0)
         return L

@@ -1,0 +1,728 @@
+// Wavefront path-tracer stages other than intersection: the native twin of the numpy reference in
+// stereorepro/render/tracer.py (with bsdf.py, lights.py, rng.py). Embree intersection stays in Python (embreex);
+// these kernels run between its queries on structure-of-arrays batches (float32 / int32 / uint64, C-contiguous):
+//
+//   tracer_generate  keys + primary rays (jittered pixel position, camera matrix, normalised direction);
+//   TracerShader.shade1      after the primary query: surface, directly seen emission, NEE at x1 (shadow ray +
+//                            MIS-weighted value), BSDF sample of the bounce (compacted bounce-ray batch);
+//   TracerShader.shade2      after the bounce query: surface at x2, MIS-weighted emission of x2, NEE at x2
+//                            (shadow rays appended after those of x1, so one occlusion query tests both sets);
+//   TracerShader.accumulate  after the occlusion query: visible NEE values, x2's and x1's clamps, the sample.
+//
+// Parity with numpy: every float32 operation follows the numpy code in the same order (a*b + c*d + e*f is
+// (a*b + c*d) + e*f, divisions stay divisions), without FMA contraction. Transcendentals (cos, sin, pow) are
+// float64 libm calls cast to float32 in both paths (bsdf.py does the same in numpy float64), because numpy's
+// float32 SIMD cos/sin differ from libm in the last bit. Light selection compares float64 CDF values as
+// np.searchsorted(side="right") does. Result: bit-identical radiance (tests/test_render_native.py).
+//
+// Layout inside a kernel: paths are processed in blocks of kBlock lanes; each step of next-event estimation is a
+// loop over the block (the per-point dependency chain hash -> light selection -> sqrt -> three divisions is long,
+// and independent lanes side by side let the CPU overlap it: 2x over one path at a time). Compaction of shadow and
+// bounce rays is branchless (write, then advance the count by the keep flag) and keeps path order.
+//
+// Threading: none inside. The Python tracer already runs one worker thread per pixel range and each worker runs
+// its own embreex queries and these kernels (both release the GIL), so a second (OpenMP) level would only
+// oversubscribe the cores and serialise the embreex calls behind a shading barrier.
+#if defined(__clang__)
+#pragma clang fp contract(off)
+#elif defined(__GNUC__)
+#pragma GCC optimize("fp-contract=off")
+#endif
+
+#include <nanobind/nanobind.h>
+#include <nanobind/ndarray.h>
+#include <nanobind/stl/tuple.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <limits>
+#include <stdexcept>
+#include <string>
+#include <tuple>
+#include <vector>
+
+#include "rng_tracer.h"
+
+namespace nb = nanobind;
+
+namespace {
+
+template <class T>
+using In = nb::ndarray<const T, nb::c_contig, nb::device::cpu>;
+template <class T>
+using Out = nb::ndarray<T, nb::c_contig, nb::device::cpu>;
+
+constexpr float kInvPi = static_cast<float>(1.0 / 3.14159265358979323846);     // np.float32(1 / pi)
+constexpr float kTwoPi = static_cast<float>(2.0 * 3.14159265358979323846);     // np.float32(2 pi)
+constexpr float kInvTwoPi = 1.0f / kTwoPi;                                      // np.float32(1) / _TWO_PI
+constexpr float kInf = std::numeric_limits<float>::infinity();
+
+enum Dim : uint64_t { JX = 0, JY = 1, L1 = 2, L1U = 3, L1V = 4, LOBE = 5, BU = 6, BV = 7, L2 = 8, L2U = 9, L2V = 10 };
+
+// np.maximum(x, 0) (NaN propagates, -0 gives +0) and np.maximum(x, lo) for lo > 0.
+inline float max0(float x) { return (x > 0.0f || x != x) ? x : 0.0f; }
+inline float maxlo(float x, float lo) { return (x > lo || x != x) ? x : lo; }
+// rows.max(axis=1) of a 3-vector: NaN if any channel is NaN.
+inline float max3(const float *v) {
+    float m = v[0];
+    for (int c = 1; c < 3; ++c)
+        if (v[c] > m || v[c] != v[c]) m = (m != m) ? m : v[c];
+    return m;
+}
+inline float dot3(const float *a, const float *b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
+inline float fcos(float x) { return static_cast<float>(std::cos(static_cast<double>(x))); }
+inline float fsin(float x) { return static_cast<float>(std::sin(static_cast<double>(x))); }
+inline float fpow(float x, float e) { return static_cast<float>(std::pow(static_cast<double>(x), static_cast<double>(e))); }
+
+// bsdf.to_world (with bsdf.onb, Duff et al. 2017).
+inline void to_world(const float *n, float lx, float ly, float lz, float *out) {
+    const float x = n[0], y = n[1], z = n[2];
+    const float s = (z >= 0.0f) ? 1.0f : -1.0f;
+    const float a = -1.0f / (s + z);
+    const float b = x * y * a;
+    const float t[3] = {1.0f + s * x * x * a, s * b, -s * x};
+    const float bt[3] = {b, s + y * y * a, -y};
+    for (int c = 0; c < 3; ++c) out[c] = t[c] * lx + bt[c] * ly + n[c] * lz;
+}
+
+inline void reflect(const float *n, const float *wo, float *r) {
+    const float k = 2.0f * dot3(n, wo);
+    for (int c = 0; c < 3; ++c) r[c] = k * n[c] - wo[c];
+}
+
+template <class A>
+void check_rows(const A &a, const char *name, int64_t rows, int64_t cols) {
+    const bool ok = (cols == 0) ? (a.ndim() == 1 && (int64_t)a.shape(0) >= rows)
+                                : (a.ndim() == 2 && (int64_t)a.shape(0) >= rows && (int64_t)a.shape(1) == cols);
+    if (!ok)
+        throw std::invalid_argument(std::string("tracer kernels: ") + name + " must have shape (" +
+                                    std::to_string(rows) + (cols ? ", " + std::to_string(cols) : std::string(",")) +
+                                    ") or more rows");
+}
+
+struct NeeResult {
+    bool ok;
+    float o[3], wi[3], tmax, val[3];
+};
+
+constexpr int kBlock = 16;  // shading points processed side by side
+
+struct Lane {  // one shading point: position, normal (facing wo), direction to the previous vertex, material, key
+    float P[3], n[3], wo[3];
+    int mat;
+    uint64_t key;
+    int64_t path;
+};
+
+struct ShadowBuf {  // compacted shadow-ray batch (both sets share it)
+    float *o, *d, *t, *val;
+    int32_t *path;
+    int64_t cap;
+};
+
+class TracerShader {
+public:
+    TracerShader(In<float> face_normal, In<int32_t> face_material, In<float> kd, In<float> ks, In<float> exponent,
+                 In<float> p_spec, In<float> emission, In<bool> mat_emissive, float eps, bool glossy,
+                 bool lights_empty, In<double> cdf, In<double> prob, In<float> table, int64_t num_area,
+                 In<float> point_pos, In<float> point_int, In<float> pdf_area_face)
+        : face_normal_(face_normal), face_material_(face_material), kd_(kd), ks_(ks), exponent_(exponent),
+          p_spec_(p_spec), emission_(emission), mat_emissive_(mat_emissive), cdf_(cdf), prob_(prob), table_(table),
+          point_pos_(point_pos), point_int_(point_int), pdf_area_face_(pdf_area_face), eps_(eps), glossy_(glossy),
+          lights_empty_(lights_empty), num_area_(num_area) {
+        const int64_t F = face_normal.shape(0), M = kd.shape(0), K = cdf.shape(0);
+        check_rows(face_normal, "face_normal", F, 3);
+        check_rows(face_material, "face_material", F, 0);
+        check_rows(pdf_area_face, "pdf_area_face", F, 0);
+        check_rows(kd, "kd", M, 3);
+        check_rows(emission, "emission", M, 3);
+        check_rows(mat_emissive, "mat_emissive", M, 0);
+        if (glossy) {
+            check_rows(ks, "ks", M, 3);
+            check_rows(exponent, "exponent", M, 0);
+            check_rows(p_spec, "p_spec", M, 0);
+        }
+        check_rows(prob, "prob", K, 0);
+        if (num_area < 0 || num_area > K) throw std::invalid_argument("TracerShader: num_area out of range");
+        check_rows(table, "table", num_area, 16);
+        check_rows(point_pos, "point_pos", K - num_area, 3);
+        check_rows(point_int, "point_int", K - num_area, 3);
+        if (!lights_empty && K == 0) throw std::invalid_argument("TracerShader: lights without a CDF");
+        for (int64_t f = 0; f < F; ++f)
+            if (face_material.data()[f] < 0 || face_material.data()[f] >= M)
+                throw std::invalid_argument("TracerShader: face_material out of range");
+    }
+
+    // ---- stage (b): after the primary query ----------------------------------------------------------------
+    std::tuple<int64_t, int64_t> shade1(In<uint64_t> keys, In<float> d, In<float> t, In<int32_t> prim,
+                                        In<float> center, Out<float> L, Out<float> thr, Out<float> pdfb,
+                                        Out<float> sh_o, Out<float> sh_d, Out<float> sh_t, Out<float> sh_val,
+                                        Out<int32_t> sh_path, Out<float> b_o, Out<float> b_d, Out<int32_t> b_path) {
+        const int64_t N = keys.shape(0);
+        check_rows(d, "d", N, 3); check_rows(t, "t", N, 0); check_rows(prim, "prim", N, 0);
+        check_rows(center, "center", 3, 0);
+        check_rows(L, "L", N, 3); check_rows(thr, "thr", N, 3); check_rows(pdfb, "pdfb", N, 0);
+        check_rows(b_o, "b_o", N, 3); check_rows(b_d, "b_d", N, 3); check_rows(b_path, "b_path", N, 0);
+        ShadowBuf sb = shadow_buf(sh_o, sh_d, sh_t, sh_val, sh_path);
+        if (sb.cap < N) throw std::invalid_argument("shade1: shadow buffers need >= N rows");
+        check_prims(prim.data(), N);
+        int64_t ns = 0, nbounce = 0;
+        {
+            nb::gil_scoped_release release;
+            const uint64_t *K = keys.data();
+            const float *D = d.data(), *T = t.data(), *C = center.data();
+            const int32_t *Pr = prim.data();
+            float *Lo = L.data(), *Th = thr.data(), *Pb = pdfb.data(), *Bo = b_o.data(), *Bd = b_d.data();
+            int32_t *Bp = b_path.data();
+            Lane lane[kBlock];
+            NeeResult res[kBlock];
+            for (int64_t i0 = 0; i0 < N; i0 += kBlock) {
+                const int64_t i1 = std::min<int64_t>(N, i0 + kBlock);
+                int m = 0;
+                for (int64_t i = i0; i < i1; ++i) {  // surface and directly seen emission
+                    float *li = Lo + 3 * i, *th = Th + 3 * i;
+                    li[0] = li[1] = li[2] = 0.0f;
+                    th[0] = th[1] = th[2] = 0.0f;
+                    Pb[i] = 0.0f;
+                    if (Pr[i] < 0) continue;
+                    Lane &q = lane[m++];
+                    const float *di = D + 3 * i;
+                    for (int c = 0; c < 3; ++c) q.P[c] = C[c] + T[i] * di[c];
+                    q.mat = surface(Pr[i], di, q.n);
+                    for (int c = 0; c < 3; ++c) q.wo[c] = -di[c];
+                    q.key = K[i];
+                    q.path = i;
+                    if (mat_emissive_.data()[q.mat]) {
+                        const float *e = emission_.data() + 3 * q.mat;
+                        for (int c = 0; c < 3; ++c) li[c] = 0.0f + e[c];
+                    }
+                }
+                if (!lights_empty_) {  // NEE at x1, shadow rays in path order
+                    nee_block(m, lane, L1, L1U, L1V, true, res);
+                    for (int k = 0; k < m; ++k) {
+                        push_shadow(sb, ns, res[k], (int32_t)lane[k].path);  // branchless compaction
+                        ns += res[k].ok;
+                    }
+                }
+                for (int k = 0; k < m; ++k) {  // BSDF sample of the bounce
+                    const Lane &q = lane[k];
+                    float wi[3], pdf;
+                    float *th = Th + 3 * q.path;
+                    bsdf_sample(q.mat, q.n, q.wo, q.key, wi, th, pdf);
+                    Pb[q.path] = pdf;
+                    for (int c = 0; c < 3; ++c) {  // branchless compaction: kept when the weight is positive
+                        Bo[3 * nbounce + c] = q.P[c] + q.n[c] * eps_;
+                        Bd[3 * nbounce + c] = wi[c];
+                    }
+                    Bp[nbounce] = (int32_t)q.path;
+                    nbounce += (max3(th) > 0.0f);
+                }
+            }
+        }
+        return {ns, nbounce};
+    }
+
+    // ---- stage (c): after the bounce query -------------------------------------------------------------------
+    int64_t shade2(In<uint64_t> keys, In<float> b_o, In<float> b_d, In<int32_t> b_path, In<float> t2,
+                   In<int32_t> prim2, In<float> pdfb, Out<float> E2, Out<uint8_t> hit2, Out<float> sh_o,
+                   Out<float> sh_d, Out<float> sh_t, Out<float> sh_val, Out<int32_t> sh_path, int64_t offset) {
+        const int64_t N = keys.shape(0), nbounce = b_path.shape(0);
+        check_rows(b_o, "b_o", nbounce, 3); check_rows(b_d, "b_d", nbounce, 3);
+        check_rows(t2, "t2", nbounce, 0); check_rows(prim2, "prim2", nbounce, 0);
+        check_rows(pdfb, "pdfb", N, 0); check_rows(E2, "E2", N, 3); check_rows(hit2, "hit2", N, 0);
+        ShadowBuf sb = shadow_buf(sh_o, sh_d, sh_t, sh_val, sh_path);
+        if (offset < 0 || sb.cap < offset + nbounce) throw std::invalid_argument("shade2: shadow buffers too small");
+        check_prims(prim2.data(), nbounce);
+        for (int64_t j = 0; j < nbounce; ++j)
+            if (b_path.data()[j] < 0 || b_path.data()[j] >= N) throw std::invalid_argument("shade2: bad b_path");
+        int64_t ns = offset;
+        {
+            nb::gil_scoped_release release;
+            const uint64_t *K = keys.data();
+            const float *Bo = b_o.data(), *Bd = b_d.data(), *T2 = t2.data(), *Pb = pdfb.data();
+            const int32_t *Bp = b_path.data(), *Pr = prim2.data();
+            float *E = E2.data();
+            uint8_t *H = hit2.data();
+            std::fill(E, E + 3 * N, 0.0f);
+            std::fill(H, H + N, (uint8_t)0);
+            Lane lane[kBlock];
+            NeeResult res[kBlock];
+            for (int64_t j0 = 0; j0 < nbounce; j0 += kBlock) {
+                const int64_t j1 = std::min<int64_t>(nbounce, j0 + kBlock);
+                int m = 0;
+                for (int64_t j = j0; j < j1; ++j) {
+                    if (Pr[j] < 0) continue;
+                    const int64_t i = Bp[j];
+                    H[i] = 1;
+                    Lane &q = lane[m++];
+                    const float *dj = Bd + 3 * j, *oj = Bo + 3 * j;
+                    const float t = T2[j];
+                    for (int c = 0; c < 3; ++c) q.P[c] = oj[c] + t * dj[c];
+                    q.mat = surface(Pr[j], dj, q.n);
+                    for (int c = 0; c < 3; ++c) q.wo[c] = -dj[c];
+                    q.key = K[i];
+                    q.path = i;
+                    if (mat_emissive_.data()[q.mat]) {  // MIS-weighted emission of x2
+                        const float *e = emission_.data() + 3 * q.mat;
+                        float *ei = E + 3 * i;
+                        if (!lights_empty_) {
+                            const float cos_l = std::fabs(dot3(face_normal_.data() + 3 * Pr[j], dj));
+                            const float pdf_l = pdf_area_face_.data()[Pr[j]] * t * t / maxlo(cos_l, 1e-12f);
+                            const float pb = Pb[i];
+                            const float w = (pb > 0.0f) ? pb / (pb + pdf_l) : 0.0f;
+                            for (int c = 0; c < 3; ++c) ei[c] = e[c] * w;
+                        } else {
+                            for (int c = 0; c < 3; ++c) ei[c] = e[c];
+                        }
+                    }
+                }
+                if (!lights_empty_) {  // NEE at x2
+                    nee_block(m, lane, L2, L2U, L2V, false, res);
+                    for (int k = 0; k < m; ++k) {
+                        push_shadow(sb, ns, res[k], (int32_t)lane[k].path);
+                        ns += res[k].ok;
+                    }
+                }
+            }
+        }
+        return ns - offset;
+    }
+
+    // ---- stage (d): after the occlusion query ----------------------------------------------------------------
+    void accumulate(In<int32_t> prim, In<uint8_t> hit2, In<float> thr, In<float> E2, In<int32_t> sh_path,
+                    In<float> sh_val, In<bool> occluded, int64_t n_first, float limit, bool clamp, Out<float> L) {
+        const int64_t N = prim.shape(0), ns = occluded.shape(0);
+        check_rows(hit2, "hit2", N, 0); check_rows(thr, "thr", N, 3); check_rows(E2, "E2", N, 3);
+        check_rows(L, "L", N, 3); check_rows(sh_path, "sh_path", ns, 0); check_rows(sh_val, "sh_val", ns, 3);
+        if (n_first < 0 || n_first > ns) throw std::invalid_argument("accumulate: n_first out of range");
+        for (int64_t s = 0; s < ns; ++s)
+            if (sh_path.data()[s] < 0 || sh_path.data()[s] >= N) throw std::invalid_argument("accumulate: bad sh_path");
+        {
+            nb::gil_scoped_release release;
+            std::vector<float> R1(3 * N, 0.0f), R2(3 * N, 0.0f);
+            const int32_t *Sp = sh_path.data(), *Pr = prim.data();
+            const float *Sv = sh_val.data(), *Th = thr.data(), *E = E2.data();
+            const bool *occ = occluded.data();
+            const uint8_t *H = hit2.data();
+            float *Lo = L.data();
+            for (int64_t s = 0; s < ns; ++s) {
+                if (occ[s]) continue;
+                float *R = (s < n_first ? R1.data() : R2.data()) + 3 * Sp[s];
+                for (int c = 0; c < 3; ++c) R[c] += Sv[3 * s + c];
+            }
+            for (int64_t i = 0; i < N; ++i) {
+                if (Pr[i] < 0) continue;
+                float *r1 = R1.data() + 3 * i;
+                if (H[i]) {
+                    float *r2 = R2.data() + 3 * i;
+                    if (clamp) clamp_row(r2, limit);
+                    for (int c = 0; c < 3; ++c) r1[c] += Th[3 * i + c] * (E[3 * i + c] + r2[c]);
+                }
+                if (clamp) clamp_row(r1, limit);
+                for (int c = 0; c < 3; ++c) Lo[3 * i + c] += r1[c];
+            }
+        }
+    }
+
+    // Single-purpose entry points for the per-stage parity tests.
+    void bsdf_sample_batch(In<int32_t> mat, In<float> n, In<float> wo, In<uint64_t> keys, Out<float> wi,
+                           Out<float> weight, Out<float> pdf) {
+        const int64_t N = mat.shape(0);
+        check_rows(n, "n", N, 3); check_rows(wo, "wo", N, 3); check_rows(keys, "keys", N, 0);
+        check_rows(wi, "wi", N, 3); check_rows(weight, "weight", N, 3); check_rows(pdf, "pdf", N, 0);
+        check_mats(mat.data(), N);
+        for (int64_t i = 0; i < N; ++i)
+            bsdf_sample(mat.data()[i], n.data() + 3 * i, wo.data() + 3 * i, keys.data()[i], wi.data() + 3 * i,
+                        weight.data() + 3 * i, pdf.data()[i]);
+    }
+
+    void nee_batch(In<float> P, In<float> n, In<float> wo, In<int32_t> mat, In<uint64_t> keys, int second,
+                   bool mis, Out<bool> ok, Out<float> o, Out<float> wi, Out<float> tmax, Out<float> val) {
+        const int64_t N = mat.shape(0);
+        check_rows(P, "P", N, 3); check_rows(n, "n", N, 3); check_rows(wo, "wo", N, 3);
+        check_rows(keys, "keys", N, 0); check_rows(ok, "ok", N, 0); check_rows(o, "o", N, 3);
+        check_rows(wi, "wi", N, 3); check_rows(tmax, "tmax", N, 0); check_rows(val, "val", N, 3);
+        check_mats(mat.data(), N);
+        if (lights_empty_) throw std::invalid_argument("nee_batch: the light set is empty");
+        Lane lane[kBlock];
+        NeeResult res[kBlock];
+        for (int64_t i0 = 0; i0 < N; i0 += kBlock) {
+            const int m = (int)std::min<int64_t>(kBlock, N - i0);
+            for (int k = 0; k < m; ++k) {
+                const int64_t i = i0 + k;
+                for (int c = 0; c < 3; ++c) {
+                    lane[k].P[c] = P.data()[3 * i + c];
+                    lane[k].n[c] = n.data()[3 * i + c];
+                    lane[k].wo[c] = wo.data()[3 * i + c];
+                }
+                lane[k].mat = mat.data()[i];
+                lane[k].key = keys.data()[i];
+                lane[k].path = i;
+            }
+            nee_block(m, lane, second ? L2 : L1, second ? L2U : L1U, second ? L2V : L1V, mis, res);
+            for (int k = 0; k < m; ++k) {
+                const int64_t i = i0 + k;
+                ok.data()[i] = res[k].ok;
+                tmax.data()[i] = res[k].tmax;
+                for (int c = 0; c < 3; ++c) {
+                    o.data()[3 * i + c] = res[k].o[c];
+                    wi.data()[3 * i + c] = res[k].wi[c];
+                    val.data()[3 * i + c] = res[k].val[c];
+                }
+            }
+        }
+    }
+
+private:
+    In<float> face_normal_;
+    In<int32_t> face_material_;
+    In<float> kd_, ks_, exponent_, p_spec_, emission_;
+    In<bool> mat_emissive_;
+    In<double> cdf_, prob_;
+    In<float> table_, point_pos_, point_int_, pdf_area_face_;
+    float eps_;
+    bool glossy_, lights_empty_;
+    int64_t num_area_;
+
+    void check_prims(const int32_t *p, int64_t n) const {
+        const int64_t F = face_normal_.shape(0);
+        for (int64_t i = 0; i < n; ++i)
+            if (p[i] >= F) throw std::invalid_argument("tracer kernels: primitive index out of range");
+    }
+    void check_mats(const int32_t *m, int64_t n) const {
+        const int64_t M = kd_.shape(0);
+        for (int64_t i = 0; i < n; ++i)
+            if (m[i] < 0 || m[i] >= M) throw std::invalid_argument("tracer kernels: material index out of range");
+    }
+
+    static ShadowBuf shadow_buf(Out<float> &o, Out<float> &d, Out<float> &t, Out<float> &val, Out<int32_t> &path) {
+        const int64_t cap = path.shape(0);
+        check_rows(o, "sh_o", cap, 3); check_rows(d, "sh_d", cap, 3); check_rows(t, "sh_t", cap, 0);
+        check_rows(val, "sh_val", cap, 3);
+        return {o.data(), d.data(), t.data(), val.data(), path.data(), cap};
+    }
+    static void push_shadow(ShadowBuf &sb, int64_t k, const NeeResult &r, int32_t path) {
+        for (int c = 0; c < 3; ++c) {
+            sb.o[3 * k + c] = r.o[c];
+            sb.d[3 * k + c] = r.wi[c];
+            sb.val[3 * k + c] = r.val[c];
+        }
+        sb.t[k] = r.tmax;
+        sb.path[k] = path;
+    }
+    // tracer._clamp_radiance for one row.
+    static void clamp_row(float *r, float limit) {
+        const float m = max3(r);
+        if (m > limit) {
+            const float s = limit / m;
+            for (int c = 0; c < 3; ++c) r[c] *= s;
+        }
+    }
+
+    // PathTracer._surface: material id, shading normal facing against d.
+    int surface(int32_t prim, const float *d, float *n) const {
+        const float *fn = face_normal_.data() + 3 * prim;
+        const float sign = (dot3(fn, d) > 0.0f) ? -1.0f : 1.0f;
+        for (int c = 0; c < 3; ++c) n[c] = fn[c] * sign;
+        return face_material_.data()[prim];
+    }
+
+    // PathTracer._bsdf_eval (bsdf.mixture_eval / phong_eval for glossy scenes): f, cos_i, pdf.
+    void bsdf_eval(int mat, const float *n, const float *wo, const float *wi, float *f, float &cos_i,
+                   float &pdf) const {
+        const float *kd = kd_.data() + 3 * mat;
+        cos_i = dot3(n, wi);
+        if (!glossy_) {
+            for (int c = 0; c < 3; ++c) f[c] = kd[c] * kInvPi;
+            pdf = max0(cos_i) * kInvPi;
+            return;
+        }
+        const float *ks = ks_.data() + 3 * mat;
+        const float e = exponent_.data()[mat], ps = p_spec_.data()[mat];
+        float r[3];
+        reflect(n, wo, r);
+        const float cr = max0(dot3(r, wi));
+        const float base = fpow(cr, e) * kInvTwoPi;
+        const float fs = base * (e + 2.0f);
+        const float pdf_s = base * (e + 1.0f);
+        for (int c = 0; c < 3; ++c) f[c] = kd[c] * kInvPi + ks[c] * fs;
+        pdf = (1.0f - ps) * (max0(cos_i) * kInvPi) + ps * pdf_s;
+    }
+
+    // PathTracer._bsdf_sample: direction, weight f cos / pdf (0 when invalid), pdf.
+    void bsdf_sample(int mat, const float *n, const float *wo, uint64_t key, float *wi, float *weight,
+                     float &pdf) const {
+        const float u1 = sr_rng::uniform(key, BU), u2 = sr_rng::uniform(key, BV);
+        const float phi = kTwoPi * u2;
+        const float cph = fcos(phi), sph = fsin(phi);
+        const float *kd = kd_.data() + 3 * mat;
+        if (!glossy_) {  // bsdf.lambert_sample
+            const float r = std::sqrt(u1);
+            const float cz = std::sqrt(max0(1.0f - u1));
+            to_world(n, r * cph, r * sph, cz, wi);
+            const float ok = (cz > 0.0f) ? 1.0f : 0.0f;
+            for (int c = 0; c < 3; ++c) weight[c] = kd[c] * ok;
+            pdf = max0(cz) * kInvPi;
+            return;
+        }
+        // bsdf.mixture_sample
+        const float u_lobe = sr_rng::uniform(key, LOBE);
+        if (u_lobe < p_spec_.data()[mat]) {  // bsdf.phong_sample
+            const float e = exponent_.data()[mat];
+            float r[3];
+            reflect(n, wo, r);
+            const float ca = fpow(u1, 1.0f / (e + 1.0f));
+            const float sa = std::sqrt(max0(1.0f - ca * ca));
+            to_world(r, sa * cph, sa * sph, ca, wi);
+        } else {
+            const float r = std::sqrt(u1);
+            const float cz = std::sqrt(max0(1.0f - u1));
+            to_world(n, r * cph, r * sph, cz, wi);
+        }
+        float f[3], cos_i;
+        bsdf_eval(mat, n, wo, wi, f, cos_i, pdf);
+        const bool ok = (cos_i > 0.0f) && (pdf > 0.0f);
+        const float scale = ok ? cos_i / pdf : 0.0f;
+        for (int c = 0; c < 3; ++c) weight[c] = f[c] * scale;
+    }
+
+    // PathTracer._nee with LightSet.sample: one light sample at each of m <= kBlock shading points. Every step is
+    // a loop over the block's independent lanes (the per-point chain of hash -> selection -> sqrt -> divisions
+    // is long; lanes side by side let the CPU overlap it); the float32 operations per lane are the numpy ones.
+    void nee_block(int m, const Lane *in, uint64_t d_sel, uint64_t d_u, uint64_t d_v, bool mis, NeeResult *r) const {
+        float u_sel[kBlock], u1[kBlock], u2[kBlock];
+        for (int k = 0; k < m; ++k) {
+            u_sel[k] = sr_rng::uniform(in[k].key, d_sel);
+            u1[k] = sr_rng::uniform(in[k].key, d_u);
+            u2[k] = sr_rng::uniform(in[k].key, d_v);
+        }
+        // np.searchsorted(cdf, u, side="right"), clipped to the last light
+        const int64_t K = cdf_.shape(0);
+        const double *cdf = cdf_.data();
+        int64_t sel[kBlock];
+        if (K <= 32) {  // branchless count of cdf entries <= u (= upper_bound on the sorted CDF)
+            for (int k = 0; k < m; ++k) {
+                const double u = static_cast<double>(u_sel[k]);
+                int64_t c = 0;
+                for (int64_t q = 0; q < K; ++q) c += (cdf[q] <= u);
+                sel[k] = std::min<int64_t>(c, K - 1);
+            }
+        } else {
+            for (int k = 0; k < m; ++k)
+                sel[k] = std::min<int64_t>(
+                    std::upper_bound(cdf, cdf + K, static_cast<double>(u_sel[k])) - cdf, K - 1);
+        }
+        float target[kBlock][3];
+        for (int k = 0; k < m; ++k) {
+            for (int c = 0; c < 3; ++c) r[k].o[c] = in[k].P[c] + in[k].n[c] * eps_;
+            if (sel[k] < num_area_) {
+                const float *T = table_.data() + 16 * sel[k];
+                const float su = std::sqrt(u1[k]);
+                const float b1 = su * (1.0f - u2[k]), b2 = su * u2[k];
+                for (int c = 0; c < 3; ++c) target[k][c] = T[c] + b1 * T[3 + c] + b2 * T[6 + c];
+            } else {
+                const float *p = point_pos_.data() + 3 * (sel[k] - num_area_);
+                for (int c = 0; c < 3; ++c) target[k][c] = p[c];
+            }
+        }
+        float d2[kBlock], dist[kBlock];
+        for (int k = 0; k < m; ++k) {
+            float delta[3];
+            for (int c = 0; c < 3; ++c) delta[c] = target[k][c] - r[k].o[c];
+            d2[k] = delta[0] * delta[0] + delta[1] * delta[1] + delta[2] * delta[2];
+            dist[k] = std::sqrt(d2[k]);
+            const float safe = (dist[k] > 0.0f) ? dist[k] : 1.0f;
+            for (int c = 0; c < 3; ++c) r[k].wi[c] = delta[c] / safe;
+        }
+        float li[kBlock][3], pdf_l[kBlock];
+        for (int k = 0; k < m; ++k) {
+            if (sel[k] < num_area_) {
+                const float *T = table_.data() + 16 * sel[k];
+                const float *wi = r[k].wi;
+                const float cos_l = std::fabs(T[9] * wi[0] + T[10] * wi[1] + T[11] * wi[2]);
+                const float pdf_a = T[15] * d2[k] / maxlo(cos_l, 1e-12f);
+                const bool ok = (cos_l > 1e-7f) && (d2[k] > 0.0f);
+                pdf_l[k] = ok ? pdf_a : kInf;
+                const float inv = ok ? 1.0f / pdf_a : 0.0f;
+                for (int c = 0; c < 3; ++c) li[k][c] = T[12 + c] * inv;
+            } else {
+                const int64_t q = sel[k] - num_area_;
+                const float w = (d2[k] > 0.0f)
+                    ? static_cast<float>(1.0 / (static_cast<double>(d2[k]) * prob_.data()[num_area_ + q])) : 0.0f;
+                const float *I = point_int_.data() + 3 * q;
+                for (int c = 0; c < 3; ++c) li[k][c] = I[c] * w;
+                pdf_l[k] = kInf;
+            }
+        }
+        const float two_eps = 2.0f * eps_;
+        for (int k = 0; k < m; ++k) {
+            float f[3], cos_i, pdf_b;
+            bsdf_eval(in[k].mat, in[k].n, in[k].wo, r[k].wi, f, cos_i, pdf_b);
+            const float cpos = max0(cos_i);
+            for (int c = 0; c < 3; ++c) r[k].val[c] = f[c] * (li[k][c] * cpos);
+            if (mis) {
+                const float w = std::isinf(pdf_l[k]) ? 1.0f : pdf_l[k] / (pdf_l[k] + pdf_b);
+                for (int c = 0; c < 3; ++c) r[k].val[c] = r[k].val[c] * w;
+            }
+            r[k].ok = (cos_i > 0.0f) && (dist[k] > two_eps) && (max3(r[k].val) > 0.0f);
+            r[k].tmax = dist[k] - two_eps;
+        }
+    }
+};
+
+// ---- stage (a): keys and primary rays -----------------------------------------------------------------------
+void tracer_generate(uint64_t key, int64_t width, In<int64_t> pix, In<int64_t> samp, In<float> M, In<float> center,
+                     Out<uint64_t> keys, Out<float> o, Out<float> d) {
+    const int64_t N = pix.shape(0);
+    check_rows(samp, "samp", N, 0); check_rows(M, "M", 9, 0); check_rows(center, "center", 3, 0);
+    check_rows(keys, "keys", N, 0); check_rows(o, "o", N, 3); check_rows(d, "d", N, 3);
+    if (width < 1) throw std::invalid_argument("tracer_generate: width must be >= 1");
+    for (int64_t i = 0; i < N; ++i)
+        if (pix.data()[i] < 0 || samp.data()[i] < 0)
+            throw std::invalid_argument("tracer_generate: pixel and sample indices must be >= 0");
+    nb::gil_scoped_release release;
+    const int64_t *P = pix.data(), *S = samp.data();
+    const float *m = M.data(), *C = center.data();
+    uint64_t *Ko = keys.data();
+    float *O = o.data(), *D = d.data();
+    for (int64_t i = 0; i < N; ++i) {
+        const uint64_t k = sr_rng::path_key(key, P[i], S[i]);
+        Ko[i] = k;
+        const float px = static_cast<float>(P[i] % width) + sr_rng::uniform(k, JX);
+        const float py = static_cast<float>(P[i] / width) + sr_rng::uniform(k, JY);
+        float v[3];
+        for (int r = 0; r < 3; ++r) v[r] = m[3 * r] * px + m[3 * r + 1] * py + m[3 * r + 2];
+        const float len = std::sqrt(dot3(v, v));
+        const float s = (len > 0.0f) ? len : 1.0f;
+        for (int c = 0; c < 3; ++c) {
+            D[3 * i + c] = v[c] / s;
+            O[3 * i + c] = C[c];
+        }
+    }
+}
+
+// G-buffer rays (PathTracer._gbuffer): unjittered, through pixel centres, direction with camera z = 1 (not unit).
+void tracer_gbuffer_rays(int64_t width, In<int64_t> pix, In<float> M, In<float> center, Out<float> o, Out<float> d) {
+    const int64_t N = pix.shape(0);
+    check_rows(M, "M", 9, 0); check_rows(center, "center", 3, 0); check_rows(o, "o", N, 3); check_rows(d, "d", N, 3);
+    if (width < 1) throw std::invalid_argument("tracer_gbuffer_rays: width must be >= 1");
+    for (int64_t i = 0; i < N; ++i)
+        if (pix.data()[i] < 0) throw std::invalid_argument("tracer_gbuffer_rays: pixel indices must be >= 0");
+    nb::gil_scoped_release release;
+    const int64_t *P = pix.data();
+    const float *m = M.data(), *C = center.data();
+    float *O = o.data(), *D = d.data();
+    for (int64_t i = 0; i < N; ++i) {
+        const float px = static_cast<float>(P[i] % width) + 0.5f;
+        const float py = static_cast<float>(P[i] / width) + 0.5f;
+        for (int r = 0; r < 3; ++r) {
+            D[3 * i + r] = m[3 * r] * px + m[3 * r + 1] * py + m[3 * r + 2];
+            O[3 * i + r] = C[r];
+        }
+    }
+}
+
+// G-buffer values of the hits (PathTracer._gbuffer): planar (C, H*W) images, written only at hit pixels.
+void tracer_gbuffer_write(In<int64_t> pix, In<float> d, In<float> t, In<int32_t> prim, In<float> center,
+                          In<float> face_normal, In<int32_t> face_material, In<float> kd, Out<float> depth,
+                          Out<float> normal, Out<float> position, Out<float> albedo, Out<int32_t> material_id) {
+    const int64_t N = pix.shape(0), F = face_normal.shape(0), M = kd.shape(0), HW = depth.shape(0);
+    check_rows(d, "d", N, 3); check_rows(t, "t", N, 0); check_rows(prim, "prim", N, 0);
+    check_rows(center, "center", 3, 0); check_rows(face_normal, "face_normal", F, 3);
+    check_rows(face_material, "face_material", F, 0); check_rows(kd, "kd", M, 3);
+    check_rows(normal, "normal", 3, HW); check_rows(position, "position", 3, HW); check_rows(albedo, "albedo", 3, HW);
+    check_rows(material_id, "material_id", HW, 0);
+    for (int64_t i = 0; i < N; ++i) {
+        if (pix.data()[i] < 0 || pix.data()[i] >= HW || prim.data()[i] >= F)
+            throw std::invalid_argument("tracer_gbuffer_write: pixel or primitive index out of range");
+        if (prim.data()[i] >= 0 && (face_material.data()[prim.data()[i]] < 0 ||
+                                    face_material.data()[prim.data()[i]] >= M))
+            throw std::invalid_argument("tracer_gbuffer_write: material index out of range");
+    }
+    nb::gil_scoped_release release;
+    const float *FN = face_normal.data(), *Kd = kd.data(), *C = center.data();
+    for (int64_t i = 0; i < N; ++i) {
+        const int32_t pr = prim.data()[i];
+        if (pr < 0) continue;
+        const int64_t p = pix.data()[i];
+        const float *di = d.data() + 3 * i, *fn = FN + 3 * pr;
+        const float ti = t.data()[i];
+        const float sign = (dot3(fn, di) > 0.0f) ? -1.0f : 1.0f;
+        const int32_t mat = face_material.data()[pr];
+        depth.data()[p] = ti;
+        for (int c = 0; c < 3; ++c) {
+            normal.data()[c * HW + p] = fn[c] * sign;
+            position.data()[c * HW + p] = C[c] + ti * di[c];
+            albedo.data()[c * HW + p] = Kd[3 * mat + c];
+        }
+        material_id.data()[p] = mat;
+    }
+}
+
+void rng_path_keys(uint64_t key, In<int64_t> pixel, In<int64_t> sample, Out<uint64_t> out) {
+    const int64_t N = pixel.shape(0);
+    check_rows(sample, "sample", N, 0); check_rows(out, "out", N, 0);
+    nb::gil_scoped_release release;
+    for (int64_t i = 0; i < N; ++i) out.data()[i] = sr_rng::path_key(key, pixel.data()[i], sample.data()[i]);
+}
+
+void rng_uniform(In<uint64_t> keys, uint64_t dim, Out<float> out) {
+    const int64_t N = keys.shape(0);
+    check_rows(out, "out", N, 0);
+    nb::gil_scoped_release release;
+    for (int64_t i = 0; i < N; ++i) out.data()[i] = sr_rng::uniform(keys.data()[i], dim);
+}
+
+}  // namespace
+
+void bind_shade_tracer(nb::module_ &m) {
+    using nb::arg;
+    m.def("tracer_generate", &tracer_generate, arg("key"), arg("width"), arg("pix").noconvert(),
+          arg("samp").noconvert(), arg("M").noconvert(), arg("center").noconvert(), arg("keys").noconvert(),
+          arg("o").noconvert(), arg("d").noconvert(),
+          "Path keys and primary rays (origins = centre, unit directions through jittered pixel positions).");
+    m.def("tracer_gbuffer_rays", &tracer_gbuffer_rays, arg("width"), arg("pix").noconvert(), arg("M").noconvert(),
+          arg("center").noconvert(), arg("o").noconvert(), arg("d").noconvert(),
+          "G-buffer rays through pixel centres (directions with camera z = 1).");
+    m.def("tracer_gbuffer_write", &tracer_gbuffer_write, arg("pix").noconvert(), arg("d").noconvert(),
+          arg("t").noconvert(), arg("prim").noconvert(), arg("center").noconvert(), arg("face_normal").noconvert(),
+          arg("face_material").noconvert(), arg("kd").noconvert(), arg("depth").noconvert(),
+          arg("normal").noconvert(), arg("position").noconvert(), arg("albedo").noconvert(),
+          arg("material_id").noconvert(), "G-buffer values at the hit pixels, planar (C, H*W) outputs.");
+    m.def("rng_path_keys", &rng_path_keys, arg("key"), arg("pixel").noconvert(), arg("sample").noconvert(),
+          arg("out").noconvert(), "rng.path_keys into out (uint64).");
+    m.def("rng_uniform", &rng_uniform, arg("keys").noconvert(), arg("dim"), arg("out").noconvert(),
+          "rng.uniform into out (float32).");
+    nb::class_<TracerShader>(m, "TracerShader",
+                             "Scene + light tables of one frame and the shading stages of the path tracer.")
+        .def(nb::init<In<float>, In<int32_t>, In<float>, In<float>, In<float>, In<float>, In<float>, In<bool>, float,
+                      bool, bool, In<double>, In<double>, In<float>, int64_t, In<float>, In<float>, In<float>>(),
+             arg("face_normal").noconvert(), arg("face_material").noconvert(), arg("kd").noconvert(),
+             arg("ks").noconvert(), arg("exponent").noconvert(), arg("p_spec").noconvert(),
+             arg("emission").noconvert(), arg("mat_emissive").noconvert(), arg("eps"), arg("glossy"),
+             arg("lights_empty"), arg("cdf").noconvert(), arg("prob").noconvert(), arg("table").noconvert(),
+             arg("num_area"), arg("point_pos").noconvert(), arg("point_int").noconvert(),
+             arg("pdf_area_face").noconvert())
+        .def("shade1", &TracerShader::shade1, arg("keys").noconvert(), arg("d").noconvert(), arg("t").noconvert(),
+             arg("prim").noconvert(), arg("center").noconvert(), arg("L").noconvert(), arg("thr").noconvert(),
+             arg("pdfb").noconvert(), arg("sh_o").noconvert(), arg("sh_d").noconvert(), arg("sh_t").noconvert(),
+             arg("sh_val").noconvert(), arg("sh_path").noconvert(), arg("b_o").noconvert(), arg("b_d").noconvert(),
+             arg("b_path").noconvert(), "Stage after the primary query; returns (shadow rays, bounce rays).")
+        .def("shade2", &TracerShader::shade2, arg("keys").noconvert(), arg("b_o").noconvert(),
+             arg("b_d").noconvert(), arg("b_path").noconvert(), arg("t2").noconvert(), arg("prim2").noconvert(),
+             arg("pdfb").noconvert(), arg("E2").noconvert(), arg("hit2").noconvert(), arg("sh_o").noconvert(),
+             arg("sh_d").noconvert(), arg("sh_t").noconvert(), arg("sh_val").noconvert(),
+             arg("sh_path").noconvert(), arg("offset"), "Stage after the bounce query; returns its shadow rays.")
+        .def("accumulate", &TracerShader::accumulate, arg("prim").noconvert(), arg("hit2").noconvert(),
+             arg("thr").noconvert(), arg("E2").noconvert(), arg("sh_path").noconvert(), arg("sh_val").noconvert(),
+             arg("occluded").noconvert(), arg("n_first"), arg("limit"), arg("clamp"), arg("L").noconvert(),
+             "Stage after the occlusion query: NEE values, clamps, the sample (added to L in place).")
+        .def("bsdf_sample", &TracerShader::bsdf_sample_batch, arg("mat").noconvert(), arg("n").noconvert(),
+             arg("wo").noconvert(), arg("keys").noconvert(), arg("wi").noconvert(), arg("weight").noconvert(),
+             arg("pdf").noconvert(), "PathTracer._bsdf_sample (for parity tests).")
+        .def("nee", &TracerShader::nee_batch, arg("P").noconvert(), arg("n").noconvert(), arg("wo").noconvert(),
+             arg("mat").noconvert(), arg("keys").noconvert(), arg("second"), arg("mis"), arg("ok").noconvert(),
+             arg("o").noconvert(), arg("wi").noconvert(), arg("tmax").noconvert(), arg("val").noconvert(),
+             "PathTracer._nee (for parity tests; second=1 uses the x2 dimensions).");
+}
