@@ -28,6 +28,7 @@ import json
 import math
 import time
 from dataclasses import dataclass
+import sys
 from pathlib import Path
 
 import torch
@@ -35,6 +36,9 @@ from torch import Tensor, nn
 from torch.nn import functional as F
 
 from stereorepro import PathTracer, TemporalReprojection, effective_spp_many, ladder_rmse, load_scene, rmse
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import cpu_training_threads  # noqa: E402
 
 REFERENCE_OFFSET = 1 << 24  # sample index of the references' stream: disjoint from the 1-spp inputs and ladders
 
@@ -184,16 +188,8 @@ def main(argv=None) -> dict:
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
     s = SMOKE if args.smoke else FULL
-    # One intra-op thread with denormals flushed: set_flush_denormal only reaches the calling thread, and denormal
-    # Adam statistics early in training made a second thread ~30x slower. Restored on exit (tests call main()).
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    torch.set_flush_denormal(True)
-    try:
+    with cpu_training_threads():
         return _run(s, args)
-    finally:
-        torch.set_num_threads(threads)
-        torch.set_flush_denormal(False)
 
 
 def _run(s: Settings, args) -> dict:

@@ -23,12 +23,16 @@ import json
 import math
 import time
 from dataclasses import dataclass
+import sys
 from pathlib import Path
 
 import torch
 from torch import Tensor
 
 from stereorepro import PathTracer, TemporalReprojection, effective_spp_many, ladder_rmse, load_scene, rmse
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import cpu_training_threads  # noqa: E402
 
 REFERENCE_OFFSET = 1 << 24  # sample index of the references' stream: disjoint from the inputs and ladders
 
@@ -105,14 +109,8 @@ def main(argv=None) -> dict:
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
     s = SMOKE if args.smoke else FULL
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # see examples/denoiser_preprocess.py: denormals are only flushed on this thread
-    torch.set_flush_denormal(True)
-    try:
+    with cpu_training_threads():
         return _run(s, args)
-    finally:
-        torch.set_num_threads(threads)
-        torch.set_flush_denormal(False)
 
 
 def _run(s: Settings, args) -> dict:
