@@ -10,7 +10,7 @@ from __future__ import annotations
 from .experiment import _cmd as run_command
 from .experiment import add_arguments
 
-DEFAULTS = dict(scene="living_room", frames=16, resolution=(240, 135), reference_spp=128, ladder_spp=16,
+DEFAULTS = dict(scene="living_room", frames=24, resolution=(240, 135), reference_spp=128, ladder_spp=16,
                 out="runs/demo")
 
 
