@@ -84,6 +84,15 @@ class TestExperiment:
         with pytest.raises(ValueError, match="metric"):
             run_experiment(ExperimentConfig(out=str(tmp_path), metric="srgb", **SMALL))
 
+    def test_exr_output(self, first_run, tmp_path):
+        from stereorepro.render import read_exr
+
+        out, _ = first_run
+        run_experiment(ExperimentConfig(out=str(tmp_path), cache_dir=str(out / "cache"), exr=True,
+                                        **dict(SMALL, frames=1)))
+        ch = read_exr(tmp_path / "exr" / "0000_left.exr")
+        assert {"R", "G", "B", "Z", "N.X", "N.Y", "N.Z"} <= set(ch) and ch["R"].shape == (27, 48)
+
     def test_exceptions(self, tmp_path):
         with pytest.raises(ValueError, match="ladder_spp"):
             run_experiment(ExperimentConfig(out=str(tmp_path), **dict(SMALL, ladder_spp=1)))
