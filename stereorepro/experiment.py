@@ -51,7 +51,8 @@ import numpy as np
 import torch
 
 from . import __version__
-from .metrics import effective_spp_many, rmse
+from .camera import has_surface
+from .metrics import effective_spp_many, ladder_rmse, rmse
 from .pipeline import SpatiotemporalReprojection
 from .reproject import Reason, reason_to_rgb
 
@@ -120,11 +121,20 @@ def _sha(data: bytes) -> str:
 
 
 def _code_version() -> str:
-    """Hash of the renderer's sources: renders are recomputed when the renderer changes."""
+    """Hash of the renderer's sources (Python, and the native shading stages when their sources are present):
+    renders are recomputed when the renderer changes."""
     root = Path(__file__).resolve().parent
     h = hashlib.sha256(__version__.encode())
-    for p in sorted(list((root / "render").glob("*.py")) + [root / "scenes.py"]):
+    cpp = root.parent / "cpp_ext" / "src"
+    native = sorted(cpp.glob("*tracer*")) if cpp.is_dir() else []
+    for p in sorted(list((root / "render").glob("*.py")) + [root / "scenes.py"]) + native:
         h.update(p.read_bytes())
+    try:
+        from . import _core
+
+        h.update(repr(sorted(_core.build_info().items())).encode())
+    except ImportError:
+        h.update(b"no-core")
     return h.hexdigest()[:16]
 
 
@@ -137,6 +147,10 @@ def _scene_fingerprint(scene) -> str:
     if src and Path(src).is_file():
         h.update(Path(src).read_bytes())
 
+    from .scenes import _expand_path
+
+    base = Path(src).parent if src else Path.cwd()
+
     def files(x):
         if isinstance(x, dict):
             for v in x.values():
@@ -145,7 +159,10 @@ def _scene_fingerprint(scene) -> str:
             for v in x:
                 yield from files(v)
         elif isinstance(x, (str, Path)) and str(x).lower().endswith((".ply", ".obj", ".glb", ".gltf", ".json")):
-            yield Path(x)
+            f = _expand_path(str(x), base)
+            yield f
+            if f.suffix.lower() == ".ply":
+                yield f.with_suffix(".json")  # the default material sidecar
 
     for f in files(data):
         if f.is_file():
@@ -315,26 +332,27 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
         timing["trace_1spp_ms"] += [L.ms_per_spp, R.ms_per_spp]
         timing["gbuffer_ms"] += [L.ms_gbuffer, R.ms_gbuffer]
         timing["reference_ms"] += [L.ms_reference, R.ms_reference]
-        has_surface = {e: torch.isfinite(d.depth) & (d.depth > 0) for e, d in eyes.items()}
+        surface = {e: has_surface(d.depth) for e, d in eyes.items()}
         row = {"frame": f, "discard_pct": {}, "rmse": {}, "effective_spp": {}, "flags": {},
                "ladder_rmse": {}, "no_surface_pct": {}, "rmse_noise_free": {}}
         ladder_spp = list(range(1, cfg.ladder_spp + 1))
         ladder_err = {}
         for e, d in eyes.items():
-            errs = rmse(_metric_image(torch.cat(d.ladder), cfg.metric),
-                        _metric_image(d.reference, cfg.metric).expand(len(d.ladder), -1, -1, -1)).tolist()
+            errs = ladder_rmse([_metric_image(x, cfg.metric) for x in d.ladder],
+                               _metric_image(d.reference, cfg.metric))[0].tolist()
             ladder_err[e] = errs
             row["ladder_rmse"]["left" if e == LEFT else "right"] = errs
-            row["no_surface_pct"]["left" if e == LEFT else "right"] = 100.0 * float((~has_surface[e]).float().mean())
+            row["no_surface_pct"]["left" if e == LEFT else "right"] = 100.0 * float((~surface[e]).float().mean())
         for s in schemes:
             drv = drivers[s.name]
             t0 = time.perf_counter()
             right_out = drv.right(R.ladder[0], R.depth, R.normal, R.K, R.cam_from_world)
-            mask = drv.left_trace_mask(L.depth, L.normal, L.K, L.cam_from_world)
             t1 = time.perf_counter()
+            mask = drv.left_trace_mask(L.depth, L.normal, L.K, L.cam_from_world)
             left_out = drv.left(L.ladder[0])  # the left 1-spp samples; only masked pixels are read
             t2 = time.perf_counter()
-            timing[f"reproject_{s.name}_ms"].append((t2 - t0) * 1e3 if s.stereo else (t1 - t0) * 1e3)
+            # per-eye accounting: a stereo scheme's left eye pays for its own steps, the right eye for its own
+            timing[f"reproject_{s.name}_ms"].append((t2 - t1) * 1e3 if s.stereo else (t1 - t0) * 1e3)
             img = left_out if s.eye == LEFT else right_out
             d = eyes[s.eye]
             err = float(rmse(_metric_image(img, cfg.metric), _metric_image(d.reference, cfg.metric))[0])
@@ -352,7 +370,7 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
             row["effective_spp"][s.name] = float(spp[0])
             row["flags"][s.name] = flags[0]
             if s.name == "stereo":
-                surf = has_surface[LEFT]
+                surf = surface[LEFT]
                 row["discard_pct"]["stereo"] = 100.0 * float((mask & surf).sum() / surf.sum().clamp_min(1))
                 if f == fig1_frame:
                     keep["fig1_stereo"] = drv.stereo_reason.clone()
@@ -363,7 +381,7 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
                     row["masked_trace_matches"] = bool(torch.equal(torch.where(mask, r.radiance, 0.0),
                                                                    torch.where(mask, L.ladder[0], 0.0)))
             if s.name == "temporal" and drv.right_valid is not None:
-                surf = has_surface[RIGHT]
+                surf = surface[RIGHT]
                 row["discard_pct"]["temporal"] = 100.0 * float((~drv.right_valid & surf).sum()
                                                                / surf.sum().clamp_min(1))
                 if f == fig1_frame:

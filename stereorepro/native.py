@@ -92,9 +92,11 @@ def select_backend(backend: str, images: Iterable[Tensor], others: Iterable = ()
     """
     check_backend(backend)
     env = os.environ.get(ENV_VAR, "").strip().lower()
+    if env == "numpy":  # the variable is shared with the tracer, whose reference path is "numpy"
+        env = "torch"
     if env:
         if env not in BACKENDS:
-            raise ValueError(f"{ENV_VAR} must be one of {BACKENDS}, got {env!r}")
+            raise ValueError(f"{ENV_VAR} must be one of {BACKENDS} (or 'numpy' = 'torch'), got {env!r}")
         backend = env
     if backend == "torch" or _tracing():
         return "torch"

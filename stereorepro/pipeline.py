@@ -14,8 +14,10 @@ Per frame, for a stereo pair:
 Switching ``temporal`` or ``stereo`` off gives the paper's other two schemes: stereo only (right eye at 1 spp,
 left = reprojection + traced discards) and temporal only (the right eye's accumulation).
 
-The driver holds tensors between frames; it is not an nn.Module and is not exported. It composes the exported,
-stateless :class:`~stereorepro.StereoReprojection` and :class:`~stereorepro.TemporalReprojection` modules.
+The driver holds tensors between frames; it is not an nn.Module and is not exported. Its settings live in a
+:class:`~stereorepro.StereoReprojection` and a :class:`~stereorepro.TemporalReprojection`; it calls the same pure
+functions they do (:func:`~stereorepro.backward_reproject`, through the native kernel when the backend rules allow,
+and :func:`~stereorepro.temporal_blend`), because it also needs the warped history length and the reasons.
 """
 
 from __future__ import annotations
@@ -26,8 +28,8 @@ import torch
 from torch import Tensor
 
 from . import native as _native
-from ._checks import check_shape
-from .reproject import StereoReprojection, TemporalReprojection, backward_reproject, temporal_blend
+from ._checks import check_camera, check_shape
+from .reproject import StereoReprojection, TemporalReprojection, _compute_dtype, backward_reproject, temporal_blend
 
 __all__ = ["SpatiotemporalReprojection", "EyeState"]
 
@@ -116,7 +118,8 @@ class SpatiotemporalReprojection:
         if not self.temporal or state is None:
             return color, ones, None, None
         m = self.temporal_module
-        values = torch.cat([state.color.float(), state.history_len.float()], 1)
+        dt = _compute_dtype(state.color, state.history_len)
+        values = torch.cat([state.color.to(dt), state.history_len.to(dt)], 1)
         warped, valid, reason, _ = _warp(values, state.depth, state.normal, state.K, state.cam_from_world, depth,
                                          normal, K, cam_from_world, m, self.backend)
         out, n = temporal_blend(color, warped[:, :3], warped[:, 3:4], valid, m.alpha, m.warmup, m.max_history)
@@ -132,11 +135,17 @@ class SpatiotemporalReprojection:
         Returns:
             (B, 3, H, W) the right eye's output for this frame.
         """
-        check_shape(color, ["B", "3", "H", "W"], "color")
+        bind = check_shape(color, ["B", "3", "H", "W"], "color")
+        check_shape(depth, ["B", "1", "H", "W"], "depth", bind)
+        check_shape(normal, ["B", "3", "H", "W"], "normal", bind)
+        check_camera(K, cam_from_world, "right", {"B": bind.get("B")} if "B" in bind else None)
         out, n, valid, reason = self._accumulate(self.right_state, color, depth, normal, K, cam_from_world)
         self.right_valid, self.right_reason = valid, reason
         self.right_state = EyeState(out, n, depth, normal, K, cam_from_world)
+        # a new frame: the left eye must run left_trace_mask() again before left()
         self._stereo_out = None
+        self._left_gbuffer = None
+        self.stereo_valid = self.stereo_reason = None
         return out
 
     def left_trace_mask(self, depth: Tensor, normal: Tensor, K: Tensor, cam_from_world: Tensor) -> Tensor:
@@ -157,7 +166,8 @@ class SpatiotemporalReprojection:
             return ~self.stereo_valid
         r = self.right_state
         m = self.stereo_module
-        values = torch.cat([r.color.float(), r.history_len.float()], 1)
+        dt = _compute_dtype(r.color, r.history_len)
+        values = torch.cat([r.color.to(dt), r.history_len.to(dt)], 1)
         warped, valid, reason, _ = _warp(values, r.depth, r.normal, r.K, r.cam_from_world, depth, normal, K,
                                          cam_from_world, m, self.backend)
         self._stereo_out = (warped[:, :3], warped[:, 3:4])
@@ -176,7 +186,8 @@ class SpatiotemporalReprojection:
         if self._left_gbuffer is None:
             raise RuntimeError("left() needs left_trace_mask() to be called first for this frame")
         depth, normal, K, T = self._left_gbuffer
-        check_shape(traced_color, ["B", "3", "H", "W"], "traced_color", {"H": depth.shape[-2], "W": depth.shape[-1]})
+        check_shape(traced_color, ["B", "3", "H", "W"], "traced_color",
+                    {"B": depth.shape[0], "H": depth.shape[-2], "W": depth.shape[-1]})
         trace = ~self.stereo_valid
         traced = torch.where(trace, traced_color, torch.zeros((), dtype=traced_color.dtype))
         filled, n, valid, _ = self._accumulate(self.left_state, traced, depth, normal, K, T)

@@ -10,6 +10,8 @@ it, and read the 2×2 bilinear taps around that point in the source image (or th
 3. ``|P_src − P_dst| <= position_threshold`` (scene units; both points in the source camera's frame),
 4. ``|N_src − N_dst| <= normal_threshold`` (unit world-space shading normals), and
 5. its values are finite (policy: a NaN/Inf sample is rejected like an occluded one, so it never leaks).
+   Non-finite *normals* (source or destination) are read as zero vectors, so they fail the normal test for any
+   ``normal_threshold < 1`` and are reported as ``NORMAL``.
 
 Accepted bilinear weights are renormalised by their sum; a pixel is ``valid`` when the accepted weight is > 0.
 The same-instant stereo case and the temporal case are the same operation with different cameras

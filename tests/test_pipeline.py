@@ -93,6 +93,21 @@ class TestSpatiotemporalReprojection:
         with pytest.raises(RuntimeError, match="left_trace_mask"):
             st.left(torch.zeros(1, 3, 2, 2))
 
+    def test_misordered_calls_raise_instead_of_black_left_eye(self):
+        st = SpatiotemporalReprojection(*THR)
+        f = frame(0)
+        r, lf = f["right"], f["left"]
+        st.right(r["color"], r["depth"], r["normal"], r["K"], r["cam_from_world"])
+        st.left_trace_mask(lf["depth"], lf["normal"], lf["K"], lf["cam_from_world"])
+        st.right(r["color"], r["depth"], r["normal"], r["K"], r["cam_from_world"])  # a new frame began
+        with pytest.raises(RuntimeError, match="left_trace_mask"):
+            st.left(lf["color"])
+        st.left_trace_mask(lf["depth"], lf["normal"], lf["K"], lf["cam_from_world"])
+        with pytest.raises(ValueError, match="traced_color"):
+            st.left(torch.cat([lf["color"], lf["color"]]))  # batch of 2 against a batch of 1
+        with pytest.raises(ValueError, match="depth"):
+            st.right(r["color"], r["depth"][..., :-1], r["normal"], r["K"], r["cam_from_world"])
+
     def test_reset(self):
         st = SpatiotemporalReprojection(*THR)
         run_sequence(st, n=2)
