@@ -65,6 +65,20 @@ def scene_pair(H=36, W=48, dtype=torch.float32, B=1, forward=0.0, yaw=0.0, basel
     return inp, gd, gs, dst, src
 
 
+def onnx_runs(module, tmp_path, name):
+    """Export ``module``, check its symbolic dims, and yield (input dims, torch outputs, onnxruntime outputs) on
+    realistic inputs at two resolutions (B = 2)."""
+    ort = pytest.importorskip("onnxruntime")
+    path = export_onnx(module, tmp_path / f"{name}.onnx")
+    dims = onnx_input_dims(path)
+    sess = ort.InferenceSession(str(path))
+    for (h, w) in [(36, 48), (71, 129)]:
+        inp = example_inputs(module, batch=2, height=h, width=w, seed=h)
+        ref = module(*inp)
+        got = sess.run(None, {n: x.numpy() for n, x in zip(module.input_names, inp)})
+        yield dims, ref, got
+
+
 class TestStereoReproject:
     def test_smoke(self):
         out, valid, reason = run(plane_pair())
@@ -146,16 +160,9 @@ class TestStereoReproject:
                 assert torch.equal(a, b)
 
     def test_onnx_parity(self, tmp_path):
-        ort = pytest.importorskip("onnxruntime")
         m = StereoReprojection(0.3, 0.3)  # ~2 pixel footprints at these small sizes
-        path = export_onnx(m, tmp_path / "stereo.onnx")
-        dims = onnx_input_dims(path)
-        assert dims["src_color"] == ["B", 3, "Hp", "Wp"] and dims["dst_depth"] == ["B", 1, "H", "W"]
-        sess = ort.InferenceSession(str(path))
-        for (h, w) in [(36, 48), (71, 129)]:
-            inp = example_inputs(m, batch=2, height=h, width=w, seed=h)
-            ref = m(*inp)
-            got = sess.run(None, {n: x.numpy() for n, x in zip(m.input_names, inp)})
+        for dims, ref, got in onnx_runs(m, tmp_path, "stereo"):
+            assert dims["src_color"] == ["B", 3, "Hp", "Wp"] and dims["dst_depth"] == ["B", 1, "H", "W"]
             assert 0.5 < ref[1].float().mean() < 1.0  # realistic: some discards, mostly kept
             np.testing.assert_allclose(got[0], ref[0].numpy(), atol=1e-5, rtol=0)
             np.testing.assert_array_equal(got[1], ref[1].numpy())
@@ -541,16 +548,9 @@ class TestTemporalReproject:
                 assert torch.equal(a, b)
 
     def test_onnx_parity(self, tmp_path):
-        ort = pytest.importorskip("onnxruntime")
         m = TemporalReprojection(0.3, 0.3)
-        path = export_onnx(m, tmp_path / "temporal.onnx")
-        dims = onnx_input_dims(path)
-        assert dims["current_color"] == ["B", 3, "H", "W"] and dims["history_color"] == ["B", 3, "Hp", "Wp"]
-        sess = ort.InferenceSession(str(path))
-        for (h, w) in [(36, 48), (71, 129)]:
-            inp = example_inputs(m, batch=2, height=h, width=w, seed=h)
-            ref = m(*inp)
-            got = sess.run(None, {n: x.numpy() for n, x in zip(m.input_names, inp)})
+        for dims, ref, got in onnx_runs(m, tmp_path, "temporal"):
+            assert dims["current_color"] == ["B", 3, "H", "W"] and dims["history_color"] == ["B", 3, "Hp", "Wp"]
             assert 0.5 < ref[2].float().mean() < 1.0
             np.testing.assert_allclose(got[0], ref[0].numpy(), atol=1e-5, rtol=0)
             np.testing.assert_allclose(got[1], ref[1].numpy(), atol=1e-5, rtol=0)
