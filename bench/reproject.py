@@ -54,9 +54,17 @@ def main(argv=None) -> int:
     bytes_stereo = px * 4 * (3 + 1 + 3 + 1 + 3 + 3) + px * 2
     bytes_temporal = px * 4 * (3 + 1 + 3 + 1 + 3 + 3 + 1 + 3 + 1) + px * 1
     floors = {"stereo": copy_floor(bytes_stereo, R), "temporal": copy_floor(bytes_temporal, R)}
-    for name, cls in (("stereo", StereoReprojection), ("temporal", TemporalReprojection)):
+    # (row label, module class, head motion, floor): "stereo" is the paper's same-instant case (a parallel rig, whose
+    # epipolar lines are rows); "stereo + head motion" warps between eyes of different instants (the general case,
+    # as temporal reprojection does). Both stereo rows read and write the same bytes.
+    cases = (("stereo", StereoReprojection, False, "stereo"),
+             ("stereo + head motion", StereoReprojection, True, "stereo"),
+             ("temporal", TemporalReprojection, True, "temporal"))
+    floor_of = {}
+    for name, cls, motion, floor in cases:
+        floor_of[name] = floor
         for label, m in module_backends(cls, position_threshold=0.05, normal_threshold=0.3):
-            inp = example_inputs(m, batch=1, height=H, width=W)
+            inp = example_inputs(m, batch=1, height=H, width=W, head_motion=motion)
             with torch.inference_mode():
                 t = time_ms(lambda: m(*inp), R)
             rows.append({"op": name, "impl": f"{label} eager", **t})
@@ -65,9 +73,9 @@ def main(argv=None) -> int:
                 import onnxruntime as ort
 
                 m = cls(position_threshold=0.05, normal_threshold=0.3)
-                inp = example_inputs(m, batch=1, height=H, width=W)
+                inp = example_inputs(m, batch=1, height=H, width=W, head_motion=motion)
                 with tempfile.TemporaryDirectory() as d:
-                    path = export_onnx(m, Path(d) / f"{name}.onnx")
+                    path = export_onnx(m, Path(d) / f"{cls.__name__}.onnx")
                     so = ort.SessionOptions()
                     so.intra_op_num_threads = torch.get_num_threads()
                     sess = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
@@ -76,21 +84,22 @@ def main(argv=None) -> int:
                 rows.append({"op": name, "impl": "onnxruntime", **t})
             except ImportError:
                 pass
-        rows.append({"op": name, "impl": "copy floor", **floors[name]})
-    try:
-        from kornia.geometry.depth import warp_frame_depth
+        if cls is StereoReprojection:
+            try:
+                from kornia.geometry.depth import warp_frame_depth
 
-        m = StereoReprojection(0.05, 0.3)
-        inp = dict(zip(m.input_names, example_inputs(m, batch=1, height=H, width=W)))
-        src_from_dst = inp["src_cam_from_world"] @ torch.linalg.inv(inp["dst_cam_from_world"])
-        depth = torch.where(torch.isfinite(inp["dst_depth"]), inp["dst_depth"], torch.ones(()))
-        with torch.inference_mode():
-            t = time_ms(lambda: warp_frame_depth(inp["src_color"], depth, src_from_dst, inp["dst_K"]), R)
-        rows.append({"op": "stereo", "impl": "kornia warp_frame_depth (warp only)", **t})
-    except ImportError:
-        pass
+                m = StereoReprojection(0.05, 0.3)
+                inp = dict(zip(m.input_names, example_inputs(m, batch=1, height=H, width=W, head_motion=motion)))
+                src_from_dst = inp["src_cam_from_world"] @ torch.linalg.inv(inp["dst_cam_from_world"])
+                depth = torch.where(torch.isfinite(inp["dst_depth"]), inp["dst_depth"], torch.ones(()))
+                with torch.inference_mode():
+                    t = time_ms(lambda: warp_frame_depth(inp["src_color"], depth, src_from_dst, inp["dst_K"]), R)
+                rows.append({"op": name, "impl": "kornia warp_frame_depth (warp only)", **t})
+            except ImportError:
+                pass
+        rows.append({"op": name, "impl": "copy floor", **floors[floor]})
     for r in rows:
-        r["x_floor"] = r["median_ms"] / floors[r["op"]]["median_ms"]
+        r["x_floor"] = r["median_ms"] / floors[floor_of[r["op"]]]["median_ms"]
     record = {**header(), "resolution": f"{W}x{H}", "rows": rows,
               "floor_bytes": {"stereo": bytes_stereo, "temporal": bytes_temporal}}
     lines = ["| op | implementation | median ms | min ms | × copy floor |", "|---|---|---:|---:|---:|"]

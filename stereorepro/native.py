@@ -162,11 +162,13 @@ def native_backward_reproject(
     soft: bool = False,
     temperature: float = 0.1,
     check: bool = True,
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    want_confidence: bool = True,
+) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
     """Native twin of :func:`stereorepro.reproject.backward_reproject` (hard tests, float32 images, CPU).
 
     Same arguments and returns: values (B, C, H, W) float32, valid (B, 1, H, W) bool, reason (B, 1, H, W) uint8,
-    confidence (B, 1, H, W) float32. ``temperature`` is accepted for signature parity and unused (hard tests).
+    confidence (B, 1, H, W) float32 (None with ``want_confidence=False``, which saves writing it).
+    ``temperature`` is accepted for signature parity and unused (hard tests).
     """
     from .reproject import _STEREO_NAMES, _check_inputs
 
@@ -185,7 +187,7 @@ def native_backward_reproject(
     values = torch.empty(B, C, H, W, dtype=torch.float32)
     valid = torch.empty(B, 1, H, W, dtype=torch.bool)
     reason = torch.empty(B, 1, H, W, dtype=torch.uint8)
-    confidence = torch.empty(B, 1, H, W, dtype=torch.float32)
+    confidence = torch.empty(B, 1, H, W, dtype=torch.float32) if want_confidence else None
     _core.reproject(sv, sd, sn, P, kt, M, t, Ks_inv, dd, dn, _squared_threshold(position_threshold),
                     _squared_threshold(normal_threshold), sampling == "bilinear", values, valid, reason, confidence)
     return values, valid, reason, confidence

@@ -31,15 +31,19 @@ def _dims_for(name: str) -> dict[int, str]:
 
 
 def example_inputs(module: nn.Module, batch: int = 1, height: int = 24, width: int = 32,
-                   dtype: torch.dtype = torch.float32, seed: int = 0) -> tuple[Tensor, ...]:
+                   dtype: torch.dtype = torch.float32, seed: int = 0, head_motion: bool = True) -> tuple[Tensor, ...]:
     """Realistic inputs for a module's forward: :func:`stereorepro.synthetic.default_scene` seen by a stereo
     pair with a little head motion (occlusions, disocclusions, out-of-frame taps, background without surface).
+
+    ``head_motion=False`` gives the paper's same-instant case instead: a parallel rig (6.5 cm baseline), whose
+    epipolar lines are image rows.
 
     Returns a tuple in the order of ``module.input_names``.
     """
     from .synthetic import camera_pair, default_scene, raycast
 
-    dst, src = camera_pair(height, width, batch, baseline=0.065, forward=0.05, yaw_deg=0.5)
+    motion = dict(forward=0.05, yaw_deg=0.5) if head_motion else {}
+    dst, src = camera_pair(height, width, batch, baseline=0.065, **motion)
     scene = default_scene()
     gd, gs = raycast(dst, scene), raycast(src, scene)
     g = torch.Generator().manual_seed(seed)

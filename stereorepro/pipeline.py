@@ -59,7 +59,7 @@ def _warp(values, depth_src, normal_src, K_src, T_src, depth_dst, normal_dst, K_
     if _native.select_backend(backend, (values, depth_src, normal_src, depth_dst, normal_dst),
                               (K_src, T_src, K_dst, T_dst, module.position_threshold, module.normal_threshold)
                               ) == "native":
-        return _native.native_backward_reproject(*args)
+        return _native.native_backward_reproject(*args, want_confidence=False)
     return backward_reproject(*args)
 
 

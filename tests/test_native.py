@@ -312,6 +312,24 @@ class TestNativeStereo:
             ref, got = both_stereo(inp, pos, nrm, sampling)
             assert_parity(ref, got, f"{hw} seed {seed}")
 
+    @pytest.mark.parametrize("sampling", ["bilinear", "nearest"])
+    def test_parity_rectified_rig(self, sampling):
+        # A parallel rig's epipolar lines are rows: every tap row has fy = 0, so the kernel's vector path skips the
+        # zero-weight y1 taps. Widths that are multiples of 8 (vector path only) and not (scalar tail).
+        for H, W, baseline in ((40, 64, 0.065), (41, 75, 0.13), (16, 128, 0.3)):
+            inp, *_ = scene_pair(H=H, W=W, baseline=baseline)
+            ref, got = both_stereo(inp, 0.05, 0.3, sampling)
+            assert_parity(ref, got, f"rectified {H}x{W}")
+            assert (~got[1]).any() and got[1].any()  # both kept and discarded pixels
+
+    def test_confidence_optional(self):
+        inp, *_ = scene_pair(forward=0.1)
+        args = [inp[a] for a in ARGS]
+        full = native_backward_reproject(*args, 0.05, 0.3)
+        lean = native_backward_reproject(*args, 0.05, 0.3, want_confidence=False)
+        assert lean[3] is None
+        assert all(torch.equal(a, b) for a, b in zip(full[:3], lean[:3]))
+
     def test_parity_different_source_size(self):
         src, *_ = scene_pair(H=40, W=56, forward=0.1)
         dst, *_ = scene_pair(H=33, W=47)

@@ -22,12 +22,15 @@
 
 #include <nanobind/nanobind.h>
 #include <nanobind/ndarray.h>
+#include <nanobind/stl/optional.h>
 
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <optional>
 #include <stdexcept>
 #include <string>
+#include <type_traits>
 #include <vector>
 
 #if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
@@ -257,19 +260,31 @@ SR_AVX2 inline void gather_pairs(const Source &s, const Consts &k, __m256 x0, __
     const __m256i xp = _mm256_cvttps_epi32(_mm256_min_ps(_mm256_max_ps(x0, zero), k.wm2));
     const __m256i yc = _mm256_cvttps_epi32(_mm256_min_ps(_mm256_max_ps(yi, zero), k.hm1));
     const __m256i idx = _mm256_add_epi32(_mm256_mullo_epi32(yc, k.Wsi), xp);
-    const __m128i lo = _mm256_castsi256_si128(idx), hi = _mm256_extracti128_si256(idx, 1);
+    alignas(32) int32_t ix[8];
+    _mm256_store_si256(reinterpret_cast<__m256i *>(ix), idx);
     const __m256 a_from_b = _mm256_cmp_ps(x0, k.wm2, _CMP_GT_OQ);   // x0 = Ws - 1
     const __m256 b_from_a = _mm256_cmp_ps(x0, zero, _CMP_LT_OQ);    // x0 = -1
+    const bool edge = _mm256_movemask_ps(_mm256_or_ps(a_from_b, b_from_a)) != 0;
+    // Scalar 8-byte loads (two adjacent floats each; the 8 indices are extracted once for all planes) are cheaper
+    // than 8-lane gathers on the CPUs measured here.
     auto load = [&](const float *plane, __m256 &va, __m256 &vb) SR_AVX2 {
-        const double *base = reinterpret_cast<const double *>(plane);  // 8-byte loads at float offsets
-        const __m256 g0 = _mm256_castpd_ps(_mm256_i32gather_pd(base, lo, 4));  // a0 b0 a1 b1 | a2 b2 a3 b3
-        const __m256 g1 = _mm256_castpd_ps(_mm256_i32gather_pd(base, hi, 4));  // a4 b4 a5 b5 | a6 b6 a7 b7
+        // movq / movhpd of two adjacent floats (intrinsics whose pointers may alias float data)
+        auto lo = [&](int l) { return _mm_castsi128_pd(_mm_loadl_epi64(reinterpret_cast<const __m128i *>(plane + ix[l]))); };
+        auto hi = [&](__m128d q, int l) { return _mm_loadh_pd(q, reinterpret_cast<const double *>(plane + ix[l])); };
+        const __m128d q0 = hi(lo(0), 1), q1 = hi(lo(2), 3), q2 = hi(lo(4), 5), q3 = hi(lo(6), 7);  // a0 b0 a1 b1 ...
+        const __m256 g0 = _mm256_castpd_ps(_mm256_set_m128d(q1, q0));  // a0 b0 a1 b1 | a2 b2 a3 b3
+        const __m256 g1 = _mm256_castpd_ps(_mm256_set_m128d(q3, q2));  // a4 b4 a5 b5 | a6 b6 a7 b7
         const __m256 ea = _mm256_castpd_ps(_mm256_permute4x64_pd(
             _mm256_castps_pd(_mm256_shuffle_ps(g0, g1, _MM_SHUFFLE(2, 0, 2, 0))), _MM_SHUFFLE(3, 1, 2, 0)));
         const __m256 eb = _mm256_castpd_ps(_mm256_permute4x64_pd(
             _mm256_castps_pd(_mm256_shuffle_ps(g0, g1, _MM_SHUFFLE(3, 1, 3, 1))), _MM_SHUFFLE(3, 1, 2, 0)));
-        va = sel(a_from_b, eb, ea);
-        vb = sel(b_from_a, ea, eb);
+        if (edge) {
+            va = sel(a_from_b, eb, ea);
+            vb = sel(b_from_a, ea, eb);
+        } else {
+            va = ea;
+            vb = eb;
+        }
     };
     for (int64_t c = 0; c < C; ++c) load(s.chan[c], a.vals[c], b.vals[c]);
     load(s.depth, a.z, b.z);
@@ -278,8 +293,9 @@ SR_AVX2 inline void gather_pairs(const Source &s, const Consts &k, __m256 x0, __
     load(s.n2, a.n2, b.n2);
 }
 
-// Accept tests, reason code and accumulation of 8 taps at (xi, yi) with weights w (see the scalar tap()).
-template <int NC>
+// Accept tests and accumulation of 8 taps at (xi, yi) with weights w (see the scalar tap()). With CODES, also the
+// running max of the taps' reason codes (worst); warp_row() asks for them only where a pixel kept nothing.
+template <int NC, bool CODES>
 SR_AVX2 inline void tap(const Source &s, const Consts &k, const Taps<NC> &g, __m256 xi, __m256 yi, __m256 w,
                         __m256 pixel_ok, __m256 qx, __m256 qy, __m256 qz, __m256 nd0, __m256 nd1, __m256 nd2,
                         __m256 &den, __m256 *num, __m256 &worst) {
@@ -300,13 +316,15 @@ SR_AVX2 inline void tap(const Source &s, const Consts &k, const Taps<NC> &g, __m
     const __m256 e0 = sub(m0, nd0), e1 = sub(m1, nd1), e2 = sub(m2, nd2);
     const __m256 dn2 = add(add(mul(e0, e0), mul(e1, e1)), mul(e2, e2));
     const __m256 pos_ok = le(dp2, k.thr_p), nrm_ok = le(dn2, k.thr_n);
-    __m256 code = sel(finite, zero, set(NONFINITE));
-    code = sel(nrm_ok, code, set(NORMAL));
-    code = sel(pos_ok, code, set(POSITION));
-    code = sel(src_ok, code, set(NO_SURFACE_SRC));
-    const __m256 wpos = gt(w, zero);
-    code = sel(band(in_frame, wpos), code, band(wpos, set(OUT_OF_FRAME)));
-    worst = _mm256_max_ps(worst, code);
+    if constexpr (CODES) {  // first failing test, as the scalar tap()
+        __m256 code = sel(finite, zero, set(NONFINITE));
+        code = sel(nrm_ok, code, set(NORMAL));
+        code = sel(pos_ok, code, set(POSITION));
+        code = sel(src_ok, code, set(NO_SURFACE_SRC));
+        const __m256 wpos = gt(w, zero);
+        code = sel(band(in_frame, wpos), code, band(wpos, set(OUT_OF_FRAME)));
+        worst = _mm256_max_ps(worst, code);
+    }
     const __m256 hard = band(band(band(pixel_ok, in_frame), band(src_ok, finite)), band(pos_ok, nrm_ok));
     const __m256 ws = band(w, hard);  // w or +0, as w * hard.float() in torch
     den = add(den, ws);
@@ -357,36 +375,49 @@ SR_AVX2 int64_t warp_row(const Source &s, const Dest &d, const Camera &cam, cons
         const __m256 nd1 = fin0(_mm256_loadu_ps(d.n1 + p));
         const __m256 nd2 = fin0(_mm256_loadu_ps(d.n2 + p));
         const __m256 pixel_ok = band(dst_ok, front);
-        if (_mm256_movemask_ps(pixel_ok) == 0) {  // nothing to warp (e.g. sky): no taps, only reasons
-            for (int l = 0; l < 8; ++l) warp_pixel<NC, BILINEAR>(s, d, cam, th, x + l, y, o);
-            continue;
-        }
-        __m256 den = zero, worst = zero;
+        const int ok_bits = _mm256_movemask_ps(pixel_ok);
+        __m256 den, worst;
         __m256 num[NC > 0 ? NC : kMaxStackChannels];
-        for (int64_t c = 0; c < C; ++c) num[c] = zero;
-        if (BILINEAR) {
-            const __m256 fxs = sub(u, half), fys = sub(v, half);
-            const __m256 x0 = _mm256_floor_ps(fxs), y0 = _mm256_floor_ps(fys);
-            const __m256 fx = sub(fxs, x0), fy = sub(fys, y0);
-            const __m256 x1 = add(x0, one), y1 = add(y0, one);
-            const __m256 gx = sub(one, fx), gy = sub(one, fy);
-            const __m256 ys[2] = {y0, y1}, wy[2] = {gy, fy};
-            for (int r = 0; r < 2; ++r) {  // taps in torch's order: (x0, y0), (x1, y0), (x0, y1), (x1, y1)
-                if (pairs) {
-                    gather_pairs<NC>(s, k, x0, ys[r], ga, gb);
-                } else {
-                    gather_taps<NC>(s, k, x0, ys[r], ga);
-                    gather_taps<NC>(s, k, x1, ys[r], gb);
+        // All taps of the 8 pixels: accumulates den / num and, with codes, the worst reason code.
+        auto run_taps = [&](auto codes) SR_AVX2 {
+            constexpr bool CODES = decltype(codes)::value;
+            den = zero;
+            worst = zero;
+            for (int64_t c = 0; c < C; ++c) num[c] = zero;
+            if (ok_bits == 0) return;  // no lane to warp (e.g. sky): no taps
+            if (BILINEAR) {
+                const __m256 fxs = sub(u, half), fys = sub(v, half);
+                const __m256 x0 = _mm256_floor_ps(fxs), y0 = _mm256_floor_ps(fys);
+                const __m256 fx = sub(fxs, x0), fy = sub(fys, y0);
+                const __m256 x1 = add(x0, one), y1 = add(y0, one);
+                const __m256 gx = sub(one, fx), gy = sub(one, fy);
+                const __m256 ys[2] = {y0, y1}, wy[2] = {gy, fy};
+                // Rectified stereo (epipolar lines = rows) gives fy = 0: the y1 taps then have weight 0 in every
+                // lane and would add exactly +0 to den and num (and code 0), so skipping them changes no bit.
+                const int rows = _mm256_movemask_ps(gt(fy, zero)) != 0 ? 2 : 1;
+                for (int r = 0; r < rows; ++r) {  // taps in torch's order: (x0, y0), (x1, y0), (x0, y1), (x1, y1)
+                    if (pairs) {
+                        gather_pairs<NC>(s, k, x0, ys[r], ga, gb);
+                    } else {
+                        gather_taps<NC>(s, k, x0, ys[r], ga);
+                        gather_taps<NC>(s, k, x1, ys[r], gb);
+                    }
+                    tap<NC, CODES>(s, k, ga, x0, ys[r], mul(gx, wy[r]), pixel_ok, qx, qy, qz, nd0, nd1, nd2, den,
+                                   num, worst);
+                    tap<NC, CODES>(s, k, gb, x1, ys[r], mul(fx, wy[r]), pixel_ok, qx, qy, qz, nd0, nd1, nd2, den,
+                                   num, worst);
                 }
-                tap<NC>(s, k, ga, x0, ys[r], mul(gx, wy[r]), pixel_ok, qx, qy, qz, nd0, nd1, nd2, den, num, worst);
-                tap<NC>(s, k, gb, x1, ys[r], mul(fx, wy[r]), pixel_ok, qx, qy, qz, nd0, nd1, nd2, den, num, worst);
+            } else {
+                const __m256 xi = _mm256_floor_ps(u), yi = _mm256_floor_ps(v);
+                gather_taps<NC>(s, k, xi, yi, ga);
+                tap<NC, CODES>(s, k, ga, xi, yi, one, pixel_ok, qx, qy, qz, nd0, nd1, nd2, den, num, worst);
             }
-        } else {
-            const __m256 xi = _mm256_floor_ps(u), yi = _mm256_floor_ps(v);
-            gather_taps<NC>(s, k, xi, yi, ga);
-            tap<NC>(s, k, ga, xi, yi, one, pixel_ok, qx, qy, qz, nd0, nd1, nd2, den, num, worst);
-        }
-        const __m256 has_w = gt(den, zero);
+        };
+        run_taps(std::false_type{});
+        __m256 has_w = gt(den, zero);
+        // A pixel that was warped but kept nothing reports the code of its most nearly accepted tap: only for such
+        // groups (a few %) are the taps run again with codes (same arithmetic, so den and num come out the same).
+        if (ok_bits & ~_mm256_movemask_ps(has_w)) run_taps(std::true_type{});
         const __m256 safe_den = sel(has_w, den, one);
         for (int64_t c = 0; c < C; ++c)
             _mm256_storeu_ps(o.num[c] + x, band(_mm256_div_ps(num[c], safe_den), has_w));
@@ -400,6 +431,28 @@ SR_AVX2 int64_t warp_row(const Source &s, const Dest &d, const Camera &cam, cons
         for (int l = 0; l < 8; ++l) {
             o.reason[x + l] = (uint8_t)r[l];
             o.valid[x + l] = (uint8_t)((vm >> l) & 1);
+        }
+    }
+    return x;
+}
+
+// TemporalSink::finish for x in [0, W - W % 8): the same operations as the scalar loop, 8 pixels at a time.
+SR_AVX2 int64_t blend_row(const float *n, const uint8_t *valid, const float *const *hist, const float *const *cur,
+                          float *const *out, float *len, float alpha, float max_history, bool warmup, int64_t Cc,
+                          int64_t W) {
+    const __m256 zero = _mm256_setzero_ps(), one = set(1.0f), va = set(alpha), cap = set(max_history);
+    int64_t x = 0;
+    for (; x + 8 <= W; x += 8) {
+        const __m256i b = _mm256_cvtepu8_epi32(_mm_loadl_epi64(reinterpret_cast<const __m128i *>(valid + x)));
+        const __m256 v = _mm256_castsi256_ps(_mm256_cmpgt_epi32(b, _mm256_setzero_si256()));
+        const __m256 nx = _mm256_loadu_ps(n + x);
+        // std::max(p, q) is (p < q) ? q : p, i.e. _mm256_max_ps(q, p) (which returns its second operand on ties)
+        const __m256 a = warmup ? _mm256_max_ps(va, _mm256_div_ps(one, add(_mm256_max_ps(zero, nx), one))) : va;
+        _mm256_storeu_ps(len + x, sel(v, _mm256_min_ps(add(nx, one), cap), one));
+        const __m256 ga = sub(one, a);
+        for (int64_t c = 0; c < Cc; ++c) {
+            const __m256 h = _mm256_loadu_ps(hist[c] + x), cx = _mm256_loadu_ps(cur[c] + x);
+            _mm256_storeu_ps(out[c] + x, sel(v, add(mul(ga, h), mul(a, cx)), cx));
         }
     }
     return x;
@@ -423,19 +476,19 @@ void warp_row(const Source &s, const Dest &d, const Camera &cam, const Tests &th
 }
 
 // ---- sinks: where a warped row goes ------------------------------------------------------------------------
-// Stereo: the row outputs are the output arrays themselves.
+// Stereo: the row outputs are the output arrays themselves (the confidence row goes to scratch when not wanted).
 struct StereoSink {
     float *values;  // (B, C, H, W)
     bool *valid;
     uint8_t *reason;
-    float *conf;
+    float *conf;  // nullptr: not wanted
     int64_t C, H, W;
-    static constexpr bool needs_scratch = false;
-    RowOut row(int64_t b, int64_t y, float *) const {
+    bool needs_scratch() const { return conf == nullptr; }
+    RowOut row(int64_t b, int64_t y, float *scratch) const {
         RowOut o;
         for (int64_t c = 0; c < C; ++c) o.num[c] = values + ((b * C + c) * H + y) * W;
         const int64_t i = (b * H + y) * W;
-        o.den = conf + i;
+        o.den = conf ? conf + i : scratch;
         o.reason = reason + i;
         o.valid = reinterpret_cast<uint8_t *>(valid + i);  // bool is one byte holding 0 or 1
         return o;
@@ -452,7 +505,8 @@ struct TemporalSink {
     float alpha, max_history;
     bool warmup;
     int64_t C, H, W;
-    static constexpr bool needs_scratch = true;
+    bool vector;  // AVX2 blend
+    bool needs_scratch() const { return true; }
     RowOut row(int64_t b, int64_t y, float *scratch) const {  // scratch: (C + 2) * W floats
         RowOut o;
         for (int64_t c = 0; c < C; ++c) o.num[c] = scratch + c * W;
@@ -467,16 +521,24 @@ struct TemporalSink {
         const int64_t Cc = C - 1, row = (b * H + y) * W;
         const float *n = o.num[Cc];
         const uint8_t *v = o.valid;
-        float *lo = len + row, *a = o.den;  // the confidence row is not needed any more: reuse it for a
-        for (int64_t x = 0; x < W; ++x) {
-            a[x] = warmup ? std::max(1.0f / (std::max(n[x], 0.0f) + 1.0f), alpha) : alpha;
-            lo[x] = v[x] ? std::min(n[x] + 1.0f, max_history) : 1.0f;
-        }
+        float *lo = len + row;
+        const float *hist[kMaxStackChannels], *cur[kMaxStackChannels];
+        float *out[kMaxStackChannels];
         for (int64_t c = 0; c < Cc; ++c) {
             const int64_t off = ((b * Cc + c) * H + y) * W;
-            const float *h = o.num[c], *cur = current + off;
-            float *out = color + off;
-            for (int64_t x = 0; x < W; ++x) out[x] = v[x] ? (1.0f - a[x]) * h[x] + a[x] * cur[x] : cur[x];
+            hist[c] = o.num[c];
+            cur[c] = current + off;
+            out[c] = color + off;
+        }
+        int64_t x0 = 0;
+#ifdef SR_AVX2_PATH
+        if (vector) x0 = v8::blend_row(n, v, hist, cur, out, lo, alpha, max_history, warmup, Cc, W);
+#endif
+        for (int64_t x = x0; x < W; ++x) {
+            const float a = warmup ? std::max(1.0f / (std::max(n[x], 0.0f) + 1.0f), alpha) : alpha;
+            lo[x] = v[x] ? std::min(n[x] + 1.0f, max_history) : 1.0f;
+            for (int64_t c = 0; c < Cc; ++c)
+                out[c][x] = v[x] ? (1.0f - a) * hist[c][x] + a * cur[c][x] : cur[c][x];
         }
     }
 };
@@ -500,7 +562,7 @@ void run_rows(const Batch &bt, const Tests &th, const Sink &sink) {
 #pragma omp parallel
 #endif
     {
-        std::vector<float> scratch(Sink::needs_scratch ? (bt.C + 2) * bt.W : 0);
+        std::vector<float> scratch(sink.needs_scratch() ? (bt.C + 2) * bt.W : 0);
 #ifdef STEREOREPRO_OPENMP
 #pragma omp for schedule(dynamic, 4)
 #endif
@@ -571,7 +633,7 @@ void check_geometry(Batch &bt, const CF &src_depth, const CF &src_normal, const 
 
 void reproject(CF src_values, CF src_depth, CF src_normal, CF P, CF kt, CF M, CF t, CF Ks_inv, CF dst_depth,
                CF dst_normal, float pos_thr2, float nrm_thr2, bool bilinear, OF out_values, OB out_valid,
-               OU8 out_reason, OF out_confidence) {
+               OU8 out_reason, std::optional<OF> out_confidence) {
     if (src_values.ndim() != 4) throw std::invalid_argument("reproject: src_values must be 4-D (B, C, Hs, Ws)");
     Batch bt;
     bt.B = src_values.shape(0);
@@ -584,12 +646,12 @@ void reproject(CF src_values, CF src_depth, CF src_normal, CF P, CF kt, CF M, CF
     expect_shape(out_values, "out_values", {bt.B, bt.C, bt.H, bt.W});
     expect_shape(out_valid, "out_valid", {bt.B, 1, bt.H, bt.W});
     expect_shape(out_reason, "out_reason", {bt.B, 1, bt.H, bt.W});
-    expect_shape(out_confidence, "out_confidence", {bt.B, 1, bt.H, bt.W});
+    if (out_confidence) expect_shape(*out_confidence, "out_confidence", {bt.B, 1, bt.H, bt.W});
     const int64_t HWs = bt.Hs * bt.Ws;
     bt.chan.resize(bt.B * bt.C);
     for (int64_t i = 0; i < bt.B * bt.C; ++i) bt.chan[i] = src_values.data() + i * HWs;
-    const StereoSink sink{out_values.data(), out_valid.data(), out_reason.data(), out_confidence.data(), bt.C,
-                          bt.H, bt.W};
+    const StereoSink sink{out_values.data(), out_valid.data(), out_reason.data(),
+                          out_confidence ? out_confidence->data() : nullptr, bt.C, bt.H, bt.W};
     dispatch(bt, Tests{pos_thr2, nrm_thr2}, bilinear, sink);
 }
 
@@ -618,8 +680,12 @@ void temporal_reproject(CF current, CF history_color, CF history_len, CF prev_de
         for (int64_t c = 0; c < Cc; ++c) bt.chan[b * bt.C + c] = history_color.data() + (b * Cc + c) * HWs;
         bt.chan[b * bt.C + Cc] = history_len.data() + b * HWs;
     }
+    bool vector = false;
+#ifdef SR_AVX2_PATH
+    vector = use_avx2();
+#endif
     const TemporalSink sink{current.data(), out_color.data(), out_len.data(), out_valid.data(), alpha, max_history,
-                            warmup, bt.C, bt.H, bt.W};
+                            warmup, bt.C, bt.H, bt.W, vector};
     dispatch(bt, Tests{pos_thr2, nrm_thr2}, bilinear, sink);
 }
 
@@ -631,12 +697,12 @@ void bind_reproject(nb::module_ &m) {
           nb::arg("M").noconvert(), nb::arg("t").noconvert(), nb::arg("Ks_inv").noconvert(),
           nb::arg("dst_depth").noconvert(), nb::arg("dst_normal").noconvert(), nb::arg("pos_thr2"),
           nb::arg("nrm_thr2"), nb::arg("bilinear"), nb::arg("out_values").noconvert(),
-          nb::arg("out_valid").noconvert(), nb::arg("out_reason").noconvert(), nb::arg("out_confidence").noconvert(),
+          nb::arg("out_valid").noconvert(), nb::arg("out_reason").noconvert(), nb::arg("out_confidence").noconvert().none(),
           "Fused hard backward reprojection (float32, NCHW, C-contiguous CPU arrays; no copies are made).\n"
           "Camera arrays P, M, Ks_inv are (B, 9) row-major and kt, t are (B, 3), composed by "
           "stereorepro.reproject._compose_cameras. pos_thr2 / nrm_thr2 are the float32 squared thresholds.\n"
           "Writes out_values (B, C, H, W), out_valid (B, 1, H, W) bool, out_reason (B, 1, H, W) uint8 and "
-          "out_confidence (B, 1, H, W) in place.");
+          "out_confidence (B, 1, H, W) in place; out_confidence may be None (not computed).");
     m.def("temporal_reproject", &temporal_reproject, nb::arg("current").noconvert(),
           nb::arg("history_color").noconvert(), nb::arg("history_len").noconvert(),
           nb::arg("prev_depth").noconvert(), nb::arg("prev_normal").noconvert(), nb::arg("P").noconvert(),
