@@ -401,6 +401,19 @@ class TestBSDF:
         keys = path_keys(stream_key(seed, 0, 0), np.arange(n), np.zeros(n, np.int64))
         return uniform(keys, 0), uniform(keys, 1), uniform(keys, 2)
 
+    def test_unit_circle(self):
+        """The float32 polynomial azimuth: within 3e-7 of (cos 2πu, sin 2πu), quadrant edges included."""
+        u = np.random.default_rng(0).random(1_000_000, dtype=np.float32)
+        edges = np.float32([0.0, 0.25, 0.5, 0.75])
+        below = np.nextafter(np.concatenate([edges[1:], [1.0]]).astype(np.float32), np.float32(0))
+        u = np.concatenate([u, edges, below])
+        c, s = bsdf_mod.unit_circle(u)
+        assert c.dtype == s.dtype == np.float32
+        phi = 2 * np.pi * u.astype(np.float64)
+        assert np.abs(c - np.cos(phi)).max() < 3e-7 and np.abs(s - np.sin(phi)).max() < 3e-7
+        assert np.array_equal(bsdf_mod.unit_circle(edges)[0], np.float32([1, 0, -1, 0]))
+        assert np.array_equal(bsdf_mod.unit_circle(edges)[1], np.float32([0, 1, 0, -1]))
+
     def test_lambert_integrates_to_albedo(self):
         n = 200_000
         nrm, _ = self._frame(n, 0.0)

@@ -71,8 +71,26 @@ inline float max3(const float *v) {
     return m;
 }
 inline float dot3(const float *a, const float *b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
-inline float fcos(float x) { return static_cast<float>(std::cos(static_cast<double>(x))); }
-inline float fsin(float x) { return static_cast<float>(std::sin(static_cast<double>(x))); }
+// bsdf.unit_circle: (cos 2 pi u, sin 2 pi u) from a float32 polynomial, operation by operation as numpy does it.
+inline void unit_circle(float u, float &cos_out, float &sin_out) {
+    constexpr float kHalfPi = static_cast<float>(3.14159265358979323846 / 2.0);
+    constexpr float s1 = static_cast<float>(-1.0 / 6.0), s2 = static_cast<float>(1.0 / 120.0),
+                    s3 = static_cast<float>(-1.0 / 5040.0), s4 = static_cast<float>(1.0 / 362880.0),
+                    s5 = static_cast<float>(-1.0 / 39916800.0);
+    constexpr float c1 = static_cast<float>(-1.0 / 2.0), c2 = static_cast<float>(1.0 / 24.0),
+                    c3 = static_cast<float>(-1.0 / 720.0), c4 = static_cast<float>(1.0 / 40320.0),
+                    c5 = static_cast<float>(-1.0 / 3628800.0), c6 = static_cast<float>(1.0 / 479001600.0);
+    const float u4 = u * 4.0f;
+    const float q = std::floor(u4);
+    const float a = (u4 - q) * kHalfPi;
+    const float a2 = a * a;
+    const float s = a * (1.0f + a2 * (s1 + a2 * (s2 + a2 * (s3 + a2 * (s4 + a2 * s5)))));
+    const float c = 1.0f + a2 * (c1 + a2 * (c2 + a2 * (c3 + a2 * (c4 + a2 * (c5 + a2 * c6)))));
+    const float rot_cos[4] = {c, -s, -c, s}, rot_sin[4] = {s, c, -s, -c};  // quadrant rotation, without branches
+    const int iq = static_cast<int>(q) & 3;  // q is 0..3 for u in [0, 1)
+    cos_out = rot_cos[iq];
+    sin_out = rot_sin[iq];
+}
 inline float fpow(float x, float e) { return static_cast<float>(std::pow(static_cast<double>(x), static_cast<double>(e))); }
 
 // bsdf.to_world (with bsdf.onb, Duff et al. 2017).
@@ -298,24 +316,34 @@ public:
         if (n_first < 0 || n_first > ns) throw std::invalid_argument("accumulate: n_first out of range");
         for (int64_t s = 0; s < ns; ++s)
             if (sh_path.data()[s] < 0 || sh_path.data()[s] >= N) throw std::invalid_argument("accumulate: bad sh_path");
+        for (int64_t s = 1; s < ns; ++s)  // each set holds at most one ray per path, in path order (shade1/shade2)
+            if (s != n_first && sh_path.data()[s] <= sh_path.data()[s - 1])
+                throw std::invalid_argument("accumulate: shadow rays of a set must be in increasing path order");
         {
             nb::gil_scoped_release release;
-            std::vector<float> R1(3 * N, 0.0f), R2(3 * N, 0.0f);
             const int32_t *Sp = sh_path.data(), *Pr = prim.data();
             const float *Sv = sh_val.data(), *Th = thr.data(), *E = E2.data();
             const bool *occ = occluded.data();
             const uint8_t *H = hit2.data();
             float *Lo = L.data();
-            for (int64_t s = 0; s < ns; ++s) {
-                if (occ[s]) continue;
-                float *R = (s < n_first ? R1.data() : R2.data()) + 3 * Sp[s];
-                for (int c = 0; c < 3; ++c) R[c] += Sv[3 * s + c];
-            }
+            // The numpy reference scatters the visible shadow values into per-path sums R1 (x1) and R2 (x2) that
+            // start at 0; with one ray per path and set, a path's sum is 0 + its ray's value. The two sets are
+            // walked alongside the paths instead (s1, s2), which needs no per-path arrays.
+            int64_t s1 = 0, s2 = n_first;
             for (int64_t i = 0; i < N; ++i) {
+                float r1[3] = {0.0f, 0.0f, 0.0f}, r2[3] = {0.0f, 0.0f, 0.0f};
+                if (s1 < n_first && Sp[s1] == i) {
+                    if (!occ[s1])
+                        for (int c = 0; c < 3; ++c) r1[c] += Sv[3 * s1 + c];
+                    ++s1;
+                }
+                if (s2 < ns && Sp[s2] == i) {
+                    if (!occ[s2])
+                        for (int c = 0; c < 3; ++c) r2[c] += Sv[3 * s2 + c];
+                    ++s2;
+                }
                 if (Pr[i] < 0) continue;
-                float *r1 = R1.data() + 3 * i;
                 if (H[i]) {
-                    float *r2 = R2.data() + 3 * i;
                     if (clamp) clamp_row(r2, limit);
                     for (int c = 0; c < 3; ++c) r1[c] += Th[3 * i + c] * (E[3 * i + c] + r2[c]);
                 }
@@ -454,8 +482,8 @@ private:
     void bsdf_sample(int mat, const float *n, const float *wo, uint64_t key, float *wi, float *weight,
                      float &pdf) const {
         const float u1 = sr_rng::uniform(key, BU), u2 = sr_rng::uniform(key, BV);
-        const float phi = kTwoPi * u2;
-        const float cph = fcos(phi), sph = fsin(phi);
+        float cph, sph;
+        unit_circle(u2, cph, sph);
         const float *kd = kd_.data() + 3 * mat;
         if (!glossy_) {  // bsdf.lambert_sample
             const float r = std::sqrt(u1);

@@ -8,29 +8,51 @@
 All directions point away from the surface; ``n`` is the shading normal on the side of ``wo``. Shapes: N paths,
 vectors (N, 3), scalars (N,). A diffuse-only scene calls only the ``lambert_*`` functions.
 
-Transcendentals (``cos``, ``sin``, ``pow``) are evaluated in float64 and rounded to float32 (:func:`_cos`,
-:func:`_sin`, :func:`_pow`): numpy's float32 SIMD ``cos``/``sin`` differ from libm in the last bit for ~17 % of
-arguments, while float64 numpy and float64 libm agree, so the native kernels (``cpp_ext/src/shade_tracer.cpp``, which
-call float64 libm and cast) reproduce this module bit for bit. Everything else is float32.
+Bit parity with the native kernels (``cpp_ext/src/shade_tracer.cpp``): every float32 operation is written in the
+same order there. The azimuth of a sampled direction, ``(cos 2πu, sin 2πu)``, comes from :func:`unit_circle`, a
+float32 polynomial that both sides evaluate operation by operation (libm's float64 ``sincos`` cost a quarter of the
+native first-bounce shading). ``pow`` (glossy lobes only) is evaluated in float64 and rounded to float32
+(:func:`_pow`): numpy's float32 SIMD transcendentals differ from libm in the last bit, float64 numpy and float64
+libm agree. Everything else is float32.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["onb", "to_world", "lambert_sample", "lambert_pdf", "phong_eval", "phong_sample",
+__all__ = ["onb", "to_world", "unit_circle", "lambert_sample", "lambert_pdf", "phong_eval", "phong_sample",
            "mixture_sample", "mixture_eval"]
 
 _INV_PI = np.float32(1.0 / np.pi)
 _TWO_PI = np.float32(2.0 * np.pi)
 
 
-def _cos(x: np.ndarray) -> np.ndarray:
-    return np.cos(x.astype(np.float64)).astype(np.float32)
+_HALF_PI = np.float32(np.pi / 2)
+# Taylor coefficients of sin and cos, enough for |error| < 6e-8 on [0, pi/2] (float32 resolution).
+_SIN = tuple(np.float32(c) for c in (-1 / 6, 1 / 120, -1 / 5040, 1 / 362880, -1 / 39916800))
+_COS = tuple(np.float32(c) for c in (-1 / 2, 1 / 24, -1 / 720, 1 / 40320, -1 / 3628800, 1 / 479001600))
 
 
-def _sin(x: np.ndarray) -> np.ndarray:
-    return np.sin(x.astype(np.float64)).astype(np.float32)
+def unit_circle(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(cos 2πu, sin 2πu)`` for uniforms ``u`` in [0, 1) (N,) float32, to within 3e-7.
+
+    The quadrant ``q = floor(4u)`` is split off exactly, the angle ``a = (4u − q)·π/2`` in [0, π/2) goes through
+    Horner polynomials, and the quadrant rotates the result. The native kernels evaluate the same operations in
+    the same order (``unit_circle`` in ``cpp_ext/src/shade_tracer.cpp``), so both give the same bits.
+    """
+    u = np.asarray(u, np.float32)
+    u4 = u * np.float32(4)
+    q = np.floor(u4)
+    a = (u4 - q) * _HALF_PI
+    a2 = a * a
+    s1, s2, s3, s4, s5 = _SIN
+    c1, c2, c3, c4, c5, c6 = _COS
+    one = np.float32(1)
+    s = a * (one + a2 * (s1 + a2 * (s2 + a2 * (s3 + a2 * (s4 + a2 * s5)))))
+    c = one + a2 * (c1 + a2 * (c2 + a2 * (c3 + a2 * (c4 + a2 * (c5 + a2 * c6)))))
+    cos = np.where(q == 0, c, np.where(q == 1, -s, np.where(q == 2, -c, s)))
+    sin = np.where(q == 0, s, np.where(q == 1, c, np.where(q == 2, -s, -c)))
+    return cos, sin
 
 
 def _pow(x: np.ndarray, e: np.ndarray) -> np.ndarray:
@@ -62,9 +84,9 @@ def to_world(n: np.ndarray, lx: np.ndarray, ly: np.ndarray, lz: np.ndarray) -> n
 def lambert_sample(n: np.ndarray, u1: np.ndarray, u2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Cosine-weighted directions around ``n`` (N, 3) from uniforms (N,). Returns (wi (N, 3), cos (N,))."""
     r = np.sqrt(u1)
-    phi = _TWO_PI * u2
+    cph, sph = unit_circle(u2)
     cz = np.sqrt(np.maximum(np.float32(1) - u1, np.float32(0)))
-    return to_world(n, r * _cos(phi), r * _sin(phi), cz), cz
+    return to_world(n, r * cph, r * sph, cz), cz
 
 
 def lambert_pdf(cos_i: np.ndarray) -> np.ndarray:
@@ -98,8 +120,8 @@ def phong_sample(exponent: np.ndarray, n: np.ndarray, wo: np.ndarray, u1: np.nda
     r = _reflect(n, wo)
     ca = _pow(u1, np.float32(1) / (exponent + 1))
     sa = np.sqrt(np.maximum(np.float32(1) - ca * ca, np.float32(0)))
-    phi = _TWO_PI * u2
-    return to_world(r, sa * _cos(phi), sa * _sin(phi), ca)
+    cph, sph = unit_circle(u2)
+    return to_world(r, sa * cph, sa * sph, ca)
 
 
 def mixture_eval(kd, ks, exponent, p_spec, n, wo, wi):

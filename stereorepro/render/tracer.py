@@ -371,7 +371,12 @@ class PathTracer:
             raise ValueError(f"render: sample_offset must be >= 0, got {sample_offset}")
         fr, pixels, H, W = self._setup(camera, frame, pixel_mask, eye)
         counts = {"primary": 0, "secondary": 0, "shadow": 0, "gbuffer": 0}
-        acc = np.zeros((len(pixels), 3), np.float64)
+        rad = np.zeros((3, H * W), np.float32)  # planar, the layout of the output tensor
+        # spp = 1: the one sample is the pixel value (0 + x / 1 in float64 and back is x, but for -0 -> +0, hence the
+        # + 0 below): written straight into the image. Otherwise samples are summed in float64, in a fixed order.
+        one = int(spp) == 1
+        acc = None if one else np.zeros((len(pixels), 3), np.float64)
+        full = pixel_mask is None  # pixels = arange(H * W): ranges of pixels are column ranges of rad
         bar = None
         if progress:
             from tqdm import tqdm
@@ -391,7 +396,7 @@ class PathTracer:
             try:
                 for s0 in range(0, int(spp), k):
                     kk = min(k, int(spp) - s0)
-                    pix = np.tile(pixels[lo:hi], kk)
+                    pix = pixels[lo:hi] if kk == 1 else np.tile(pixels[lo:hi], kk)
                     samp = np.repeat(np.arange(s0, s0 + kk, dtype=np.int64) + int(sample_offset), m)
                     if native:
                         slot["ws"] = self._workspace(len(pix), slot["ws"])
@@ -400,9 +405,15 @@ class PathTracer:
                         contrib = self._trace_paths(fr, pix, samp, c)
                     contrib = contrib.reshape(kk, m, 3)
                     t0 = time.perf_counter() if self._stage_times is not None else 0.0
-                    view = acc[lo:hi]
-                    for j in range(kk):  # fixed summation order: bit-identical whatever the chunking
-                        view += contrib[j]
+                    if one:
+                        if full:
+                            np.add(contrib[0].T, np.float32(0), out=rad[:, lo:hi])
+                        else:
+                            rad[:, pixels[lo:hi]] = contrib[0].T + np.float32(0)
+                    else:
+                        view = acc[lo:hi]
+                        for j in range(kk):  # fixed summation order: bit-identical whatever the chunking
+                            view += contrib[j]
                     _tick(self._stage_times, "accumulate_frame", t0)
                     if bar is not None:
                         with self._lock:
@@ -418,9 +429,9 @@ class PathTracer:
                 counts[name] += v
         if bar is not None:
             bar.close()
-        rad = np.zeros((H * W, 3), np.float32)
-        rad[pixels] = (acc / int(spp)).astype(np.float32)
-        radiance = torch.from_numpy(rad.T.reshape(1, 3, H, W).copy())
+        if not one:
+            rad[:, pixels] = (acc / int(spp)).astype(np.float32).T
+        radiance = torch.from_numpy(rad.reshape(1, 3, H, W))
         g = self._gbuffer(fr, pixels, H, W, counts) if gbuffers else {}
         return RenderResult(radiance=radiance, depth=g.get("depth"), normal=g.get("normal"),
                             position=g.get("position"), albedo=g.get("albedo"),
