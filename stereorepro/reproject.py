@@ -33,6 +33,7 @@ float64) and the colour output takes the dtype of the source colour.
 from __future__ import annotations
 
 import enum
+import math
 
 import torch
 from torch import Tensor, nn
@@ -198,6 +199,10 @@ def backward_reproject(
         reason: (B, 1, H, W) uint8 :class:`Reason` codes (0 where valid).
         confidence: (B, 1, H, W) accepted bilinear weight in [0, 1] before renormalisation (soft weights when
             ``soft``), in the compute dtype.
+
+    Hard tests without autograd or tracing (and with finite squared thresholds) take a faster path with
+    identical outputs (see the notes above ``_PAD``); gradients, tracing, ONNX export and soft tests take the
+    general one.
     """
     if sampling not in _SAMPLINGS:
         raise ValueError(f"sampling must be one of {_SAMPLINGS}, got {sampling!r}")
@@ -215,23 +220,32 @@ def backward_reproject(
     # with M = R K_dst^-1 and P = K_src M. Entries within 1e-12 of an integer are snapped, so identical cameras
     # give P = I and t = 0 exactly: identity warps and integer-pixel shifts are bit-exact.
     M, t, P, kt, Ks_inv = _compose_cameras(src_K, src_cam_from_world, dst_K, dst_cam_from_world, cd)
+    cams = (M, t, P, kt, Ks_inv)
+    inputs = (src_values, src_depth, src_normal, dst_depth, dst_normal, src_K, dst_K, src_cam_from_world,
+              dst_cam_from_world, position_threshold, normal_threshold)
+    inference = _inference_only(inputs)
+    if inference and not soft:  # the usual inference case: same results, a fraction of the memory traffic
+        thr2 = _squared_thresholds(position_threshold, normal_threshold, cd, dev)
+        if bool(torch.isfinite(thr2).all()):
+            return _fast_reproject(src_values, src_depth, src_normal, dst_depth, dst_normal, cams, thr2,
+                                   position_threshold, normal_threshold, sampling)
     feats = _source_features(src_values, src_depth, src_normal, cd)
-    warp = dict(feats=feats, C=C, Hs=Hs, Ws=Ws, cams=(M, t, P, kt, Ks_inv), position_threshold=position_threshold,
-                normal_threshold=normal_threshold, sampling=sampling, soft=soft, temperature=temperature,
-                out_dtype=src_values.dtype)
-    rows = _row_block(B, H, W, (src_values, src_depth, src_normal, dst_depth, dst_normal, src_K, dst_K,
-                                src_cam_from_world, dst_cam_from_world, position_threshold, normal_threshold))
-    if rows is None:
-        return _warp_rows(dst_depth=dst_depth, dst_normal=dst_normal, row0=0, **warp)
-    # Inference on large images: destination rows in blocks, so that the per-tap intermediates stay in cache
-    # (the op is memory-bound). Results are bit-identical to one block (same arithmetic per pixel).
+    warp = dict(read_taps=_feature_reader(feats), C=C, Hs=Hs, Ws=Ws, cams=cams,
+                position_threshold=position_threshold, normal_threshold=normal_threshold, sampling=sampling,
+                soft=soft, temperature=temperature, out_dtype=src_values.dtype)
+    rows = max(1, BLOCK_PIXELS // max(1, B * W)) if inference else None
+    if rows is None or rows >= H:  # gradients or tracing need one graph; small images need no blocking
+        return _warp_pixels(dst_depth=dst_depth, dst_normal=dst_normal, **_pixel_centres(0, H, W, cd, dev), **warp)
+    # Inference on large images (soft tests; hard ones take the fast path): destination rows in blocks, so that
+    # the per-tap intermediates stay in cache (the op is memory-bound). Results are bit-identical to one block.
     values = torch.empty(B, C, H, W, dtype=src_values.dtype, device=dev)
     valid = torch.empty(B, 1, H, W, dtype=torch.bool, device=dev)
     reason = torch.empty(B, 1, H, W, dtype=torch.uint8, device=dev)
     den = torch.empty(B, 1, H, W, dtype=cd, device=dev)
     for r0 in range(0, H, rows):
         r1 = min(H, r0 + rows)
-        out = _warp_rows(dst_depth=dst_depth[:, :, r0:r1], dst_normal=dst_normal[:, :, r0:r1], row0=r0, **warp)
+        out = _warp_pixels(dst_depth=dst_depth[:, :, r0:r1], dst_normal=dst_normal[:, :, r0:r1],
+                           **_pixel_centres(r0, r1, W, cd, dev), **warp)
         for buf, o in zip((values, valid, reason, den), out):
             buf[:, :, r0:r1] = o
     return values, valid, reason, den
@@ -243,28 +257,43 @@ SOFT_DEN_FLOOR = 1e-3
 #: Destination pixels per block in blocked inference (see :func:`backward_reproject`).
 BLOCK_PIXELS = 1 << 16
 
+#: Destination pixels per block in the fast path (its per-block working set is larger).
+FAST_BLOCK_PIXELS = 1 << 15
 
-def _row_block(B: int, H: int, W: int, inputs) -> int | None:
-    """Rows per block; None = one block (gradients or tracing need one graph, or the image is small)."""
+
+def _inference_only(inputs) -> bool:
+    """True when no autograd graph is needed and nothing traces/exports/compiles the call: the row-blocked and
+    fast paths apply (tracing and ONNX export always take the single-block general path)."""
     if _tracing_or_exporting():
-        return None
-    if torch.is_grad_enabled() and any(isinstance(x, Tensor) and x.requires_grad for x in inputs):
-        return None
-    rows = max(1, BLOCK_PIXELS // max(1, B * W))
-    return None if rows >= H else rows
+        return False
+    return not (torch.is_grad_enabled() and any(isinstance(x, Tensor) and x.requires_grad for x in inputs))
 
 
 def _tracing_or_exporting() -> bool:
     return torch.jit.is_tracing() or torch.onnx.is_in_onnx_export() or torch.compiler.is_compiling()
 
 
+def _squared_thresholds(position_threshold, normal_threshold, cd: torch.dtype, dev) -> Tensor:
+    """(1, 2, 1, 1, 1) = (thr_p², thr_n²) in the compute dtype, squared exactly as the general path does."""
+    like = torch.empty((), dtype=cd, device=dev)
+    thr_p, thr_n = _as_scalar(position_threshold, like), _as_scalar(normal_threshold, like)
+    return torch.stack([thr_p * thr_p, thr_n * thr_n]).view(1, 2, 1, 1, 1)
+
+
+def _pixel_centres(r0: int, r1: int, W: int, cd: torch.dtype, dev) -> dict:
+    """Pixel centres of destination rows r0 .. r1 - 1 for :func:`_warp_pixels`: u_c (1, 1, 1, W), v_c (1, 1, h, 1)."""
+    return dict(u_c=torch.arange(W, device=dev, dtype=cd).view(1, 1, 1, W) + 0.5,
+                v_c=torch.arange(r1 - r0, device=dev, dtype=cd).view(1, 1, r1 - r0, 1) + (r0 + 0.5))
+
+
 def _source_features(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, cd: torch.dtype) -> Tensor:
     """The source, sanitised once, as gatherable rows: (B, C+5, Hs·Ws) = values, depth, normal, flags.
 
     Non-finite values and missing surfaces become finite placeholders that the flags reject, so a rejected tap
-    can never leak NaN/Inf (0 · NaN = NaN). Flags: bit 0 = has a surface, bit 1 = finite values.
+    can never leak NaN/Inf (0 · NaN = NaN). Flags: bit 0 = has a surface, bit 1 = finite values. Purely per
+    pixel, so it may equally be applied to already gathered pixels (B, ·, 1, M).
     """
-    B, C, Hs, Ws = src_values.shape
+    B, C = src_values.shape[:2]
     zero = torch.zeros((), dtype=cd, device=src_values.device)
     one = torch.ones((), dtype=cd, device=src_values.device)
     sv = src_values.to(cd)
@@ -273,17 +302,47 @@ def _source_features(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, 
     s_ok = has_surface(sz)
     flags = s_ok.to(cd) + 2.0 * sv_finite.to(cd)
     return torch.cat([torch.where(sv_finite, sv, zero), torch.where(s_ok, sz, one),
-                      _finite_or_zero(src_normal.to(cd)), flags], 1).reshape(B, C + 5, Hs * Ws)
+                      _finite_or_zero(src_normal.to(cd)), flags], 1).reshape(B, C + 5, -1)
 
 
-def _warp_rows(feats: Tensor, C: int, Hs: int, Ws: int, cams, dst_depth: Tensor, dst_normal: Tensor, row0: int,
-               position_threshold, normal_threshold, sampling: str, soft: bool, temperature: float,
-               out_dtype: torch.dtype) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Reproject destination rows ``row0 .. row0 + h`` (dst_depth (B, 1, h, W)); see :func:`backward_reproject`."""
+def _feature_reader(feats: Tensor):
+    """``read_taps`` for :func:`_warp_pixels` over the whole source: index (B, T, ...) -> (B, C+5, T·...)."""
+    def read_taps(index: Tensor) -> Tensor:
+        B, Fg = feats.shape[:2]
+        return torch.gather(feats, 2, index.reshape(B, 1, -1).expand(B, Fg, index[0].numel()))
+    return read_taps
+
+
+def _raw_reader(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, b: int, cd: torch.dtype):
+    """``read_taps`` for :func:`_warp_pixels` that sanitises only the gathered pixels of batch item ``b`` (the
+    fast path's reason pass touches few pixels; building the whole feature table would cost more)."""
+    Ws = src_values.shape[-1]
+
+    def read_taps(index: Tensor) -> Tensor:
+        flat = index.reshape(-1)
+        yy, xx = flat // Ws, flat % Ws  # (C, Hs, Ws) inputs of any strides, indexed without a copy
+        take = [x[b][:, yy, xx][None, :, None] for x in (src_values, src_depth, src_normal)]  # (1, ·, 1, M)
+        return _source_features(*take, cd)
+    return read_taps
+
+
+def _warp_pixels(read_taps, C: int, Hs: int, Ws: int, cams, dst_depth: Tensor, dst_normal: Tensor, u_c: Tensor,
+                 v_c: Tensor, position_threshold, normal_threshold, sampling: str, soft: bool, temperature: float,
+                 out_dtype: torch.dtype) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The general path (differentiable, traceable): reproject destination pixels; see :func:`backward_reproject`.
+
+    Args:
+        read_taps: index (B, T, *S) into the source pixels -> (B, C+5, T·prod(S)) :func:`_source_features` rows.
+        dst_depth: (B, 1, *S), dst_normal: (B, 3, *S) with S = (h, W) rows or (1, K) a list of pixels.
+        u_c, v_c: their pixel centres, broadcastable to (1, 1, *S) (see :func:`_pixel_centres`).
+
+    Returns:
+        values (B, C, *S), valid, reason, confidence (B, 1, *S).
+    """
     M, t, P, kt, Ks_inv = cams
-    cd = feats.dtype
+    cd = Ks_inv.dtype
     dev = dst_depth.device
-    B = feats.shape[0]
+    B = Ks_inv.shape[0]
     H, W = dst_depth.shape[-2:]
     m = M.reshape(B, 3, 3, 1, 1)  # m[:, :, j] is column j as (B, 3, 1, 1)
     t = t.reshape(B, 3, 1, 1)
@@ -295,8 +354,6 @@ def _warp_rows(feats: Tensor, C: int, Hs: int, Ws: int, cams, dst_depth: Tensor,
     one = torch.ones((), dtype=cd, device=dev)
     z_dst = torch.where(dst_ok, z_dst, one)
     inv_z = 1.0 / z_dst
-    v_c = torch.arange(H, device=dev, dtype=cd).view(1, 1, H, 1) + (row0 + 0.5)
-    u_c = torch.arange(W, device=dev, dtype=cd).view(1, 1, 1, W) + 0.5
     wx = p[:, 0:1] * u_c + p[:, 1:2] * v_c + p[:, 2:3] + kt[:, 0:1] * inv_z  # Bx1xHxW
     wy = p[:, 3:4] * u_c + p[:, 4:5] * v_c + p[:, 5:6] + kt[:, 1:2] * inv_z
     wz = p[:, 6:7] * u_c + p[:, 7:8] * v_c + p[:, 8:9] + kt[:, 2:3] * inv_z  # = q_z / z
@@ -332,8 +389,7 @@ def _warp_rows(feats: Tensor, C: int, Hs: int, Ws: int, cams, dst_depth: Tensor,
     index = yi.clamp(0, Hs - 1).to(torch.int64) * Ws + xi.clamp(0, Ws - 1).to(torch.int64)  # BxTxHxW
 
     zero = torch.zeros((), dtype=cd, device=dev)
-    g = torch.gather(feats, 2, index.reshape(B, 1, T * H * W).expand(B, C + 5, T * H * W))
-    g = g.reshape(B, C + 5, T, H, W)
+    g = read_taps(index).reshape(B, C + 5, T, H, W)
     g_val = g[:, :C]
     z_src = g[:, C]  # BxTxHxW, 1 where no surface
     n_src = g[:, C + 1:C + 4]  # Bx3xTxHxW
@@ -393,6 +449,280 @@ def _warp_rows(feats: Tensor, C: int, Hs: int, Ws: int, cams, dst_depth: Tensor,
     return values.to(out_dtype), valid, reason, den
 
 
+# --- fast path: hard tests in inference ---------------------------------------------------------------------
+# backward_reproject's fast path for hard tests when no autograd graph is needed and nothing traces the call
+# (and the squared thresholds are finite). Wherever a result depends on it, it performs the per-element float
+# arithmetic of _warp_pixels, so values, valid, reason and confidence are identical to the general path
+# (tests/test_reproject.py::TestFastPath); what changes is the memory traffic, which bounds this op on a CPU:
+#
+# * the source is sanitised once into a padded gather table (_fast_source_table) holding, per pixel, the values,
+#   the source-camera point (px, py, z) (the per-tap formula of _warp_pixels evaluated once per pixel: the same
+#   bits) and the normal. A pixel no tap may accept (no surface, non-finite values, the _PAD border) has a NaN or
+#   infinite point, which fails the position test: no per-tap frame, surface or finiteness tests, no index
+#   clamping. Invalid destination pixels are sent to the border the same way;
+# * accept tests are float arithmetic (a comparison into a float tensor is vectorised, into a bool one it is not);
+# * one gather of all taps' table rows per row block; one pass of float ops over (channel, tap, pixel) arrays;
+# * reasons only for invalid pixels (_fast_reasons): no surface / behind the camera / every tap out of frame
+#   directly, the rest (occlusions, ...) through _warp_pixels on those pixels alone;
+# * destination rows in blocks of FAST_BLOCK_PIXELS, with scratch buffers reused across blocks (out= / in-place).
+
+#: Border of the fast path's source table: taps of coordinates clamped to [-4, Ws + 4] read pixels -5 .. Ws + 4.
+_PAD = 5
+
+#: Integers up to this are exact in float32 (larger source tables get float64 index arithmetic).
+_F32_EXACT = 2 ** 24
+
+
+class _Scratch:
+    """Named scratch buffers of the fast path, reused across row blocks (multi-MB temporaries allocated afresh
+    by every op cost page faults and cache misses). ``views(key, spec)`` returns a dict name -> view of the given
+    shape for ``spec`` = [(name, shape, dtype), ...], cached per key; different names never alias."""
+
+    def __init__(self, device):
+        self.device, self._bufs, self._views = device, {}, {}
+
+    def views(self, key, spec) -> dict:
+        if key not in self._views:
+            views = {}
+            for name, shape, dtype in spec:
+                n = math.prod(shape)
+                buf = self._bufs.get((name, dtype))
+                if buf is None or buf.numel() < n:
+                    buf = self._bufs[(name, dtype)] = torch.empty(n, dtype=dtype, device=self.device)
+                views[name] = buf[:n].view(shape)
+            self._views[key] = views
+        return self._views[key]
+
+
+def _fast_source_table(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, Ks_inv: Tensor,
+                       cd: torch.dtype) -> Tensor:
+    """The fast path's gather table: (B, C+6, Hp·Wp) with Hp, Wp = Hs + 2·_PAD, Ws + 2·_PAD.
+
+    Channels: values (all 0 for a pixel with any non-finite value), the pixel's point in the source camera frame
+    px, py, z (NaN or ±inf where no tap may be accepted: no surface, non-finite values, the border), normal
+    (non-finite components 0, as _finite_or_zero).
+    """
+    B, C, Hs, Ws = src_values.shape
+    dev = src_values.device
+    p = _PAD
+    tab = torch.empty(B, C + 6, Hs + 2 * p, Ws + 2 * p, dtype=cd, device=dev)
+    for border in (tab[:, :, :p], tab[:, :, p + Hs:], tab[:, :, p:p + Hs, :p], tab[:, :, p:p + Hs, p + Ws:]):
+        border.fill_(0.0)
+        border[:, C:C + 3].fill_(math.nan)
+    inner = tab[:, :, p:p + Hs, p:p + Ws]
+    sv = src_values.to(cd)
+    s0 = sv.sum(1, keepdim=True)
+    s0 = torch.sub(s0, s0, out=s0)  # 0 where all values of the pixel are finite, NaN elsewhere
+    torch.sub(sv, s0, out=inner[:, :C]).nan_to_num_(0.0, 0.0, 0.0)  # x - 0 = x, bit for bit (-0 included)
+    sz = src_depth.to(cd)
+    surface = torch.gt(sz, 0.0, out=torch.empty_like(sz))  # 1.0 / 0.0
+    zm = torch.sub(sz, s0).div_(surface)  # z where z > 0 and the values are finite; NaN or ±inf elsewhere
+    ki = Ks_inv.reshape(B, 9, 1, 1)
+    ut = torch.arange(Ws, dtype=cd, device=dev).view(1, 1, 1, Ws) + 0.5
+    vt = torch.arange(Hs, dtype=cd, device=dev).view(1, 1, Hs, 1) + 0.5
+    torch.mul(zm, ki[:, 0:1] * ut + ki[:, 1:2] * vt + ki[:, 2:3], out=inner[:, C:C + 1])  # px, as in _warp_pixels
+    torch.mul(zm, ki[:, 4:5] * vt + ki[:, 5:6], out=inner[:, C + 1:C + 2])  # py
+    inner[:, C + 2:C + 3] = zm
+    torch.nan_to_num(src_normal.to(cd), 0.0, 0.0, 0.0, out=inner[:, C + 3:])
+    return tab.view(B, C + 6, -1)
+
+
+def _fast_geometry(geo, z: Tensor, n: Tensor, r0: int, r1: int, uv_raw: Tensor, sc: _Scratch):
+    """Destination rows r0 .. r1 - 1 -> taps: the fast path's share of the projection and tap weights of
+    :func:`_warp_pixels` (same arithmetic for every pixel that can have an accepted tap).
+
+    Args:
+        geo: see :func:`_fast_reproject`.
+        z: (B, 1, N) depth, n: (B, 3, N) normal of the N = (r1 - r0)·W pixels (any float dtype and strides).
+        uv_raw: (B, 2, N), written: the source pixel (u, v) before clamping; non-finite where the pixel has a
+            surface but is behind the source camera or projects to infinity (``front`` False in _warp_pixels).
+
+    Returns:
+        qn: (B, 6, N) the destination point in the source camera frame and the sanitised destination normal.
+        wts: (B, 2, 2, N) bilinear weights of the taps (y0 | y0 + 1, x0 | x0 + 1), None for nearest sampling.
+        corner: (B, 1, N) y0·Wp + x0 for tap (x0, y0) (nearest: the tap), exact in its float dtype; the table
+            index of a tap is this plus _PAD·Wp + _PAD plus its offset from (x0, y0).
+
+    Invalid pixels need no flag: no surface (z <= 0 -> 1/z = inf, NaN z) or behind the camera (wz <= 0 ->
+    w / 0) make u, v non-finite, sanitised to the border, so every tap is rejected; z = +inf gives an infinite q.
+    """
+    R, ru, v_c, kt, t, lo, hi, one, sampling, Wp, idx_dtype = geo
+    B, h, W = z.shape[0], r1 - r0, ru.shape[-1]
+    N, cd = h * W, R.dtype
+    v = sc.views(("geometry", N), [("zc", (B, 1, N), cd), ("inv", (B, 1, N), cd), ("base", (B, 6, h, W), cd),
+                                   ("w", (B, 3, N), cd), ("qn", (B, 6, N), cd), ("uv", (B, 2, N), cd),
+                                   ("xy0", (B, 2, N), cd), ("wa", (B, 2, 2, N), cd), ("wts", (B, 2, 2, N), cd),
+                                   ("corner", (B, 1, N), idx_dtype)])
+    zc = torch.clamp_min(z.to(cd), 0.0, out=v["zc"])
+    inv = torch.reciprocal(zc, out=v["inv"])
+    # [P; M] @ [u, v, 1] as in _warp_pixels: (R0·u + R1·v) + R2, R0·u precomputed
+    base = torch.add(ru, R[:, :, 1, None, None] * v_c[:, :, r0:r1], out=v["base"])
+    base = base.add_(R[:, :, 2, None, None]).view(B, 6, N)
+    w = torch.mul(kt, inv, out=v["w"]).add_(base[:, :3])  # P @ [u, v, 1] + (K_src t) / z
+    qn = v["qn"]
+    torch.mul(base[:, 3:], zc, out=qn[:, :3]).add_(t)  # (M @ [u, v, 1]) z + t
+    torch.nan_to_num(n.to(cd), 0.0, 0.0, 0.0, out=qn[:, 3:])
+    torch.div(w[:, :2], torch.clamp_min(w[:, 2:3], 0.0, out=inv), out=uv_raw)  # wz <= 0: ±inf or NaN
+    # the taps' x = clamp(u, -4, Ws + 4) - 0.5 in _warp_pixels; here u - 0.5 clamped to [-5, Ws + 3] (with integer
+    # bounds, so that pixels off the frame have f = 0): the same bits wherever a tap can be in the frame
+    uv = torch.sub(uv_raw, 0.5 if sampling == "bilinear" else 0.0, out=v["uv"])
+    uv.nan_to_num_(-5.0, -5.0, -5.0).clamp_(lo, hi)
+    xy0 = torch.floor(uv, out=v["xy0"])
+    wts = None
+    if sampling == "bilinear":
+        wa = v["wa"]  # (B, axis x|y, 1 - f | f, N)
+        f = torch.sub(uv, xy0, out=wa[:, :, 1])
+        torch.sub(one, f, out=wa[:, :, 0])
+        wts = torch.mul(wa[:, 1, :, None], wa[:, 0, None, :], out=v["wts"])
+    xy0 = xy0.to(idx_dtype)  # (float64 for tables of 2^24 pixels or more)
+    corner = torch.mul(xy0[:, 1:2], Wp, out=v["corner"]).add_(xy0[:, 0:1])
+    return qn, wts, corner
+
+
+def _fast_accept(taps: Tensor, qn: Tensor, wts: Tensor | None, thr2: Tensor, sc: _Scratch, key,
+                 values: Tensor, valid: Tensor, den: Tensor) -> None:
+    """Accept tests and the renormalised sum over the taps of N destination pixels (the tail of _warp_pixels).
+
+    Args:
+        taps: (B, C+6, Ty, Tx, N) gathered table rows (any strides); Ty = Tx = 2 (bilinear) or 1 (nearest).
+        qn: (B, 6, N), wts: (B, Ty, Tx, N) or None (a single tap of weight 1), thr2: (1, 2, 1, 1, 1).
+        values: (B, C, N), valid, den: (B, 1, N), written. Where nothing is accepted ``values`` is ±0 (the
+            sign of a sum of zeros); the caller writes +0 there.
+    """
+    B, F, Ty, Tx, N = taps.shape
+    C, T, cd = F - 6, Ty * Tx, taps.dtype
+    v = sc.views(("accept", key), [("d", (B, 6, Ty, Tx, N), cd), ("s", (B, 2, Ty, Tx, N), cd),
+                                   ("a", (B, 2, Ty, Tx, N), cd), ("ws", (B, Ty, Tx, N), cd),
+                                   ("prod", (B, C, Ty, Tx, N), cd), ("num", (B, C, N), cd),
+                                   ("den_safe", (B, 1, N), cd)])
+    # (p_src - q)², (n_src - n_dst)² in one pass (mse_loss without reduction: exactly the square of the difference)
+    d = torch.ops.aten.mse_loss.out(taps[:, C:], qn[:, :, None, None], 0, out=v["d"]).view(B, 2, 3, Ty, Tx, N)
+    s = torch.add(d[:, :, 0], d[:, :, 1], out=v["s"]).add_(d[:, :, 2])  # d_pos2, d_n2 summed as _warp_pixels
+    a = torch.le(s, thr2, out=v["a"])  # 1.0 / 0.0, NaN -> 0.0
+    ws = torch.mul(a[:, 0], a[:, 1], out=v["ws"])
+    if wts is not None:
+        ws.mul_(wts)  # = wts · hard
+    torch.sum(ws.view(B, T, N), 1, keepdim=True, out=den)
+    prod = torch.mul(taps[:, :C], ws[:, None], out=v["prod"])
+    num = torch.sum(prod.view(B, C, T, N), 2, out=v["num"])
+    torch.gt(den, 0.0, out=valid)
+    # den > 0 is a sum of products of two weights >= 2^-24 (fractions of coordinates < 2^23), so it is above
+    # `tiny`: clamping divides by den itself where valid
+    torch.div(num, torch.clamp_min(den, torch.finfo(cd).tiny, out=v["den_safe"]), out=values)
+
+
+def _take(x: Tensor, b: int, p: Tensor, yy: Tensor, xx: Tensor) -> Tensor:
+    """(1, C, K): pixels ``p`` (flat; rows yy, columns xx) of batch item ``b`` of a (B, C, H, W) tensor."""
+    xb = x[b]
+    if xb.is_contiguous():  # (index_select along the last dim is much slower than this gather)
+        return torch.gather(xb.view(1, xb.shape[0], -1), 2, p.view(1, 1, -1).expand(1, xb.shape[0], -1))
+    return xb[:, yy, xx][None]
+
+
+def _fast_reasons(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, dst_depth: Tensor, dst_normal: Tensor,
+                  cams, position_threshold, normal_threshold, sampling: str, b: int, p: Tensor,
+                  uv: Tensor) -> Tensor:
+    """Reason codes (K,) uint8 of the invalid destination pixels ``p`` (flat indices) of batch item ``b``.
+
+    ``uv`` (2, K) is their unclamped source pixel from :func:`_fast_geometry`. No surface, behind the camera and
+    "every tap out of frame" (the image border: most invalid pixels) follow from it and the depth as in
+    :func:`_warp_pixels`; the others (occlusions, ...) go through :func:`_warp_pixels` on those pixels only.
+    """
+    C, Hs, Ws = src_values.shape[1:]
+    cd, dev = cams[0].dtype, dst_depth.device
+    W, K = dst_depth.shape[-1], p.numel()
+    yy, xx = p // W, p % W
+    z = _take(dst_depth, b, p, yy, xx).to(cd).view(K)
+    dst_ok = has_surface(z)
+    front = torch.isfinite(uv).all(0)  # with a surface: as `front` in _warp_pixels
+    u, v = uv[0].clamp(-4.0, Ws + 4.0), uv[1].clamp(-4.0, Hs + 4.0)
+    if sampling == "bilinear":  # taps x0, x0 + 1 (y0, y0 + 1) all outside [0, Ws - 1] ([0, Hs - 1])
+        x0, y0 = torch.floor(u - 0.5), torch.floor(v - 0.5)
+        outside = (x0 < -1) | (x0 > Ws - 1) | (y0 < -1) | (y0 > Hs - 1)
+    else:
+        xi, yi = torch.floor(u), torch.floor(v)
+        outside = (xi < 0) | (xi > Ws - 1) | (yi < 0) | (yi > Hs - 1)
+    code = torch.full((K,), int(Reason.OUT_OF_FRAME), dtype=torch.uint8, device=dev)
+    code.masked_fill_(~outside, int(Reason.KEPT))  # undecided
+    code.masked_fill_(~front, int(Reason.BEHIND_CAMERA))
+    code.masked_fill_(~dst_ok, int(Reason.NO_SURFACE_DST))
+    rest = torch.nonzero(code == int(Reason.KEPT)).squeeze(1)
+    if rest.numel():
+        k, p, yy, xx = rest.numel(), p[rest], yy[rest], xx[rest]
+        _, _, reason, _ = _warp_pixels(
+            _raw_reader(src_values, src_depth, src_normal, b, cd), C, Hs, Ws, tuple(c[b:b + 1] for c in cams),
+            z[rest].view(1, 1, 1, k), _take(dst_normal, b, p, yy, xx).view(1, 3, 1, k),
+            (xx.to(cd) + 0.5).view(1, 1, 1, k), (yy.to(cd) + 0.5).view(1, 1, 1, k), position_threshold,
+            normal_threshold, sampling, False, 0.1, cd)
+        code[rest] = reason.view(k)
+    return code
+
+
+def _fast_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, dst_depth: Tensor,
+                    dst_normal: Tensor, cams, thr2: Tensor, position_threshold, normal_threshold,
+                    sampling: str) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """:func:`backward_reproject` for hard tests without autograd or tracing (see the notes above _PAD)."""
+    M, t, P, kt, Ks_inv = cams
+    cd, dev = M.dtype, dst_depth.device
+    B, C, Hs, Ws = src_values.shape
+    H, W = dst_depth.shape[-2:]
+    F, Wp = C + 6, Ws + 2 * _PAD
+    bilinear = sampling == "bilinear"
+    tab = _fast_source_table(src_values, src_depth, src_normal, Ks_inv, cd)
+    Np = tab.shape[-1]
+    # table indices are computed in floating point: exact below 2^24 in float32
+    idx_dtype = cd if cd == torch.float64 or Np + Wp < _F32_EXACT else torch.float64
+    off = -1.0 if bilinear else 0.0  # see _fast_geometry
+    lo = torch.full((1, 2, 1), -4.0 + off, dtype=cd, device=dev)
+    hi = torch.tensor([Ws + 4.0 + off, Hs + 4.0 + off], dtype=cd, device=dev).view(1, 2, 1)
+    R = torch.cat([P, M], 1)  # (B, 6, 3)
+    u_c = torch.arange(W, device=dev, dtype=cd).view(1, 1, 1, W) + 0.5  # pixel centres, as _pixel_centres
+    v_c = torch.arange(H, device=dev, dtype=cd).view(1, 1, H, 1) + 0.5
+    geo = (R, R[:, :, 0, None, None] * u_c, v_c, kt, t, lo, hi, torch.ones((), dtype=cd, device=dev), sampling, Wp,
+           idx_dtype)
+    sc = _Scratch(dev)
+
+    values = torch.empty(B, C, H, W, dtype=cd, device=dev)
+    valid = torch.empty(B, 1, H, W, dtype=torch.bool, device=dev)
+    den = torch.empty(B, 1, H, W, dtype=cd, device=dev)
+    uv_raw = torch.empty(B, 2, H * W, dtype=cd, device=dev)  # for the reasons of invalid pixels
+    offsets = torch.tensor([[0.0, 1.0], [Wp, Wp + 1.0]] if bilinear else [[0.0]], dtype=idx_dtype, device=dev)
+    offsets += _PAD * Wp + _PAD  # (0, 0) of the source image in the padded table
+    # v_s = v + P[1, 2] for every pixel (P[1] = (0, 1, ·), P[2] = (0, 0, 1), kt_y = kt_z = 0): bilinear taps may all
+    # have fy = 0 (rectified stereo), checked per block; otherwise the check would only cost time
+    rectified = bilinear and bool((P[:, 1, :2] == torch.tensor([0.0, 1.0], dtype=cd, device=dev)).all()
+                                  & (P[:, 2] == torch.tensor([0.0, 0.0, 1.0], dtype=cd, device=dev)).all()
+                                  & (kt[:, 1:] == 0).all())
+    rows = max(1, FAST_BLOCK_PIXELS // max(1, B * W))
+    for r0 in range(0, H, rows):
+        r1 = min(H, r0 + rows)
+        N = (r1 - r0) * W
+        qn, wts, corner = _fast_geometry(geo, dst_depth[:, :, r0:r1].reshape(B, 1, N),
+                                         dst_normal[:, :, r0:r1].reshape(B, 3, N), r0, r1,
+                                         uv_raw[:, :, r0 * W:r1 * W], sc)
+        offs = offsets
+        if rectified and not torch.count_nonzero(wts[:, 1, 0]):  # (1 - fx)·fy, 1 - fx > 0
+            # fy = 0 for every pixel (rectified stereo): the y0 + 1 taps weigh 0, the y0 taps give the same sums
+            offs, wts = offsets[:1], wts[:, :1]
+        T = offs.numel()
+        v = sc.views(("taps", N, T), [("fidx", (B, T, N), idx_dtype), ("idx", (B, T, N), torch.int64),
+                                      ("taps", (B, F, T * N), cd)])
+        idx = v["idx"].copy_(torch.add(corner, offs.view(1, T, 1), out=v["fidx"]))
+        taps = torch.gather(tab, 2, idx.view(B, 1, T * N).expand(B, F, T * N), out=v["taps"])
+        _fast_accept(taps.view(B, F, *offs.shape, N), qn, wts, thr2, sc, (N, T), values[:, :, r0:r1].view(B, C, N),
+                     valid[:, :, r0:r1].view(B, 1, N), den[:, :, r0:r1].view(B, 1, N))
+
+    reason = torch.zeros(B, 1, H, W, dtype=torch.uint8, device=dev)
+    for b in range(B):
+        p = torch.nonzero(~valid[b].view(H * W)).squeeze(1)
+        if p.numel():
+            values[b].view(C, H * W).index_fill_(1, p, 0.0)  # +0 where nothing is accepted, as the general path
+            reason[b].view(H * W).index_copy_(0, p, _fast_reasons(
+                src_values, src_depth, src_normal, dst_depth, dst_normal, cams, position_threshold,
+                normal_threshold, sampling, b, p, uv_raw[b].index_select(1, p)))
+    return values.to(src_values.dtype), valid, reason, den
+
+
 def stereo_reproject(
     src_color: Tensor,
     src_depth: Tensor,
@@ -438,7 +768,7 @@ def stereo_reproject(
                                normal_threshold), soft) == "native":
         color, valid, reason, _ = _native.native_backward_reproject(
             src_color, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal, dst_K,
-            dst_cam_from_world, position_threshold, normal_threshold, sampling, check=False)
+            dst_cam_from_world, position_threshold, normal_threshold, sampling, check=False, want_confidence=False)
         return color, valid, reason
     color, valid, reason, _ = backward_reproject(
         src_color, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal, dst_K,

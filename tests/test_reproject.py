@@ -438,6 +438,159 @@ class TestStereoReproject:
         assert (out[~v] == 0).all()
 
 
+def _sprinkle(inp, seed, frac=0.03):
+    """Special values (NaN, ±inf, 0, negative, tiny, huge) at random pixels of every image input."""
+    g = torch.Generator().manual_seed(seed)
+    out = dict(inp)
+    specials = torch.tensor([math.nan, math.inf, -math.inf, 0.0, -1.0, 1e-12, 1e30, -0.0])
+    for k in ("src_color", "src_depth", "src_normal", "dst_depth", "dst_normal"):
+        x = inp[k].clone()
+        hit = torch.rand(x.shape, generator=g) < frac
+        pick = torch.randint(len(specials), x.shape, generator=g)
+        out[k] = torch.where(hit, specials[pick].to(x.dtype), x)
+    return out
+
+
+class TestFastPath:
+    """Hard tests in inference take a fast path (padded source table, float accept tests, row blocks, reasons only
+    for invalid pixels); its four outputs must equal the general path's exactly."""
+
+    @staticmethod
+    def _both(monkeypatch, args, block=None, **kw):
+        import stereorepro.reproject as rp
+
+        calls = []
+        fast_impl = rp._fast_reproject
+        with monkeypatch.context() as m, torch.no_grad():
+            m.setattr(rp, "_fast_reproject", lambda *a, **k: calls.append(1) or fast_impl(*a, **k))
+            if block is not None:
+                m.setattr(rp, "FAST_BLOCK_PIXELS", block)
+            fast = backward_reproject(*args, **kw)
+        assert calls == [1], "the fast path was not taken"
+        with monkeypatch.context() as m, torch.no_grad():
+            m.setattr(rp, "_inference_only", lambda inputs: False)
+            general = backward_reproject(*args, **kw)
+        assert calls == [1]
+        return fast, general
+
+    @staticmethod
+    def _assert_same(fast, general):
+        for f, g in zip(fast, general):
+            assert f.dtype == g.dtype and f.shape == g.shape
+            assert torch.equal(f, g), f"{int((f != g).sum())} of {f.numel()} differ"
+
+    @pytest.mark.parametrize("sampling", ["bilinear", "nearest"])
+    @pytest.mark.parametrize("scene", [dict(), dict(forward=0.3, yaw=3.0), dict(forward=-0.2, yaw=-2.0, baseline=0.3)])
+    def test_scenes(self, monkeypatch, dtype, sampling, scene):
+        inp, *_ = scene_pair(H=37, W=50, dtype=dtype, **scene)
+        for pos, nrm in [(0.05, 0.3), (1e-3, 1e-2), (3.0, 2.0)]:
+            fast, general = self._both(monkeypatch, [inp[a] for a in ARGS], block=200, position_threshold=pos,
+                                       normal_threshold=nrm, sampling=sampling)  # 4 rows per block, then 1
+            self._assert_same(fast, general)
+            assert 0 < fast[1].float().mean() or pos < 0.01
+
+    @pytest.mark.parametrize("sampling", ["bilinear", "nearest"])
+    @pytest.mark.parametrize("seed", range(4))
+    def test_special_values(self, monkeypatch, sampling, seed):
+        inp, *_ = scene_pair(H=24, W=32, forward=0.1, yaw=1.0)
+        bad = _sprinkle(inp, seed)
+        fast, general = self._both(monkeypatch, [bad[a] for a in ARGS], block=100, position_threshold=0.1,
+                                   normal_threshold=1.5, sampling=sampling)
+        self._assert_same(fast, general)
+        assert torch.isfinite(fast[0]).all()
+        assert len(fast[2].unique()) >= 5  # kept, no surface (dst), behind, position, normal, non-finite, ...
+
+    @pytest.mark.parametrize("shift", [0.0, 1.0, 1.25, -2.5])
+    def test_rectified_planes(self, monkeypatch, shift):
+        """fy = 0 everywhere: the fast path reads the y0 taps only."""
+        import stereorepro.reproject as rp
+
+        inp = plane_pair(H=9, W=11, shift_px=shift, B=2)
+        inp["src_depth"][0, 0, :, 4] = 2.5  # occluder: POSITION discards
+        taps = []
+        accept = rp._fast_accept
+        monkeypatch.setattr(rp, "_fast_accept", lambda t, *a: taps.append(t.shape[2:4]) or accept(t, *a))
+        fast, general = self._both(monkeypatch, [inp[a] for a in ARGS], block=30, position_threshold=0.01,
+                                   normal_threshold=0.1)
+        self._assert_same(fast, general)
+        assert set(taps) == {(1, 2)}
+
+    def test_batch_sizes_and_layouts(self, monkeypatch):
+        a, *_ = scene_pair(H=20, W=30, forward=0.0)
+        b, *_ = scene_pair(H=20, W=30, forward=0.3, yaw=3.0)
+        batch = {k: torch.cat([a[k], b[k]]) for k in ARGS}
+        for k in ("src_color", "src_normal", "dst_normal"):
+            batch[k] = batch[k].contiguous(memory_format=torch.channels_last)
+        batch["dst_depth"] = batch["dst_depth"].transpose(-1, -2).contiguous().transpose(-1, -2)
+        for block in (None, 1, 100):
+            fast, general = self._both(monkeypatch, [batch[k] for k in ARGS], block=block, position_threshold=0.05,
+                                       normal_threshold=0.2)
+            self._assert_same(fast, general)
+
+    @pytest.mark.parametrize("hw", [(1, 9), (7, 1), (1, 1)])
+    def test_single_row_or_column(self, monkeypatch, hw):
+        src = plane_pair(H=5, W=6, shift_px=0.5)
+        dst = plane_pair(H=hw[0], W=hw[1])
+        args = [src[a] if a.startswith("src") else dst[a] for a in ARGS]
+        fast, general = self._both(monkeypatch, args, block=1, position_threshold=0.05, normal_threshold=0.2)
+        self._assert_same(fast, general)
+
+    @pytest.mark.parametrize("low", [torch.float16, torch.bfloat16])
+    def test_half_precision(self, monkeypatch, low):
+        inp, *_ = scene_pair(H=16, W=20, forward=0.1)
+        half = {k: (v.to(low) if v.dim() == 4 else v) for k, v in inp.items()}
+        fast, general = self._both(monkeypatch, [half[a] for a in ARGS], position_threshold=0.05,
+                                   normal_threshold=0.2)
+        self._assert_same(fast, general)
+        assert fast[0].dtype == low
+
+    def test_extra_channels_and_tensor_thresholds(self, monkeypatch):
+        inp, *_ = scene_pair(H=18, W=22, forward=0.2, dtype=torch.float64)
+        values = torch.cat([inp["src_color"], torch.rand(1, 2, 18, 22, dtype=torch.float64)], 1)
+        args = [values] + [inp[a] for a in ARGS[1:]]
+        fast, general = self._both(monkeypatch, args, block=50, position_threshold=torch.tensor(0.05),
+                                   normal_threshold=torch.tensor(0.3, dtype=torch.float64))
+        self._assert_same(fast, general)
+
+    def test_float64_table_indices(self, monkeypatch):
+        """Source tables of 2^24 pixels or more index in float64 (forced here on a small image)."""
+        import stereorepro.reproject as rp
+
+        monkeypatch.setattr(rp, "_F32_EXACT", 100)
+        inp, *_ = scene_pair(H=12, W=16, forward=0.2)
+        fast, general = self._both(monkeypatch, [inp[a] for a in ARGS], block=40, position_threshold=0.05,
+                                   normal_threshold=0.2)
+        self._assert_same(fast, general)
+
+    def test_not_taken(self, monkeypatch):
+        """Gradients, soft tests and thresholds whose square is not finite take the general path."""
+        import stereorepro.reproject as rp
+
+        monkeypatch.setattr(rp, "_fast_reproject", None)  # would raise if called
+        inp, *_ = scene_pair(H=8, W=10)
+        run(inp, 1e20, 0.3)
+        run(inp, 0.05, 0.3, soft=True)
+        with torch.enable_grad():
+            run({**inp, "src_color": inp["src_color"].clone().requires_grad_(True)}, 0.05, 0.3)
+
+    def test_temporal(self, monkeypatch):
+        import stereorepro.reproject as rp
+
+        m = TemporalReprojection(0.05, 0.3, backend="torch")
+        args = example_inputs(m, batch=2, height=21, width=33, seed=5)
+        calls = []
+        fast_impl = rp._fast_reproject
+        with monkeypatch.context() as mp:
+            mp.setattr(rp, "_fast_reproject", lambda *a, **k: calls.append(1) or fast_impl(*a, **k))
+            mp.setattr(rp, "FAST_BLOCK_PIXELS", 70)
+            fast = m(*args)
+        with monkeypatch.context() as mp, torch.no_grad():
+            mp.setattr(rp, "_inference_only", lambda inputs: False)
+            general = m(*args)
+        assert calls == [1]
+        self._assert_same(fast, general)
+
+
 class TestSoftReprojection:
     def test_low_temperature_approaches_hard(self):
         inp, *_ = scene_pair(forward=0.2)
