@@ -59,6 +59,22 @@ def time_ms(fn, repeats: int = 7, warmup: int = 2) -> dict:
     return {"median_ms": statistics.median(ts), "min_ms": min(ts), "max_ms": max(ts), "repeats": repeats}
 
 
+def time_interleaved(fns: dict, repeats: int = 7, warmup: int = 2) -> dict:
+    """Like :func:`time_ms` for several callables, timed round-robin (one call of each per round), so that every
+    one sees the same machine state and cache pressure: name -> {median_ms, min_ms, max_ms, repeats}."""
+    for _ in range(warmup):
+        for fn in fns.values():
+            fn()
+    ts = {name: [] for name in fns}
+    for _ in range(repeats):
+        for name, fn in fns.items():
+            t0 = time.perf_counter()
+            fn()
+            ts[name].append((time.perf_counter() - t0) * 1e3)
+    return {name: {"median_ms": statistics.median(v), "min_ms": min(v), "max_ms": max(v), "repeats": repeats}
+            for name, v in ts.items()}
+
+
 def write_atomic(path: Path, text: str) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
