@@ -269,7 +269,9 @@ SR_AVX2 inline void gather_pairs(const Source &s, const Consts &k, __m256 x0, __
     // than 8-lane gathers on the CPUs measured here.
     auto load = [&](const float *plane, __m256 &va, __m256 &vb) SR_AVX2 {
         // movq / movhpd of two adjacent floats (intrinsics whose pointers may alias float data)
-        auto lo = [&](int l) { return _mm_castsi128_pd(_mm_loadl_epi64(reinterpret_cast<const __m128i *>(plane + ix[l]))); };
+        auto lo = [&](int l) {
+            return _mm_castsi128_pd(_mm_loadl_epi64(reinterpret_cast<const __m128i *>(plane + ix[l])));
+        };
         auto hi = [&](__m128d q, int l) { return _mm_loadh_pd(q, reinterpret_cast<const double *>(plane + ix[l])); };
         const __m128d q0 = hi(lo(0), 1), q1 = hi(lo(2), 3), q2 = hi(lo(4), 5), q3 = hi(lo(6), 7);  // a0 b0 a1 b1 ...
         const __m256 g0 = _mm256_castpd_ps(_mm256_set_m128d(q1, q0));  // a0 b0 a1 b1 | a2 b2 a3 b3

@@ -10,10 +10,11 @@
 //   TracerShader.accumulate  after the occlusion query: visible NEE values, x2's and x1's clamps, the sample.
 //
 // Parity with numpy: every float32 operation follows the numpy code in the same order (a*b + c*d + e*f is
-// (a*b + c*d) + e*f, divisions stay divisions), without FMA contraction. Transcendentals (cos, sin, pow) are
-// float64 libm calls cast to float32 in both paths (bsdf.py does the same in numpy float64), because numpy's
-// float32 SIMD cos/sin differ from libm in the last bit. Light selection compares float64 CDF values as
-// np.searchsorted(side="right") does. Result: bit-identical radiance (tests/test_render_native.py).
+// (a*b + c*d) + e*f, divisions stay divisions), without FMA contraction. The azimuth (cos, sin) of a sampled
+// direction is a float32 polynomial evaluated the same way on both sides (unit_circle = bsdf.unit_circle); pow
+// (glossy lobes) is a float64 libm call cast to float32 in both paths (bsdf.py does the same in numpy float64),
+// because numpy's float32 SIMD transcendentals differ from libm in the last bit. Light selection compares float64
+// CDF values as np.searchsorted(side="right") does. Result: bit-identical radiance (tests/test_render_native.py).
 //
 // Layout inside a kernel: paths are processed in blocks of kBlock lanes; each step of next-event estimation is a
 // loop over the block (the per-point dependency chain hash -> light selection -> sqrt -> three divisions is long,

@@ -10,8 +10,8 @@ vectors (N, 3), scalars (N,). A diffuse-only scene calls only the ``lambert_*`` 
 
 Bit parity with the native kernels (``cpp_ext/src/shade_tracer.cpp``): every float32 operation is written in the
 same order there. The azimuth of a sampled direction, ``(cos 2πu, sin 2πu)``, comes from :func:`unit_circle`, a
-float32 polynomial that both sides evaluate operation by operation (libm's float64 ``sincos`` cost a quarter of the
-native first-bounce shading). ``pow`` (glossy lobes only) is evaluated in float64 and rounded to float32
+float32 polynomial that both sides evaluate operation by operation (libm's float64 ``sincos`` took about a sixth of
+the native first-bounce shading). ``pow`` (glossy lobes only) is evaluated in float64 and rounded to float32
 (:func:`_pow`): numpy's float32 SIMD transcendentals differ from libm in the last bit, float64 numpy and float64
 libm agree. Everything else is float32.
 """
