@@ -18,7 +18,7 @@ import torch
 import stereorepro
 from stereorepro.render import PathTracer, RenderResult
 from stereorepro.render import bsdf as bsdf_mod
-from stereorepro.render.lights import point_mesh_distance, radiance_bound
+from stereorepro.render.lights import TriangleDistances, point_mesh_distance, radiance_bound
 from stereorepro.render.rng import path_keys, stream_key, uniform
 from stereorepro.render.tracer import ENV_VAR, native_available
 from stereorepro.scenes import SceneError, load_scene
@@ -286,6 +286,23 @@ class TestFireflyClamp:
         pts = np.array([[0.2, 0.2, 0.5], [2.0, 0.0, 0.0], [-1.0, -1.0, 0.0], [1.0, 1.0, 0.0]])
         d = point_mesh_distance(pts, v, f, chunk=1)
         assert np.allclose(d, [0.5, 1.0, math.sqrt(2), math.sqrt(0.5)])
+
+    def test_grouped_distances_equal_per_group_brute_force(self):
+        """TriangleDistances.grouped (pruned, what moving lights use per frame) gives exactly the distances of
+        point_mesh_distance on each group's triangles: random soups with a degenerate triangle and an empty group."""
+        rng = np.random.default_rng(3)
+        for trial in range(4):
+            v = rng.normal(size=(60, 3)) * (10.0 ** trial)
+            f = rng.integers(0, 60, size=(80, 3))
+            f[5] = [7, 7, 9]  # degenerate
+            groups = rng.integers(0, 5, size=80)
+            groups[groups == 3] = 4  # group 3 has no triangles
+            pts = np.concatenate([rng.normal(size=(6, 3)) * (10.0 ** trial), v[:2]])  # two points on vertices
+            got = TriangleDistances(v, f).grouped(pts, groups, 6)
+            for g in range(6):
+                want = point_mesh_distance(pts, v, f[groups == g]) if (groups == g).any() else np.full(len(pts),
+                                                                                                      np.inf)
+                assert np.array_equal(got[:, g], want), (trial, g)
 
     def test_arguments_and_scene_key(self, tmp_path):
         scene = load_scene(box_scene(tmp_path, 0.5, 1.0))

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["EmitterTable", "LightSet", "luminance", "point_mesh_distance", "radiance_bound"]
+__all__ = ["EmitterTable", "LightSet", "TriangleDistances", "luminance", "point_mesh_distance", "radiance_bound"]
 
 
 def luminance(rgb: np.ndarray) -> np.ndarray:
@@ -141,6 +141,74 @@ def _segment_distance2(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarra
     return np.einsum("ij,ij->i", d, d)
 
 
+class TriangleDistances:
+    """Exact Euclidean distances from points to every triangle of a fixed mesh; the per-face data (corners, normal)
+    are computed once, so a moving light's distances cost one vectorised pass per light and frame.
+
+    Args:
+        vertices: (V, 3); faces: (F, 3) int.
+    """
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray):
+        V = np.asarray(vertices, np.float64)
+        Fc = np.asarray(faces, np.int64).reshape(-1, 3)
+        tri = V[Fc]                                      # (F, 3, 3)
+        self.a, self.b, self.c = tri[:, 0], tri[:, 1], tri[:, 2]
+        self.n = np.cross(self.b - self.a, self.c - self.a)
+        self.nn = np.einsum("ij,ij->i", self.n, self.n)
+        self.ok = self.nn > 0
+        self.nn_safe = np.where(self.ok, self.nn, 1.0)
+
+    def __len__(self) -> int:
+        return len(self.a)
+
+    def squared(self, p: np.ndarray, idx: np.ndarray | None = None) -> np.ndarray:
+        """Squared distance from the point ``p`` (3,) to each triangle (or to triangles ``idx``) → (F,) float64."""
+        p = np.asarray(p, np.float64).reshape(3)
+        a, b, c, n, ok, nn = self.a, self.b, self.c, self.n, self.ok, self.nn_safe
+        if idx is not None:
+            a, b, c, n, ok, nn = a[idx], b[idx], c[idx], n[idx], ok[idx], nn[idx]
+        # inside the triangle's prism: the distance is the distance to its plane
+        s = np.einsum("ij,ij->i", p - a, n)
+        q = p - (s / nn)[:, None] * n  # projection onto the plane
+        w0 = np.einsum("ij,ij->i", np.cross(b - q, c - q), n)
+        w1 = np.einsum("ij,ij->i", np.cross(c - q, a - q), n)
+        w2 = np.einsum("ij,ij->i", np.cross(a - q, b - q), n)
+        inside = ok & (w0 >= 0) & (w1 >= 0) & (w2 >= 0)
+        d2 = np.minimum(np.minimum(_segment_distance2(p, a, b), _segment_distance2(p, b, c)),
+                        _segment_distance2(p, c, a))
+        return np.where(inside, s * s / nn, d2)
+
+    def grouped(self, points: np.ndarray, group: np.ndarray, num_groups: int) -> np.ndarray:
+        """Distance from each point to the nearest triangle of each group (e.g. material) → (L, G) float64,
+        ``inf`` for a group without triangles. ``group``: (F,) int in [0, num_groups).
+
+        Only triangles that can hold a group's minimum are evaluated exactly: a triangle whose plane lies farther
+        than the group's nearest vertex (by a margin far above rounding) cannot; the result is the same as
+        evaluating all of them.
+        """
+        P = np.asarray(points, np.float64).reshape(-1, 3)
+        out = np.full((len(P), num_groups), np.inf)
+        group = np.asarray(group, np.int64)
+        if len(group) == 0:
+            return out
+        order = np.argsort(group, kind="stable")
+        present, starts = np.unique(group[order], return_index=True)
+        for i, p in enumerate(P):
+            dv = [np.einsum("ij,ij->i", p - v, p - v) for v in (self.a, self.b, self.c)]
+            ub = np.minimum.reduceat(np.minimum(np.minimum(dv[0], dv[1]), dv[2])[order], starts)  # per group
+            ub_face = np.full(num_groups, np.inf)
+            ub_face[present] = ub
+            s = np.einsum("ij,ij->i", p - self.a, self.n)
+            lb = np.where(self.ok, s * s / self.nn_safe, 0.0)  # squared plane distance <= squared distance
+            # margins far above rounding (relative to the bound, and to the face's scale |p - a|^2)
+            cand = np.flatnonzero((lb <= ub_face[group] * (1 + 1e-9) + 1e-9 * dv[0])[order])
+            d2 = np.full(len(order), np.inf)
+            d2[cand] = self.squared(p, order[cand])
+            out[i, present] = np.sqrt(np.minimum.reduceat(d2, starts))
+        return out
+
+
 def point_mesh_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, chunk: int = 1 << 16
                         ) -> np.ndarray:
     """Exact Euclidean distance from each point to the nearest triangle of a mesh (brute force, chunked).
@@ -152,28 +220,12 @@ def point_mesh_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndar
         (L,) float64 distances (``inf`` for an empty mesh).
     """
     P = np.asarray(points, np.float64).reshape(-1, 3)
-    V = np.asarray(vertices, np.float64)
     Fc = np.asarray(faces, np.int64).reshape(-1, 3)
     out = np.full(len(P), np.inf)
     for lo in range(0, len(Fc), chunk):
-        tri = V[Fc[lo:lo + chunk]]                      # (f, 3, 3)
-        a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
-        n = np.cross(b - a, c - a)
-        nn = np.einsum("ij,ij->i", n, n)
-        ok = nn > 0
+        tris = TriangleDistances(vertices, Fc[lo:lo + chunk])
         for i, p in enumerate(P):
-            # inside the triangle's prism: the distance is the distance to its plane
-            ap = p - a
-            s = np.einsum("ij,ij->i", ap, n)
-            q = p - (s / np.where(ok, nn, 1.0))[:, None] * n  # projection onto the plane
-            w0 = np.einsum("ij,ij->i", np.cross(b - q, c - q), n)
-            w1 = np.einsum("ij,ij->i", np.cross(c - q, a - q), n)
-            w2 = np.einsum("ij,ij->i", np.cross(a - q, b - q), n)
-            inside = ok & (w0 >= 0) & (w1 >= 0) & (w2 >= 0)
-            d2 = np.minimum(np.minimum(_segment_distance2(p, a, b), _segment_distance2(p, b, c)),
-                            _segment_distance2(p, c, a))
-            d2 = np.where(inside, s * s / np.where(ok, nn, 1.0), d2)
-            out[i] = min(out[i], float(np.sqrt(d2.min()))) if len(d2) else out[i]
+            out[i] = min(out[i], float(np.sqrt(tris.squared(p).min())))
     return out
 
 

@@ -79,7 +79,7 @@ from torch import Tensor
 from ..camera import PinholeCamera
 from . import bsdf as _bsdf
 from ._embree import TriangleBVH
-from .lights import EmitterTable, LightSet, luminance, point_mesh_distance, radiance_bound
+from .lights import EmitterTable, LightSet, TriangleDistances, luminance, radiance_bound
 from .rng import DIM, path_keys, stream_key, uniform
 
 try:  # optional: the package works without the compiled core
@@ -279,6 +279,7 @@ class PathTracer:
         self._lights_cache: tuple | None = None
         self._lock = threading.Lock()
         self._stage_times: dict | None = None  # set to {} to accumulate per-stage seconds (profiling)
+        self._triangle_distances: TriangleDistances | None = None  # built on first use by _limit
         self._ws_free: list[dict] = []  # scratch arrays of the native path, one set per concurrent worker
 
     # ------------------------------------------------------------------ lights
@@ -335,10 +336,9 @@ class PathTracer:
         elif dmin is not None:
             dist = np.full(len(pos), float(dmin))
         else:  # distance of each light to the nearest surface of each material (L, M)
-            nm = len(self.kd)
-            dist = np.full((len(pos), nm), np.inf)
-            for m in np.unique(self.face_material):
-                dist[:, m] = point_mesh_distance(pos, self.vertices, self.faces[self.face_material == m])
+            if self._triangle_distances is None:  # per-face data once per tracer (moving lights ask every frame)
+                self._triangle_distances = TriangleDistances(self.vertices, self.faces)
+            dist = self._triangle_distances.grouped(pos, self.face_material, len(self.kd))
         m = self._materials
         c = radiance_bound(m["emission"], m["albedo"], m["specular"] if self.glossy else np.zeros_like(m["albedo"]),
                            m["exponent"], inten, dist)
