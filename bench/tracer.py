@@ -33,6 +33,19 @@ BACKENDS = ["numpy"] + (["native"] if native_available() else [])
 from stereorepro.scenes import list_scenes, load_scene  # noqa: E402
 
 
+def time_interleaved(fns: dict, repeats: int) -> dict:
+    """Median seconds of each callable, after one warm-up call each, timed round-robin (one call each per round)."""
+    for fn in fns.values():
+        fn()
+    ts = {k: [] for k in fns}
+    for _ in range(repeats):
+        for k, fn in fns.items():
+            t0 = time.perf_counter()
+            fn()
+            ts[k].append(time.perf_counter() - t0)
+    return {k: statistics.median(v) for k, v in ts.items()}
+
+
 def median_time(fn, repeats):
     fn()
     ts = []
@@ -126,8 +139,15 @@ def ray_throughput(scene_name, W, H, repeats):
                 raw.run(o, d, dists=tmax.copy(), query="OCCLUDED")
 
     total = sum(len(c[1]) for c in rec.calls)
-    t_raw1 = median_time(raw1, repeats)
-    t_raw2 = median_time(raw2, repeats)
+    # raw embreex and our tracer (each backend, 1 and 2 workers) timed round-robin, one call each per round, so
+    # that all see the same machine state (the 2-thread numbers especially drift between separate timings)
+    fns = {"raw1": raw1, "raw2": raw2}
+    for be in BACKENDS:
+        for workers in (1, 2):
+            trw = PathTracer(scene, workers=workers, backend=be)
+            fns[(be, workers)] = lambda trw=trw: trw.render(cam, 0, 1, gbuffers=False)
+    times = time_interleaved(fns, repeats)
+    t_raw1, t_raw2 = times["raw1"], times["raw2"]
     out = {"scene": scene_name, "resolution": f"{W}x{H}", "kinds": kinds, "total_rays": total,
            "raw_embreex_1thread_mrays_s": total / t_raw1 / 1e6, "raw_embreex_2threads_mrays_s": total / t_raw2 / 1e6}
     out["raw_speedup_2threads"] = t_raw1 / t_raw2
@@ -135,8 +155,7 @@ def ray_throughput(scene_name, W, H, repeats):
     for be in BACKENDS:
         b = {}
         for workers in (1, 2):
-            trw = PathTracer(scene, workers=workers, backend=be)
-            t = median_time(lambda: trw.render(cam, 0, 1, gbuffers=False), repeats)
+            t = times[(be, workers)]
             b[f"tracer_{workers}w_mrays_s"] = total / t / 1e6
             b[f"tracer_{workers}w_s"] = t
         b["speedup_2w"] = b["tracer_1w_s"] / b["tracer_2w_s"]
@@ -281,7 +300,7 @@ def markdown(res) -> str:
         for k, v in t["kinds"].items():
             L.append(f"| {t['scene']} | {k} | {v['rays']} | {v['raw_embreex_mrays_s']:.2f} | {v['wrapper_mrays_s']:.2f} |")
     L += ["", "End to end (all rays of the frame / wall time of `render(gbuffers=False)`), against raw embreex on the "
-          "same rays (1 thread; 2 threads over halves of each batch):", "",
+          "same rays (1 thread; 2 threads over halves of each batch); all of a scene's rows timed round-robin:", "",
           "| scene | backend | raw embreex 1 thr | tracer 1 worker | ratio | raw embreex 2 thr | tracer 2 workers | "
           "ratio | tracer 2-worker speed-up | raw 2-thread speed-up |", "|---|---|---|---|---|---|---|---|---|---|"]
     for t in res["throughput"]:
