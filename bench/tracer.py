@@ -26,24 +26,13 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from _common import time_interleaved  # noqa: E402  (bench/ is the script's directory, first on sys.path)
+
 from stereorepro.render import PathTracer  # noqa: E402
 from stereorepro.render.tracer import native_available  # noqa: E402
 
 BACKENDS = ["numpy"] + (["native"] if native_available() else [])
 from stereorepro.scenes import list_scenes, load_scene  # noqa: E402
-
-
-def time_interleaved(fns: dict, repeats: int) -> dict:
-    """Median seconds of each callable, after one warm-up call each, timed round-robin (one call each per round)."""
-    for fn in fns.values():
-        fn()
-    ts = {k: [] for k in fns}
-    for _ in range(repeats):
-        for k, fn in fns.items():
-            t0 = time.perf_counter()
-            fn()
-            ts[k].append(time.perf_counter() - t0)
-    return {k: statistics.median(v) for k, v in ts.items()}
 
 
 def median_time(fn, repeats):
@@ -146,7 +135,7 @@ def ray_throughput(scene_name, W, H, repeats):
         for workers in (1, 2):
             trw = PathTracer(scene, workers=workers, backend=be)
             fns[(be, workers)] = lambda trw=trw: trw.render(cam, 0, 1, gbuffers=False)
-    times = time_interleaved(fns, repeats)
+    times = {k: v["median_ms"] / 1e3 for k, v in time_interleaved(fns, repeats, warmup=1).items()}
     t_raw1, t_raw2 = times["raw1"], times["raw2"]
     out = {"scene": scene_name, "resolution": f"{W}x{H}", "kinds": kinds, "total_rays": total,
            "raw_embreex_1thread_mrays_s": total / t_raw1 / 1e6, "raw_embreex_2threads_mrays_s": total / t_raw2 / 1e6}
