@@ -19,6 +19,8 @@ class ShapeError(ValueError):
 
 
 def _tracing() -> bool:
+    """True while torch.jit traces, torch.compile compiles or ONNX exports: the graph must be plain torch ops (no
+    data-dependent Python checks, no native kernels). The one definition the package uses."""
     return torch.jit.is_tracing() or torch.compiler.is_compiling() or torch.onnx.is_in_onnx_export()
 
 

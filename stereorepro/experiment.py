@@ -44,7 +44,7 @@ import math
 import os
 import tempfile
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -54,7 +54,7 @@ from . import __version__
 from .camera import has_surface
 from .metrics import effective_spp_many, ladder_rmse, rmse
 from .pipeline import SpatiotemporalReprojection
-from .reproject import Reason, reason_to_rgb
+from .reproject import reason_to_rgb
 
 __all__ = ["ExperimentConfig", "run_experiment", "REFERENCE_OFFSET", "register", "SCHEMES"]
 

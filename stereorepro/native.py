@@ -30,6 +30,8 @@ from typing import Iterable
 import torch
 from torch import Tensor
 
+from ._checks import _tracing
+
 try:  # optional: the package works without the compiled core
     from . import _core
 except ImportError:  # pragma: no cover - depends on the build
@@ -51,10 +53,6 @@ def check_backend(backend: str) -> str:
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     return backend
-
-
-def _tracing() -> bool:
-    return torch.jit.is_tracing() or torch.onnx.is_in_onnx_export() or torch.compiler.is_compiling()
 
 
 def native_unsupported(images: Iterable[Tensor], others: Iterable = (), soft: bool = False) -> str | None:

@@ -39,7 +39,7 @@ import torch
 from torch import Tensor, nn
 
 from . import native as _native
-from ._checks import check_camera, check_device, check_floating, check_shape
+from ._checks import _tracing, check_camera, check_device, check_floating, check_shape
 from .camera import has_surface, invert_rigid
 from .camera import inverse_intrinsics as _inverse_intrinsics
 
@@ -264,13 +264,9 @@ FAST_BLOCK_PIXELS = 1 << 15
 def _inference_only(inputs) -> bool:
     """True when no autograd graph is needed and nothing traces/exports/compiles the call: the row-blocked and
     fast paths apply (tracing and ONNX export always take the single-block general path)."""
-    if _tracing_or_exporting():
+    if _tracing():
         return False
     return not (torch.is_grad_enabled() and any(isinstance(x, Tensor) and x.requires_grad for x in inputs))
-
-
-def _tracing_or_exporting() -> bool:
-    return torch.jit.is_tracing() or torch.onnx.is_in_onnx_export() or torch.compiler.is_compiling()
 
 
 def _squared_thresholds(position_threshold, normal_threshold, cd: torch.dtype, dev) -> Tensor:

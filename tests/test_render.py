@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import math
 import statistics
-import time
 
 import numpy as np
 import pytest
@@ -23,8 +22,7 @@ from stereorepro.render.rng import path_keys, stream_key, uniform
 from stereorepro.render.tracer import ENV_VAR, native_available
 from stereorepro.scenes import SceneError, load_scene
 
-from conftest_render import (box_scene, camera_looking, plane_point_light_scene, plane_radiance,
-                             write_scene)
+from conftest_render import (box_scene, camera_looking, plane_point_light_scene, plane_radiance)
 
 W, H = 48, 27
 
@@ -399,7 +397,6 @@ class TestHardCases:
         hit = stereorepro.has_surface(r.depth)[0, 0]
         assert hit.float().mean() > 0.5
         pos = r.position[0].permute(1, 2, 0).double()
-        light = torch.tensor([ox, oy + s, oz], dtype=torch.float64)
         on_floor = hit & ((pos[..., 1] - oy).abs() < 1e-3 * s)
         # floor points not shadowed by the block: segment to the light does not pass the box
         lit_floor = on_floor & ((pos[..., 0] - ox) < 1.5 * s) & ((pos[..., 2] - oz) < 1.5 * s)

@@ -24,7 +24,7 @@ from stereorepro import (
     temporal_reproject,
 )
 from stereorepro._checks import ShapeError
-from stereorepro.camera import PinholeCamera, look_at, pixel_centers
+from stereorepro.camera import PinholeCamera, look_at
 from stereorepro.onnx_export import example_inputs, onnx_input_dims
 from stereorepro.synthetic import camera_pair, default_scene, raycast
 
