@@ -16,10 +16,14 @@
 // because numpy's float32 SIMD transcendentals differ from libm in the last bit. Light selection compares float64
 // CDF values as np.searchsorted(side="right") does. Result: bit-identical radiance (tests/test_render_native.py).
 //
-// Layout inside a kernel: paths are processed in blocks of kBlock lanes; each step of next-event estimation is a
-// loop over the block (the per-point dependency chain hash -> light selection -> sqrt -> three divisions is long,
-// and independent lanes side by side let the CPU overlap it: 2x over one path at a time). Compaction of shadow and
-// bounce rays is branchless (write, then advance the count by the keep flag) and keeps path order.
+// Layout inside a kernel: paths are processed in blocks of kBlock lanes held as a structure of arrays (Lanes,
+// NeeBlock). Each step of next-event estimation and of Lambertian BSDF sampling is a loop over the block: the
+// integer work (hashing, light selection, table lookups) stays scalar, the float work is `#pragma omp simd` loops
+// of selects instead of branches, which the compiler vectorises (SSE2 at the x86-64 baseline; -fno-trapping-math
+// and -fno-math-errno in CMakeLists.txt let it: values are unchanged, vector sqrt/div/mul/add round exactly as
+// scalar ones). Measured on a 320x180 living-room frame: shade_x1 4.4 -> 2.6 ms, shade_x2 2.7 -> 1.9 ms. (AVX2
+// clones were measured slower here: Zen 3 gathers.) Compaction of shadow and bounce rays is branchless (write,
+// then advance the count by the keep flag) and keeps path order.
 //
 // Threading: none inside. The Python tracer already runs one worker thread per pixel range and each worker runs
 // its own embreex queries and these kernels (both release the GIL), so a second (OpenMP) level would only
@@ -62,8 +66,12 @@ constexpr float kInf = std::numeric_limits<float>::infinity();
 enum Dim : uint64_t { JX = 0, JY = 1, L1 = 2, L1U = 3, L1V = 4, LOBE = 5, BU = 6, BV = 7, L2 = 8, L2U = 9, L2V = 10 };
 
 // np.maximum(x, 0) (NaN propagates, -0 gives +0) and np.maximum(x, lo) for lo > 0.
-inline float max0(float x) { return (x > 0.0f || x != x) ? x : 0.0f; }
-inline float maxlo(float x, float lo) { return (x > lo || x != x) ? x : lo; }
+// (both tests evaluated first: without a branch, loops using them vectorise)
+inline float maxlo(float x, float lo) {
+    const bool above = x > lo, nan = x != x;
+    return (above || nan) ? x : lo;
+}
+inline float max0(float x) { return maxlo(x, 0.0f); }
 // rows.max(axis=1) of a 3-vector: NaN if any channel is NaN.
 inline float max3(const float *v) {
     float m = v[0];
@@ -82,27 +90,32 @@ inline void unit_circle(float u, float &cos_out, float &sin_out) {
                     c3 = static_cast<float>(-1.0 / 720.0), c4 = static_cast<float>(1.0 / 40320.0),
                     c5 = static_cast<float>(-1.0 / 3628800.0), c6 = static_cast<float>(1.0 / 479001600.0);
     const float u4 = u * 4.0f;
-    const float q = std::floor(u4);
+    const int iq4 = static_cast<int>(u4);  // u4 in [0, 4): truncation is np.floor (and vectorises without SSE4.1)
+    const float q = static_cast<float>(iq4);
     const float a = (u4 - q) * kHalfPi;
     const float a2 = a * a;
     const float s = a * (1.0f + a2 * (s1 + a2 * (s2 + a2 * (s3 + a2 * (s4 + a2 * s5)))));
     const float c = 1.0f + a2 * (c1 + a2 * (c2 + a2 * (c3 + a2 * (c4 + a2 * (c5 + a2 * c6)))));
-    const float rot_cos[4] = {c, -s, -c, s}, rot_sin[4] = {s, c, -s, -c};  // quadrant rotation, without branches
-    const int iq = static_cast<int>(q) & 3;  // q is 0..3 for u in [0, 1)
-    cos_out = rot_cos[iq];
-    sin_out = rot_sin[iq];
+    // quadrant rotation by selects (no branch, no table: vectorises); q is 0..3 for u in [0, 1)
+    const int iq = iq4 & 3;
+    const bool q1 = iq == 1, q2 = iq == 2, q3 = iq == 3;
+    cos_out = q1 ? -s : (q2 ? -c : (q3 ? s : c));
+    sin_out = q1 ? c : (q2 ? -s : (q3 ? -c : s));
 }
 inline float fpow(float x, float e) { return static_cast<float>(std::pow(static_cast<double>(x), static_cast<double>(e))); }
 
-// bsdf.to_world (with bsdf.onb, Duff et al. 2017).
-inline void to_world(const float *n, float lx, float ly, float lz, float *out) {
-    const float x = n[0], y = n[1], z = n[2];
-    const float s = (z >= 0.0f) ? 1.0f : -1.0f;
+// bsdf.to_world (with bsdf.onb, Duff et al. 2017), on scalars (no local arrays: vectorises in omp simd loops).
+inline void to_world(float x, float y, float z, float lx, float ly, float lz, float &ox, float &oy, float &oz) {
+    const bool up = z >= 0.0f;
+    const float s = up ? 1.0f : -1.0f;
     const float a = -1.0f / (s + z);
     const float b = x * y * a;
-    const float t[3] = {1.0f + s * x * x * a, s * b, -s * x};
-    const float bt[3] = {b, s + y * y * a, -y};
-    for (int c = 0; c < 3; ++c) out[c] = t[c] * lx + bt[c] * ly + n[c] * lz;
+    ox = (1.0f + s * x * x * a) * lx + b * ly + x * lz;
+    oy = (s * b) * lx + (s + y * y * a) * ly + y * lz;
+    oz = (-s * x) * lx + (-y) * ly + z * lz;
+}
+inline void to_world(const float *n, float lx, float ly, float lz, float *out) {
+    to_world(n[0], n[1], n[2], lx, ly, lz, out[0], out[1], out[2]);
 }
 
 inline void reflect(const float *n, const float *wo, float *r) {
@@ -120,18 +133,40 @@ void check_rows(const A &a, const char *name, int64_t rows, int64_t cols) {
                                     ") or more rows");
 }
 
-struct NeeResult {
-    bool ok;
-    float o[3], wi[3], tmax, val[3];
-};
-
 constexpr int kBlock = 16;  // shading points processed side by side
 
-struct Lane {  // one shading point: position, normal (facing wo), direction to the previous vertex, material, key
-    float P[3], n[3], wo[3];
-    int mat;
-    uint64_t key;
-    int64_t path;
+// Up to kBlock shading points, as a structure of arrays (so that per-lane steps vectorise): position, normal
+// (facing wo), direction to the previous vertex, material, path key and path index.
+struct Lanes {
+    float P[3][kBlock], n[3][kBlock], wo[3][kBlock];
+    int32_t mat[kBlock];
+    uint64_t key[kBlock];
+    int64_t path[kBlock];
+
+    void set(int k, const float *P_, const float *n_, const float *wo_, int32_t mat_, uint64_t key_, int64_t path_) {
+        for (int c = 0; c < 3; ++c) {
+            P[c][k] = P_[c];
+            n[c][k] = n_[c];
+            wo[c][k] = wo_[c];
+        }
+        mat[k] = mat_;
+        key[k] = key_;
+        path[k] = path_;
+    }
+    void get(int k, float *P_, float *n_, float *wo_) const {
+        for (int c = 0; c < 3; ++c) {
+            P_[c] = P[c][k];
+            n_[c] = n[c][k];
+            wo_[c] = wo[c][k];
+        }
+    }
+};
+
+// Next-event estimation of a block of lanes: shadow ray (origin, direction, tmax), its value if unoccluded, and
+// whether the ray is needed at all.
+struct NeeBlock {
+    float o[3][kBlock], wi[3][kBlock], tmax[kBlock], val[3][kBlock];
+    int32_t ok[kBlock];
 };
 
 struct ShadowBuf {  // compacted shadow-ray batch (both sets share it)
@@ -194,8 +229,8 @@ public:
             const int32_t *Pr = prim.data();
             float *Lo = L.data(), *Th = thr.data(), *Pb = pdfb.data(), *Bo = b_o.data(), *Bd = b_d.data();
             int32_t *Bp = b_path.data();
-            Lane lane[kBlock];
-            NeeResult res[kBlock];
+            Lanes lane;
+            NeeBlock res;
             for (int64_t i0 = 0; i0 < N; i0 += kBlock) {
                 const int64_t i1 = std::min<int64_t>(N, i0 + kBlock);
                 int m = 0;
@@ -205,36 +240,36 @@ public:
                     th[0] = th[1] = th[2] = 0.0f;
                     Pb[i] = 0.0f;
                     if (Pr[i] < 0) continue;
-                    Lane &q = lane[m++];
                     const float *di = D + 3 * i;
-                    for (int c = 0; c < 3; ++c) q.P[c] = C[c] + T[i] * di[c];
-                    q.mat = surface(Pr[i], di, q.n);
-                    for (int c = 0; c < 3; ++c) q.wo[c] = -di[c];
-                    q.key = K[i];
-                    q.path = i;
-                    if (mat_emissive_.data()[q.mat]) {
-                        const float *e = emission_.data() + 3 * q.mat;
+                    float P[3], n[3], wo[3];
+                    for (int c = 0; c < 3; ++c) P[c] = C[c] + T[i] * di[c];
+                    const int mat = surface(Pr[i], di, n);
+                    for (int c = 0; c < 3; ++c) wo[c] = -di[c];
+                    lane.set(m++, P, n, wo, mat, K[i], i);
+                    if (mat_emissive_.data()[mat]) {
+                        const float *e = emission_.data() + 3 * mat;
                         for (int c = 0; c < 3; ++c) li[c] = 0.0f + e[c];
                     }
                 }
                 if (!lights_empty_) {  // NEE at x1, shadow rays in path order
                     nee_block(m, lane, L1, L1U, L1V, true, res);
                     for (int k = 0; k < m; ++k) {
-                        push_shadow(sb, ns, res[k], (int32_t)lane[k].path);  // branchless compaction
-                        ns += res[k].ok;
+                        push_shadow(sb, ns, res, k, (int32_t)lane.path[k]);  // branchless compaction
+                        ns += res.ok[k];
                     }
                 }
-                for (int k = 0; k < m; ++k) {  // BSDF sample of the bounce
-                    const Lane &q = lane[k];
-                    float wi[3], pdf;
-                    float *th = Th + 3 * q.path;
-                    bsdf_sample(q.mat, q.n, q.wo, q.key, wi, th, pdf);
-                    Pb[q.path] = pdf;
+                float wi[3][kBlock], weight[3][kBlock], pdf[kBlock];
+                bsdf_sample_block(m, lane, wi, weight, pdf);  // BSDF sample of the bounce
+                for (int k = 0; k < m; ++k) {
+                    const int64_t path = lane.path[k];
+                    float *th = Th + 3 * path;
+                    for (int c = 0; c < 3; ++c) th[c] = weight[c][k];
+                    Pb[path] = pdf[k];
                     for (int c = 0; c < 3; ++c) {  // branchless compaction: kept when the weight is positive
-                        Bo[3 * nbounce + c] = q.P[c] + q.n[c] * eps_;
-                        Bd[3 * nbounce + c] = wi[c];
+                        Bo[3 * nbounce + c] = lane.P[c][k] + lane.n[c][k] * eps_;
+                        Bd[3 * nbounce + c] = wi[c][k];
                     }
-                    Bp[nbounce] = (int32_t)q.path;
+                    Bp[nbounce] = (int32_t)path;
                     nbounce += (max3(th) > 0.0f);
                 }
             }
@@ -265,8 +300,8 @@ public:
             uint8_t *H = hit2.data();
             std::fill(E, E + 3 * N, 0.0f);
             std::fill(H, H + N, (uint8_t)0);
-            Lane lane[kBlock];
-            NeeResult res[kBlock];
+            Lanes lane;
+            NeeBlock res;
             for (int64_t j0 = 0; j0 < nbounce; j0 += kBlock) {
                 const int64_t j1 = std::min<int64_t>(nbounce, j0 + kBlock);
                 int m = 0;
@@ -274,16 +309,15 @@ public:
                     if (Pr[j] < 0) continue;
                     const int64_t i = Bp[j];
                     H[i] = 1;
-                    Lane &q = lane[m++];
                     const float *dj = Bd + 3 * j, *oj = Bo + 3 * j;
                     const float t = T2[j];
-                    for (int c = 0; c < 3; ++c) q.P[c] = oj[c] + t * dj[c];
-                    q.mat = surface(Pr[j], dj, q.n);
-                    for (int c = 0; c < 3; ++c) q.wo[c] = -dj[c];
-                    q.key = K[i];
-                    q.path = i;
-                    if (mat_emissive_.data()[q.mat]) {  // MIS-weighted emission of x2
-                        const float *e = emission_.data() + 3 * q.mat;
+                    float P[3], n[3], wo[3];
+                    for (int c = 0; c < 3; ++c) P[c] = oj[c] + t * dj[c];
+                    const int mat = surface(Pr[j], dj, n);
+                    for (int c = 0; c < 3; ++c) wo[c] = -dj[c];
+                    lane.set(m++, P, n, wo, mat, K[i], i);
+                    if (mat_emissive_.data()[mat]) {  // MIS-weighted emission of x2
+                        const float *e = emission_.data() + 3 * mat;
                         float *ei = E + 3 * i;
                         if (!lights_empty_) {
                             const float cos_l = std::fabs(dot3(face_normal_.data() + 3 * Pr[j], dj));
@@ -299,8 +333,8 @@ public:
                 if (!lights_empty_) {  // NEE at x2
                     nee_block(m, lane, L2, L2U, L2V, false, res);
                     for (int k = 0; k < m; ++k) {
-                        push_shadow(sb, ns, res[k], (int32_t)lane[k].path);
-                        ns += res[k].ok;
+                        push_shadow(sb, ns, res, k, (int32_t)lane.path[k]);
+                        ns += res.ok[k];
                     }
                 }
             }
@@ -374,30 +408,23 @@ public:
         check_rows(wi, "wi", N, 3); check_rows(tmax, "tmax", N, 0); check_rows(val, "val", N, 3);
         check_mats(mat.data(), N);
         if (lights_empty_) throw std::invalid_argument("nee_batch: the light set is empty");
-        Lane lane[kBlock];
-        NeeResult res[kBlock];
+        Lanes lane;
+        NeeBlock res;
         for (int64_t i0 = 0; i0 < N; i0 += kBlock) {
             const int m = (int)std::min<int64_t>(kBlock, N - i0);
             for (int k = 0; k < m; ++k) {
                 const int64_t i = i0 + k;
-                for (int c = 0; c < 3; ++c) {
-                    lane[k].P[c] = P.data()[3 * i + c];
-                    lane[k].n[c] = n.data()[3 * i + c];
-                    lane[k].wo[c] = wo.data()[3 * i + c];
-                }
-                lane[k].mat = mat.data()[i];
-                lane[k].key = keys.data()[i];
-                lane[k].path = i;
+                lane.set(k, P.data() + 3 * i, n.data() + 3 * i, wo.data() + 3 * i, mat.data()[i], keys.data()[i], i);
             }
             nee_block(m, lane, second ? L2 : L1, second ? L2U : L1U, second ? L2V : L1V, mis, res);
             for (int k = 0; k < m; ++k) {
                 const int64_t i = i0 + k;
-                ok.data()[i] = res[k].ok;
-                tmax.data()[i] = res[k].tmax;
+                ok.data()[i] = res.ok[k] != 0;
+                tmax.data()[i] = res.tmax[k];
                 for (int c = 0; c < 3; ++c) {
-                    o.data()[3 * i + c] = res[k].o[c];
-                    wi.data()[3 * i + c] = res[k].wi[c];
-                    val.data()[3 * i + c] = res[k].val[c];
+                    o.data()[3 * i + c] = res.o[c][k];
+                    wi.data()[3 * i + c] = res.wi[c][k];
+                    val.data()[3 * i + c] = res.val[c][k];
                 }
             }
         }
@@ -431,13 +458,13 @@ private:
         check_rows(val, "sh_val", cap, 3);
         return {o.data(), d.data(), t.data(), val.data(), path.data(), cap};
     }
-    static void push_shadow(ShadowBuf &sb, int64_t k, const NeeResult &r, int32_t path) {
+    static void push_shadow(ShadowBuf &sb, int64_t k, const NeeBlock &r, int lane, int32_t path) {
         for (int c = 0; c < 3; ++c) {
-            sb.o[3 * k + c] = r.o[c];
-            sb.d[3 * k + c] = r.wi[c];
-            sb.val[3 * k + c] = r.val[c];
+            sb.o[3 * k + c] = r.o[c][lane];
+            sb.d[3 * k + c] = r.wi[c][lane];
+            sb.val[3 * k + c] = r.val[c][lane];
         }
-        sb.t[k] = r.tmax;
+        sb.t[k] = r.tmax[lane];
         sb.path[k] = path;
     }
     // tracer._clamp_radiance for one row.
@@ -516,86 +543,175 @@ private:
         for (int c = 0; c < 3; ++c) weight[c] = f[c] * scale;
     }
 
-    // PathTracer._nee with LightSet.sample: one light sample at each of m <= kBlock shading points. Every step is
-    // a loop over the block's independent lanes (the per-point chain of hash -> selection -> sqrt -> divisions
-    // is long; lanes side by side let the CPU overlap it); the float32 operations per lane are the numpy ones.
-    void nee_block(int m, const Lane *in, uint64_t d_sel, uint64_t d_u, uint64_t d_v, bool mis, NeeResult *r) const {
-        float u_sel[kBlock], u1[kBlock], u2[kBlock];
-        for (int k = 0; k < m; ++k) {
-            u_sel[k] = sr_rng::uniform(in[k].key, d_sel);
-            u1[k] = sr_rng::uniform(in[k].key, d_u);
-            u2[k] = sr_rng::uniform(in[k].key, d_v);
+    // bsdf_sample for the m lanes of a block: Lambertian scenes as vectorised loops (bsdf.lambert_sample), glossy
+    // ones lane by lane (their pow is a float64 libm call).
+    void bsdf_sample_block(int m, const Lanes &in, float (*wi)[kBlock], float (*weight)[kBlock], float *pdf) const {
+        if (glossy_) {
+            for (int k = 0; k < m; ++k) {
+                float P[3], n[3], wo[3], w[3], wk[3];
+                in.get(k, P, n, wo);
+                bsdf_sample(in.mat[k], n, wo, in.key[k], w, wk, pdf[k]);
+                for (int c = 0; c < 3; ++c) {
+                    wi[c][k] = w[c];
+                    weight[c][k] = wk[c];
+                }
+            }
+            return;
         }
-        // np.searchsorted(cdf, u, side="right"), clipped to the last light
+        float u1[kBlock], u2[kBlock], kd[3][kBlock];
+        for (int k = 0; k < m; ++k) {
+            u1[k] = sr_rng::uniform(in.key[k], BU);
+            u2[k] = sr_rng::uniform(in.key[k], BV);
+            const float *kdm = kd_.data() + 3 * in.mat[k];
+            for (int c = 0; c < 3; ++c) kd[c][k] = kdm[c];
+        }
+#pragma omp simd
+        for (int k = 0; k < m; ++k) {
+            float cph, sph;
+            unit_circle(u2[k], cph, sph);
+            const float r = std::sqrt(u1[k]);
+            const float cz = std::sqrt(max0(1.0f - u1[k]));
+            to_world(in.n[0][k], in.n[1][k], in.n[2][k], r * cph, r * sph, cz, wi[0][k], wi[1][k], wi[2][k]);
+            const bool up = cz > 0.0f;
+            const float ok = up ? 1.0f : 0.0f;
+            for (int c = 0; c < 3; ++c) weight[c][k] = kd[c][k] * ok;
+            pdf[k] = max0(cz) * kInvPi;
+        }
+    }
+
+    // PathTracer._nee with LightSet.sample: one light sample at each of m <= kBlock shading points. Every step is
+    // a loop over the block's lanes, in structure-of-arrays form: the hashing and light selection are scalar
+    // integer work, the geometry and the values are float loops the compiler vectorises (omp simd: 4 or 8 lanes per
+    // instruction, the same IEEE operations per lane as numpy's, in the same order).
+    void nee_block(int m, const Lanes &in, uint64_t d_sel, uint64_t d_u, uint64_t d_v, bool mis, NeeBlock &r) const {
+        // (1) random numbers and light selection: np.searchsorted(cdf, u, side="right"), clipped to the last light
+        float u1[kBlock], u2[kBlock];
+        int32_t sel[kBlock];
         const int64_t K = cdf_.shape(0);
         const double *cdf = cdf_.data();
-        int64_t sel[kBlock];
-        if (K <= 32) {  // branchless count of cdf entries <= u (= upper_bound on the sorted CDF)
-            for (int k = 0; k < m; ++k) {
-                const double u = static_cast<double>(u_sel[k]);
-                int64_t c = 0;
-                for (int64_t q = 0; q < K; ++q) c += (cdf[q] <= u);
-                sel[k] = std::min<int64_t>(c, K - 1);
-            }
-        } else {
-            for (int k = 0; k < m; ++k)
-                sel[k] = std::min<int64_t>(
-                    std::upper_bound(cdf, cdf + K, static_cast<double>(u_sel[k])) - cdf, K - 1);
-        }
-        float target[kBlock][3];
         for (int k = 0; k < m; ++k) {
-            for (int c = 0; c < 3; ++c) r[k].o[c] = in[k].P[c] + in[k].n[c] * eps_;
+            const double u = static_cast<double>(sr_rng::uniform(in.key[k], d_sel));
+            u1[k] = sr_rng::uniform(in.key[k], d_u);
+            u2[k] = sr_rng::uniform(in.key[k], d_v);
+            int64_t c = 0;
+            if (K <= 32) {  // branchless count of cdf entries <= u (= upper_bound on the sorted CDF)
+                for (int64_t q = 0; q < K; ++q) c += (cdf[q] <= u);
+            } else {
+                c = std::upper_bound(cdf, cdf + K, u) - cdf;
+            }
+            sel[k] = static_cast<int32_t>(std::min<int64_t>(c, K - 1));
+        }
+        // (2) the selected light's data per lane: sampled point, normal, emission and area pdf factor (area lights),
+        // position (point lights, whose value is set in (4))
+        float target[3][kBlock], ln[3][kBlock], le[3][kBlock], lpdf[kBlock];
+        bool any_point = false;
+        for (int k = 0; k < m; ++k) {
             if (sel[k] < num_area_) {
                 const float *T = table_.data() + 16 * sel[k];
                 const float su = std::sqrt(u1[k]);
                 const float b1 = su * (1.0f - u2[k]), b2 = su * u2[k];
-                for (int c = 0; c < 3; ++c) target[k][c] = T[c] + b1 * T[3 + c] + b2 * T[6 + c];
+                for (int c = 0; c < 3; ++c) {
+                    target[c][k] = T[c] + b1 * T[3 + c] + b2 * T[6 + c];
+                    ln[c][k] = T[9 + c];
+                    le[c][k] = T[12 + c];
+                }
+                lpdf[k] = T[15];
             } else {
                 const float *p = point_pos_.data() + 3 * (sel[k] - num_area_);
-                for (int c = 0; c < 3; ++c) target[k][c] = p[c];
+                for (int c = 0; c < 3; ++c) {
+                    target[c][k] = p[c];
+                    ln[c][k] = le[c][k] = 0.0f;
+                }
+                lpdf[k] = 0.0f;
+                any_point = true;
             }
         }
-        float d2[kBlock], dist[kBlock];
+        // (3) shadow ray and the area light's value and pdf
+        float d2[kBlock], dist[kBlock], li[3][kBlock], pdf_l[kBlock];
+        const float eps = eps_;
+#pragma omp simd
         for (int k = 0; k < m; ++k) {
             float delta[3];
-            for (int c = 0; c < 3; ++c) delta[c] = target[k][c] - r[k].o[c];
-            d2[k] = delta[0] * delta[0] + delta[1] * delta[1] + delta[2] * delta[2];
-            dist[k] = std::sqrt(d2[k]);
-            const float safe = (dist[k] > 0.0f) ? dist[k] : 1.0f;
-            for (int c = 0; c < 3; ++c) r[k].wi[c] = delta[c] / safe;
+            for (int c = 0; c < 3; ++c) {
+                const float o = in.P[c][k] + in.n[c][k] * eps;
+                r.o[c][k] = o;
+                delta[c] = target[c][k] - o;
+            }
+            const float q = delta[0] * delta[0] + delta[1] * delta[1] + delta[2] * delta[2];
+            const float len = std::sqrt(q);
+            const float safe = (len > 0.0f) ? len : 1.0f;
+            float wi[3];
+            for (int c = 0; c < 3; ++c) {
+                wi[c] = delta[c] / safe;
+                r.wi[c][k] = wi[c];
+            }
+            const float cos_l = std::fabs(ln[0][k] * wi[0] + ln[1][k] * wi[1] + ln[2][k] * wi[2]);
+            const float pdf_a = lpdf[k] * q / maxlo(cos_l, 1e-12f);
+            const bool facing = cos_l > 1e-7f, apart = q > 0.0f;  // (named first: no branch, the loop vectorises)
+            const bool ok = facing && apart;
+            pdf_l[k] = ok ? pdf_a : kInf;
+            const float inv_a = 1.0f / pdf_a;  // computed for every lane, selected below (a select vectorises)
+            const float inv = ok ? inv_a : 0.0f;
+            for (int c = 0; c < 3; ++c) li[c][k] = le[c][k] * inv;
+            d2[k] = q;
+            dist[k] = len;
         }
-        float li[kBlock][3], pdf_l[kBlock];
-        for (int k = 0; k < m; ++k) {
-            if (sel[k] < num_area_) {
-                const float *T = table_.data() + 16 * sel[k];
-                const float *wi = r[k].wi;
-                const float cos_l = std::fabs(T[9] * wi[0] + T[10] * wi[1] + T[11] * wi[2]);
-                const float pdf_a = T[15] * d2[k] / maxlo(cos_l, 1e-12f);
-                const bool ok = (cos_l > 1e-7f) && (d2[k] > 0.0f);
-                pdf_l[k] = ok ? pdf_a : kInf;
-                const float inv = ok ? 1.0f / pdf_a : 0.0f;
-                for (int c = 0; c < 3; ++c) li[k][c] = T[12 + c] * inv;
-            } else {
+        // (4) point lights (LightSet.sample: intensity / (d^2 prob) in float64, no MIS)
+        if (any_point) {
+            for (int k = 0; k < m; ++k) {
+                if (sel[k] < num_area_) continue;
                 const int64_t q = sel[k] - num_area_;
                 const float w = (d2[k] > 0.0f)
                     ? static_cast<float>(1.0 / (static_cast<double>(d2[k]) * prob_.data()[num_area_ + q])) : 0.0f;
                 const float *I = point_int_.data() + 3 * q;
-                for (int c = 0; c < 3; ++c) li[k][c] = I[c] * w;
+                for (int c = 0; c < 3; ++c) li[c][k] = I[c] * w;
                 pdf_l[k] = kInf;
             }
         }
-        const float two_eps = 2.0f * eps_;
-        for (int k = 0; k < m; ++k) {
-            float f[3], cos_i, pdf_b;
-            bsdf_eval(in[k].mat, in[k].n, in[k].wo, r[k].wi, f, cos_i, pdf_b);
-            const float cpos = max0(cos_i);
-            for (int c = 0; c < 3; ++c) r[k].val[c] = f[c] * (li[k][c] * cpos);
-            if (mis) {
-                const float w = std::isinf(pdf_l[k]) ? 1.0f : pdf_l[k] / (pdf_l[k] + pdf_b);
-                for (int c = 0; c < 3; ++c) r[k].val[c] = r[k].val[c] * w;
+        // (5) BSDF at the shading point, MIS weight, value, and whether the shadow ray is needed
+        float f[3][kBlock], cos_i[kBlock], pdf_b[kBlock];
+        if (!glossy_) {  // bsdf.lambert_eval
+            for (int k = 0; k < m; ++k) {
+                const float *kd = kd_.data() + 3 * in.mat[k];
+                for (int c = 0; c < 3; ++c) f[c][k] = kd[c] * kInvPi;
             }
-            r[k].ok = (cos_i > 0.0f) && (dist[k] > two_eps) && (max3(r[k].val) > 0.0f);
-            r[k].tmax = dist[k] - two_eps;
+#pragma omp simd
+            for (int k = 0; k < m; ++k) {
+                const float ci = in.n[0][k] * r.wi[0][k] + in.n[1][k] * r.wi[1][k] + in.n[2][k] * r.wi[2][k];
+                cos_i[k] = ci;
+                pdf_b[k] = max0(ci) * kInvPi;
+            }
+        } else {  // the mixture's pow is a float64 libm call: lane by lane
+            for (int k = 0; k < m; ++k) {
+                float n[3], wo[3], wi[3], fk[3];
+                for (int c = 0; c < 3; ++c) {
+                    n[c] = in.n[c][k];
+                    wo[c] = in.wo[c][k];
+                    wi[c] = r.wi[c][k];
+                }
+                bsdf_eval(in.mat[k], n, wo, wi, fk, cos_i[k], pdf_b[k]);
+                for (int c = 0; c < 3; ++c) f[c][k] = fk[c];
+            }
+        }
+        const float two_eps = 2.0f * eps;
+        const bool no_mis = !mis;
+#pragma omp simd
+        for (int k = 0; k < m; ++k) {
+            const float cpos = max0(cos_i[k]);
+            const float w_mis = pdf_l[k] / (pdf_l[k] + pdf_b[k]);
+            const bool single = std::fabs(pdf_l[k]) == kInf;  // delta light (or no valid light pdf): weight 1
+            const float w = (no_mis || single) ? 1.0f : w_mis;  // x * 1 is x, bit for bit: no MIS = weight 1
+            float v[3];
+            for (int c = 0; c < 3; ++c) {
+                v[c] = f[c][k] * (li[c][k] * cpos) * w;
+                r.val[c][k] = v[c];
+            }
+            // max3(v) > 0: some channel positive and none NaN
+            const bool p0 = v[0] > 0.0f, p1 = v[1] > 0.0f, p2 = v[2] > 0.0f;
+            const bool n0 = v[0] == v[0], n1 = v[1] == v[1], n2 = v[2] == v[2];
+            const bool lit = cos_i[k] > 0.0f, far = dist[k] > two_eps;
+            r.ok[k] = (lit && far && (p0 || p1 || p2) && n0 && n1 && n2) ? 1 : 0;
+            r.tmax[k] = dist[k] - two_eps;
         }
     }
 };
