@@ -121,6 +121,18 @@ class TestRender:
             assert torch.equal(r.radiance, ref.radiance), (workers, max_batch)
             assert torch.equal(r.depth, ref.depth)
 
+    def test_batches_bounded_by_max_batch(self, living):
+        # pixel ranges cover the frame once, are no longer than max_batch, and give every worker one at least
+        scene, _ = living
+        for workers, max_batch, n in [(1, 1 << 14, 57600), (2, 1 << 14, 57600), (2, 1 << 16, 921600), (3, 7, 5),
+                                      (2, 100, 1), (4, 10, 1000)]:
+            tr = PathTracer(scene, workers=workers, max_batch=max_batch)
+            ranges = tr._ranges(n)
+            assert ranges[0][0] == 0 and ranges[-1][1] == n
+            assert all(a[1] == b[0] for a, b in zip(ranges, ranges[1:]))
+            assert all(0 < hi - lo <= max_batch for lo, hi in ranges), (workers, max_batch, n)
+            assert len(ranges) >= min(workers, n)
+
     def test_nested_prefix_and_disjoint_streams(self, living):
         scene, tr = living
         left, _ = scene.stereo_cameras(1, 20, 12)
