@@ -32,6 +32,8 @@ from stereorepro.render import PathTracer  # noqa: E402
 from stereorepro.render.tracer import native_available  # noqa: E402
 
 BACKENDS = ["numpy"] + (["native"] if native_available() else [])
+#: rounds of the round-robin timing behind the tracer / raw embreex ratios (at least)
+RATIO_ROUNDS = 21
 from stereorepro.scenes import list_scenes, load_scene  # noqa: E402
 
 
@@ -242,7 +244,9 @@ def main():
     print("stage profile ...", flush=True)
     res["stages"] = [stage_profile(n, max(args.repeats, 5)) for n in ("living_room", "atrium")]
     print("ray throughput ...", flush=True)
-    res["throughput"] = [ray_throughput(n, 320, 180, args.repeats) for n in ("atrium", "living_room", "classroom")]
+    # the ratios are the targets and the machine is noisy: at least RATIO_ROUNDS rounds for their medians
+    res["ratio_rounds"] = max(args.repeats, RATIO_ROUNDS)
+    res["throughput"] = [ray_throughput(n, 320, 180, res["ratio_rounds"]) for n in ("atrium", "living_room", "classroom")]
     print("pixel mask ...", flush=True)
     res["pixel_mask"] = mask_cost(args.repeats)
     print("effects ...", flush=True)
@@ -289,7 +293,8 @@ def markdown(res) -> str:
         for k, v in t["kinds"].items():
             L.append(f"| {t['scene']} | {k} | {v['rays']} | {v['raw_embreex_mrays_s']:.2f} | {v['wrapper_mrays_s']:.2f} |")
     L += ["", "End to end (all rays of the frame / wall time of `render(gbuffers=False)`), against raw embreex on the "
-          "same rays (1 thread; 2 threads over halves of each batch); all of a scene's rows timed round-robin:", "",
+          f"same rays (1 thread; 2 threads over halves of each batch); all of a scene's rows timed round-robin, median of "
+          f"{res.get('ratio_rounds', res['repeats'])} rounds:", "",
           "| scene | backend | raw embreex 1 thr | tracer 1 worker | ratio | raw embreex 2 thr | tracer 2 workers | "
           "ratio | tracer 2-worker speed-up | raw 2-thread speed-up |", "|---|---|---|---|---|---|---|---|---|---|"]
     for t in res["throughput"]:
