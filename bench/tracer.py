@@ -32,9 +32,10 @@ from stereorepro.render import PathTracer  # noqa: E402
 from stereorepro.render.tracer import native_available  # noqa: E402
 
 BACKENDS = ["numpy"] + (["native"] if native_available() else [])
+from stereorepro.scenes import list_scenes, load_scene  # noqa: E402
+
 #: rounds of the round-robin timing behind the tracer / raw embreex ratios (at least)
 RATIO_ROUNDS = 21
-from stereorepro.scenes import list_scenes, load_scene  # noqa: E402
 
 
 def median_time(fn, repeats):
