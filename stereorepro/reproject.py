@@ -141,9 +141,17 @@ def _compose_cameras(src_K: Tensor, src_cam_from_world: Tensor, dst_K: Tensor, d
     ``q = z · M @ [u, v, 1] + t`` is the destination point in the source camera frame and
     ``uvw = P @ [u, v, 1] + kt / z`` its homogeneous source pixel, with M = R K_dst^-1, P = K_src M, kt = K_src t.
 
+    CPU cameras that need no gradient and are not being traced are composed in numpy (the same formulas: some
+    40 tiny torch ops cost 0.3 ms a call, 4 % of a native 1280x720 warp); otherwise in torch ops (autograd,
+    ONNX export, other devices).
+
     Returns:
         M: (B, 3, 3), t: (B, 3, 1), P: (B, 3, 3), kt: (B, 3, 1), Ks_inv: (B, 3, 3) = K_src^-1.
     """
+    cams = (src_K, src_cam_from_world, dst_K, dst_cam_from_world)
+    if not _tracing() and all(c.device.type == "cpu" and not (c.requires_grad and torch.is_grad_enabled())
+                              for c in cams):
+        return _compose_cameras_numpy(*cams, dtype)
     src_from_dst = _snap(src_cam_from_world.double() @ invert_rigid(dst_cam_from_world.double()))
     M64 = src_from_dst[:, :3, :3] @ _inverse_intrinsics(dst_K.double())
     t64 = src_from_dst[:, :3, 3:]
@@ -151,6 +159,39 @@ def _compose_cameras(src_K: Tensor, src_cam_from_world: Tensor, dst_K: Tensor, d
     kt = (src_K.double() @ t64).to(dtype)
     Ks_inv = _inverse_intrinsics(src_K.double()).to(dtype)
     return M64.to(dtype), t64.to(dtype), P, kt, Ks_inv
+
+
+def _compose_cameras_numpy(src_K: Tensor, src_cam_from_world: Tensor, dst_K: Tensor, dst_cam_from_world: Tensor,
+                           dtype: torch.dtype) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """:func:`_compose_cameras` in float64 numpy: invert_rigid, the closed-form K^-1 and _snap written out."""
+    import numpy as np
+
+    def f64(x):
+        return x.detach().to(torch.float64).numpy()
+
+    def snap(A, tol=1e-12):
+        r = np.round(A)  # half to even, as torch.round
+        return np.where(np.abs(A - r) <= tol * (1.0 + np.abs(A)), r, A)
+
+    def k_inv(K):  # camera.inverse_intrinsics
+        fx, s, cx, fy, cy = K[:, 0, 0], K[:, 0, 1], K[:, 0, 2], K[:, 1, 1], K[:, 1, 2]
+        out = np.zeros_like(K)
+        out[:, 0, 0], out[:, 0, 1], out[:, 0, 2] = 1.0 / fx, -s / (fx * fy), (s * cy - cx * fy) / (fx * fy)
+        out[:, 1, 1], out[:, 1, 2], out[:, 2, 2] = 1.0 / fy, -cy / fy, 1.0
+        return out
+
+    sK, sT, dK, dT = f64(src_K), f64(src_cam_from_world), f64(dst_K), f64(dst_cam_from_world)
+    Rt = dT[:, :3, :3].transpose(0, 2, 1)
+    dst_inv = np.concatenate([np.concatenate([Rt, -(Rt @ dT[:, :3, 3:])], 2), dT[:, 3:, :]], 1)  # invert_rigid
+    src_from_dst = snap(sT @ dst_inv)
+    M64 = src_from_dst[:, :3, :3] @ k_inv(dK)
+    t64 = src_from_dst[:, :3, 3:]
+    P = snap(sK @ M64)
+    out = (M64, t64, P, sK @ t64, k_inv(sK))
+    if dtype in (torch.float32, torch.float64):  # numpy's cast rounds to nearest, as torch's
+        npd = np.float32 if dtype == torch.float32 else np.float64
+        return tuple(torch.from_numpy(np.ascontiguousarray(a, dtype=npd)) for a in out)
+    return tuple(torch.from_numpy(np.ascontiguousarray(a)).to(dtype) for a in out)
 
 
 def backward_reproject(

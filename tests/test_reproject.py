@@ -591,6 +591,28 @@ class TestFastPath:
         self._assert_same(fast, general)
 
 
+class TestComposeCameras:
+    """Camera composition: numpy for plain CPU inference, torch ops under autograd / tracing; the same matrices."""
+
+    @pytest.mark.parametrize("seed", [0, 1, 2])
+    def test_numpy_equals_torch(self, seed):
+        import stereorepro.reproject as rp
+
+        m = StereoReprojection(0.05, 0.3)
+        a = dict(zip(m.input_names, example_inputs(m, batch=4, height=8, width=8, seed=seed)))
+        cams = [a["src_K"].clone(), a["src_cam_from_world"], a["dst_K"], a["dst_cam_from_world"]]
+        cams[0][:, 0, 1] = 0.37 * (seed + 1)  # skew
+        for dtype in (torch.float32, torch.float64):
+            fast = rp._compose_cameras(*cams, dtype)
+            graph = rp._compose_cameras(*(c.clone().requires_grad_() for c in cams), dtype)  # torch ops
+            for f, g in zip(fast, graph):
+                assert f.dtype == dtype and f.shape == g.shape
+                if dtype == torch.float32:
+                    assert torch.equal(f, g.detach())
+                else:  # float64 matmuls may round the last bit differently
+                    assert torch.allclose(f, g.detach(), rtol=1e-14, atol=1e-14)
+
+
 class TestSoftReprojection:
     def test_low_temperature_approaches_hard(self):
         inp, *_ = scene_pair(forward=0.2)
