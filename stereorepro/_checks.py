@@ -24,14 +24,20 @@ def _tracing() -> bool:
     return torch.jit.is_tracing() or torch.compiler.is_compiling() or torch.onnx.is_in_onnx_export()
 
 
-def check_shape(x, shape: Sequence[str], name: str, bind: dict | None = None) -> dict:
+def _skip(tracing: bool | None) -> bool:
+    """Whether a check is skipped: ``tracing`` as the caller found it (callers running many checks ask once: the
+    question costs microseconds), or asked now."""
+    return _tracing() if tracing is None else tracing
+
+
+def check_shape(x, shape: Sequence[str], name: str, bind: dict | None = None, tracing: bool | None = None) -> dict:
     """Check ``x`` against a symbolic shape such as ``["B", "3", "H", "W"]``.
 
     Digits must match exactly; letters bind to the first size seen (in ``bind``, shared across calls so that
-    e.g. all ``H`` agree). Returns the binding.
+    e.g. all ``H`` agree). Returns the binding. ``tracing``: see :func:`_skip` (all checks take it).
     """
     bind = {} if bind is None else bind
-    if _tracing():
+    if _skip(tracing):
         return bind
     if not isinstance(x, Tensor):
         raise TypeError(f"{name}: expected a torch.Tensor of shape ({', '.join(shape)}), got {type(x).__name__}")
@@ -51,15 +57,15 @@ def check_shape(x, shape: Sequence[str], name: str, bind: dict | None = None) ->
     return bind
 
 
-def check_floating(x: Tensor, name: str) -> None:
-    if _tracing():
+def check_floating(x: Tensor, name: str, tracing: bool | None = None) -> None:
+    if _skip(tracing):
         return
     if not x.is_floating_point():
         raise TypeError(f"{name}: expected a floating-point tensor, got dtype {x.dtype}")
 
 
-def check_device(tensors: dict, name: str) -> None:
-    if _tracing():
+def check_device(tensors: dict, name: str, tracing: bool | None = None) -> None:
+    if _skip(tracing):
         return
     devices = {k: v.device for k, v in tensors.items() if isinstance(v, Tensor)}
     if len(set(devices.values())) > 1:
@@ -67,16 +73,18 @@ def check_device(tensors: dict, name: str) -> None:
                          + ", ".join(f"{k}={d}" for k, d in devices.items()))
 
 
-def check_camera(K: Tensor, cam_from_world: Tensor, name: str, bind: dict | None = None) -> dict:
-    bind = check_shape(K, ["B", "3", "3"], f"{name} K", bind)
-    bind = check_shape(cam_from_world, ["B", "4", "4"], f"{name} cam_from_world", bind)
-    check_floating(K, f"{name} K")
-    check_floating(cam_from_world, f"{name} cam_from_world")
+def check_camera(K: Tensor, cam_from_world: Tensor, name: str, bind: dict | None = None,
+                 tracing: bool | None = None) -> dict:
+    tracing = _skip(tracing)
+    bind = check_shape(K, ["B", "3", "3"], f"{name} K", bind, tracing)
+    bind = check_shape(cam_from_world, ["B", "4", "4"], f"{name} cam_from_world", bind, tracing)
+    check_floating(K, f"{name} K", tracing)
+    check_floating(cam_from_world, f"{name} cam_from_world", tracing)
     return bind
 
 
-def check_same_hw(a: Tensor, b: Tensor, name_a: str, name_b: str) -> None:
-    if _tracing():
+def check_same_hw(a: Tensor, b: Tensor, name_a: str, name_b: str, tracing: bool | None = None) -> None:
+    if _skip(tracing):
         return
     if a.shape[-2:] != b.shape[-2:]:
         raise ShapeError(f"{name_a} and {name_b} must have the same H, W: got {tuple(a.shape)} and {tuple(b.shape)}")

@@ -98,24 +98,27 @@ _TEMPORAL_NAMES = dict(src_values="history_color", src_depth="prev_depth", src_n
 def _check_inputs(src_values, src_depth, src_normal, src_K, src_cam_from_world,
                   dst_depth, dst_normal, dst_K, dst_cam_from_world, names: dict) -> None:
     """Boundary checks; ``names`` maps roles to the caller's argument names so errors name what the user passed."""
+    if _tracing():
+        return
+    tr = False  # asked once for all the checks below
     bind_src: dict = {}
-    check_shape(src_values, ["B", "C", "H", "W"], names["src_values"], bind_src)
-    check_shape(src_depth, ["B", "1", "H", "W"], names["src_depth"], bind_src)
-    check_shape(src_normal, ["B", "3", "H", "W"], names["src_normal"], bind_src)
+    check_shape(src_values, ["B", "C", "H", "W"], names["src_values"], bind_src, tr)
+    check_shape(src_depth, ["B", "1", "H", "W"], names["src_depth"], bind_src, tr)
+    check_shape(src_normal, ["B", "3", "H", "W"], names["src_normal"], bind_src, tr)
     bind_b = {"B": bind_src["B"]} if "B" in bind_src else {}
-    check_shape(dst_depth, ["B", "1", "H", "W"], names["dst_depth"], dict(bind_b))
+    check_shape(dst_depth, ["B", "1", "H", "W"], names["dst_depth"], dict(bind_b), tr)
     check_shape(dst_normal, ["B", "3", "H", "W"], names["dst_normal"], {**bind_b, "H": dst_depth.shape[-2],
-                                                                         "W": dst_depth.shape[-1]})
-    check_camera(src_K, src_cam_from_world, names["src"], dict(bind_b))
-    check_camera(dst_K, dst_cam_from_world, names["dst"], dict(bind_b))
+                                                                         "W": dst_depth.shape[-1]}, tr)
+    check_camera(src_K, src_cam_from_world, names["src"], dict(bind_b), tr)
+    check_camera(dst_K, dst_cam_from_world, names["dst"], dict(bind_b), tr)
     for role, t in (("src_values", src_values), ("src_depth", src_depth), ("src_normal", src_normal),
                     ("dst_depth", dst_depth), ("dst_normal", dst_normal)):
-        check_floating(t, names[role])
+        check_floating(t, names[role], tr)
     check_device({names["src_values"]: src_values, names["src_depth"]: src_depth,
                   names["src_normal"]: src_normal, names["src"] + "_K": src_K,
                   names["src"] + "_cam_from_world": src_cam_from_world, names["dst_depth"]: dst_depth,
                   names["dst_normal"]: dst_normal, names["dst"] + "_K": dst_K,
-                  names["dst"] + "_cam_from_world": dst_cam_from_world}, "reprojection")
+                  names["dst"] + "_cam_from_world": dst_cam_from_world}, "reprojection", tr)
 
 
 def _as_scalar(x, like: Tensor) -> Tensor:
