@@ -124,7 +124,7 @@ class TestRender:
     def test_batches_bounded_by_max_batch(self, living):
         # pixel ranges cover the frame once, are no longer than max_batch, and give every worker one at least
         scene, _ = living
-        for workers, max_batch, n in [(1, 1 << 14, 57600), (2, 1 << 14, 57600), (2, 1 << 16, 921600), (3, 7, 5),
+        for workers, max_batch, n in [(1, 1 << 15, 57600), (2, 1 << 14, 57600), (2, 1 << 16, 921600), (3, 7, 5),
                                       (2, 100, 1), (4, 10, 1000)]:
             tr = PathTracer(scene, workers=workers, max_batch=max_batch)
             ranges = tr._ranges(n)

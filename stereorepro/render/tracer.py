@@ -213,8 +213,9 @@ class PathTracer:
         workers: threads (default: the usable CPU count).
         max_batch: most paths one worker traces at once: frames are split into pixel ranges of at most this many
             pixels (at least one range per worker; idle workers take the next range). It bounds memory (about
-            1 KiB per path) and keeps a batch's arrays and the BVH in cache: 16384 (the default) was 3 % faster
-            per frame than 65536 (``bench/tracer.py``'s machine, 320x180). Results do not depend on it.
+            1 KiB per path) and keeps a batch's arrays and the BVH in cache: at 320x180 on ``bench/tracer.py``'s
+            machine, one worker was 2-5 % faster with 32768 (the default) than with 65536 (16384: no better), two
+            workers equally fast (more, shorter ranges cost them 2 %). Results do not depend on it.
         clamp: firefly clamp on reflected radiance (see the module docstring): ``"auto"`` (default) uses the
             scene's ``[render] radiance_clamp`` when it is > 0, else the bound of
             :func:`~stereorepro.render.lights.radiance_bound` (per frame for moving lights); a positive number is
@@ -228,7 +229,7 @@ class PathTracer:
     frame). ``stats`` counts these preparations (``bvh_builds``, ``light_prepare``).
     """
 
-    def __init__(self, scene, seed: int = 0, workers: int | None = None, max_batch: int = 1 << 14,
+    def __init__(self, scene, seed: int = 0, workers: int | None = None, max_batch: int = 1 << 15,
                  clamp: str | float | None = "auto", backend: str = "auto"):
         self.backend = resolve_backend(backend)
         if workers is None:
