@@ -131,7 +131,7 @@ class TestRender:
             assert ranges[0][0] == 0 and ranges[-1][1] == n
             assert all(a[1] == b[0] for a, b in zip(ranges, ranges[1:]))
             assert all(0 < hi - lo <= max_batch for lo, hi in ranges), (workers, max_batch, n)
-            assert len(ranges) >= min(workers, n)
+            assert len(ranges) >= min(workers * (2 if workers > 1 else 1), n)
 
     def test_nested_prefix_and_disjoint_streams(self, living):
         scene, tr = living
