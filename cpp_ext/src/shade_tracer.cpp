@@ -22,8 +22,8 @@
 // of selects instead of branches, which the compiler vectorises (SSE2 at the x86-64 baseline; -fno-trapping-math
 // and -fno-math-errno in CMakeLists.txt let it: values are unchanged, vector sqrt/div/mul/add round exactly as
 // scalar ones). Measured on a 320x180 living-room frame: shade_x1 4.4 -> 2.6 ms, shade_x2 2.7 -> 1.9 ms. (AVX2
-// clones were measured slower here: Zen 3 gathers.) Compaction of shadow and bounce rays is branchless (write,
-// then advance the count by the keep flag) and keeps path order.
+// target_clones were measured slower here: shade_x1 2.65 -> 3.04 ms.) Compaction of shadow and bounce rays is
+// branchless (write, then advance the count by the keep flag) and keeps path order.
 //
 // Threading: none inside. The Python tracer already runs one worker thread per pixel range and each worker runs
 // its own embreex queries and these kernels (both release the GIL), so a second (OpenMP) level would only
