@@ -13,7 +13,6 @@ import datetime
 import json
 import os
 import platform
-import statistics
 import subprocess
 import sys
 import time
@@ -26,7 +25,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from _common import time_interleaved  # noqa: E402  (bench/ is the script's directory, first on sys.path)
+from _common import time_interleaved, time_ms  # noqa: E402  (bench/ is the script's directory, first on sys.path)
 
 from stereorepro.render import PathTracer  # noqa: E402
 from stereorepro.render.tracer import native_available  # noqa: E402
@@ -39,13 +38,8 @@ RATIO_ROUNDS = 21
 
 
 def median_time(fn, repeats):
-    fn()
-    ts = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return statistics.median(ts)
+    """Median seconds of ``fn()`` over ``repeats`` runs after one warm-up."""
+    return time_ms(fn, repeats, warmup=1)["median_ms"] / 1e3
 
 
 class _Recorder:

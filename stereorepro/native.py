@@ -125,12 +125,12 @@ def _cameras(src_K, src_cam_from_world, dst_K, dst_cam_from_world) -> tuple[Tens
     return tuple(x.reshape(B, -1).contiguous().cpu() for x in (P, kt, M, t, Ks_inv))
 
 
-def _squared_threshold(thr) -> float:
-    """float32 thr·thr, computed as the torch path does (0-d float32 tensor squared)."""
-    from .reproject import _as_scalar
+def _squared_thresholds(position_threshold, normal_threshold) -> tuple[float, float]:
+    """float32 thr·thr of both thresholds, squared by the torch path's own helper."""
+    from .reproject import _squared_thresholds as squared
 
-    t = _as_scalar(thr.detach() if isinstance(thr, Tensor) else thr, torch.empty((), dtype=torch.float32))
-    return float(t * t)
+    thr2 = squared(position_threshold, normal_threshold, torch.float32, "cpu").detach().view(2)
+    return float(thr2[0]), float(thr2[1])
 
 
 def _check_native_options(sampling: str, soft: bool) -> None:
@@ -186,8 +186,8 @@ def native_backward_reproject(
     valid = torch.empty(B, 1, H, W, dtype=torch.bool)
     reason = torch.empty(B, 1, H, W, dtype=torch.uint8)
     confidence = torch.empty(B, 1, H, W, dtype=torch.float32) if want_confidence else None
-    _core.reproject(sv, sd, sn, P, kt, M, t, Ks_inv, dd, dn, _squared_threshold(position_threshold),
-                    _squared_threshold(normal_threshold), sampling == "bilinear", values, valid, reason, confidence)
+    _core.reproject(sv, sd, sn, P, kt, M, t, Ks_inv, dd, dn, *_squared_thresholds(position_threshold, normal_threshold),
+                    sampling == "bilinear", values, valid, reason, confidence)
     return values, valid, reason, confidence
 
 
@@ -243,9 +243,9 @@ def native_temporal_reproject(
     color = torch.empty(B, C, H, W, dtype=torch.float32)
     n_out = torch.empty(B, 1, H, W, dtype=torch.float32)
     valid = torch.empty(B, 1, H, W, dtype=torch.bool)
-    _core.temporal_reproject(cur, hc, hl, pd, pn, P, kt, M, t, Ks_inv, dd, dn, _squared_threshold(position_threshold),
-                             _squared_threshold(normal_threshold), sampling == "bilinear", a, bool(warmup), cap,
-                             color, n_out, valid)
+    _core.temporal_reproject(cur, hc, hl, pd, pn, P, kt, M, t, Ks_inv, dd, dn,
+                             *_squared_thresholds(position_threshold, normal_threshold), sampling == "bilinear", a,
+                             bool(warmup), cap, color, n_out, valid)
     return color, n_out, valid
 
 

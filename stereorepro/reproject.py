@@ -716,9 +716,8 @@ def _fast_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, d
     lo = torch.full((1, 2, 1), -4.0 + off, dtype=cd, device=dev)
     hi = torch.tensor([Ws + 4.0 + off, Hs + 4.0 + off], dtype=cd, device=dev).view(1, 2, 1)
     R = torch.cat([P, M], 1)  # (B, 6, 3)
-    u_c = torch.arange(W, device=dev, dtype=cd).view(1, 1, 1, W) + 0.5  # pixel centres, as _pixel_centres
-    v_c = torch.arange(H, device=dev, dtype=cd).view(1, 1, H, 1) + 0.5
-    geo = (R, R[:, :, 0, None, None] * u_c, v_c, kt, t, lo, hi, torch.ones((), dtype=cd, device=dev), sampling, Wp,
+    centres = _pixel_centres(0, H, W, cd, dev)
+    geo = (R, R[:, :, 0, None, None] * centres["u_c"], centres["v_c"], kt, t, lo, hi, torch.ones((), dtype=cd, device=dev), sampling, Wp,
            idx_dtype)
     sc = _Scratch(dev)
 
