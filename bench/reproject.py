@@ -17,7 +17,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import header, save, time_interleaved  # noqa: E402
 
 from stereorepro import StereoReprojection, TemporalReprojection, export_onnx  # noqa: E402
-from stereorepro.onnx_export import example_inputs  # noqa: E402
+from stereorepro.io.onnx import example_inputs  # noqa: E402
 
 
 def copy_floor(n_bytes: int):

@@ -37,8 +37,7 @@ def main(argv=None) -> int:
     r = tracer.render(right, args.frame, 1, eye=1)
     gl = tracer.gbuffer(left, args.frame)
     backend = "native" if native.available() else "torch"
-    scale = max(1.0, 180 / H)
-    m = StereoReprojection(scene.position_threshold * scale, scene.normal_threshold, backend=backend)
+    m = StereoReprojection(*scene.thresholds(H), backend=backend)
     inputs = (r.radiance, r.depth, r.normal, right.K.float(), right.cam_from_world, gl.depth, gl.normal,
               left.K.float(), left.cam_from_world)
     with torch.inference_mode():

@@ -35,7 +35,8 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
-from stereorepro import PathTracer, TemporalReprojection, effective_spp_many, ladder_rmse, load_scene, rmse
+from stereorepro import (PathTracer, TemporalReprojection, effective_spp_many, ladder_rmse, load_scene, rmse,
+                         temporal_step)
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import cpu_training_threads  # noqa: E402
@@ -88,8 +89,9 @@ def render_clip(scene_name: str, frames: range, s: Settings, ladder: bool, seed:
     res = {k: torch.cat(v) for k, v in out.items() if v and k != "ladder"}
     if ladder:
         res["ladder"] = torch.cat(out["ladder"], 1)  # NxFx3xHxW
-    res["position_threshold"] = torch.tensor(scene.position_threshold * 180.0 / s.height)
-    res["normal_threshold"] = torch.tensor(scene.normal_threshold)
+    position_threshold, normal_threshold = scene.thresholds(s.height)
+    res["position_threshold"] = torch.tensor(position_threshold)
+    res["normal_threshold"] = torch.tensor(normal_threshold)
     return res
 
 
@@ -98,19 +100,14 @@ def accumulate(clip: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
     length, each (F, C, H, W)."""
     m = TemporalReprojection(float(clip["position_threshold"]), float(clip["normal_threshold"]), alpha=0.2)
     colors, valids, lens = [], [], []
-    prev = None
+    state = None
     with torch.no_grad():
         for i in range(clip["color"].shape[0]):
-            cur = {k: clip[k][i:i + 1] for k in ("color", "depth", "normal", "K", "T")}
-            if prev is None:
-                c, n, v = cur["color"], torch.ones_like(cur["depth"]), torch.zeros_like(cur["depth"], dtype=torch.bool)
-            else:
-                c, n, v = m(cur["color"], cur["depth"], cur["normal"], cur["K"], cur["T"], prev["acc"], prev["n"],
-                            prev["depth"], prev["normal"], prev["K"], prev["T"])
-            prev = dict(cur, acc=c, n=n)
-            colors.append(c)
-            valids.append(v.float())
-            lens.append(n)
+            cur = [clip[k][i:i + 1] for k in ("color", "depth", "normal", "K", "T")]
+            state, valid, _ = temporal_step(m, state, *cur)
+            colors.append(state.color)
+            valids.append(valid.float())
+            lens.append(state.history_len)
     return torch.cat(colors), torch.cat(valids), torch.cat(lens)
 
 

@@ -103,7 +103,7 @@ def run_torch(seq_dir, pos: float, nrm: float, alpha: float) -> tuple[dict, list
     import torch
 
     from stereorepro import StereoReprojection, TemporalReprojection
-    from stereorepro.reproject_cli import load_sequence, read_frame
+    from stereorepro.io.frames import load_sequence, read_frame
 
     seq = load_sequence(seq_dir)
     stereo = StereoReprojection(pos, nrm, backend="torch")
@@ -150,7 +150,7 @@ def main(argv=None) -> dict:
     import numpy as np
 
     from stereorepro import StereoReprojection, TemporalReprojection, export_onnx, load_scene
-    from stereorepro.reproject_cli import export_sequence
+    from stereorepro.io.frames import export_sequence
 
     frames, (W, H) = (6, (64, 36)) if args.smoke else (24, (320, 180))
     out = Path(args.out)
@@ -159,7 +159,7 @@ def main(argv=None) -> dict:
     t0 = time.perf_counter()
     seq_dir = export_sequence(scene, frames, W, H, out / "sequence", spp=1, seed=0)
     t_trace = time.perf_counter() - t0
-    pos, nrm, alpha = scene.position_threshold * 180.0 / H, scene.normal_threshold, 0.2
+    (pos, nrm), alpha = scene.thresholds(H), 0.2
 
     t0 = time.perf_counter()
     models = out / "models"

@@ -5,7 +5,7 @@ The paper sets the position and normal limits per scene by hand and blends with 
 position threshold, the normal threshold and ``alpha`` are ``nn.Parameter``s. Adam minimises the RMSE of the
 accumulated right eye against higher-spp references over short windows of training frames (backpropagating
 through the recurrence). The learned values are then evaluated with **hard** tests on held-out frames, next to
-the scene's hand-set values (position threshold scaled by ``180 / height``: scene files are tuned for ~180 rows),
+the scene's hand-set values (``Scene.thresholds(height)``: the position threshold scaled by ``max(1, 180 / height)``),
 as RMSE and effective spp (per-frame ladders of 1..L spp prefixes from the same renderer).
 
 Run::
@@ -29,7 +29,8 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from stereorepro import PathTracer, TemporalReprojection, effective_spp_many, ladder_rmse, load_scene, rmse
+from stereorepro import (PathTracer, TemporalReprojection, effective_spp_many, ladder_rmse, load_scene, rmse,
+                         temporal_step)
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import cpu_training_threads  # noqa: E402
@@ -82,17 +83,11 @@ def render_clip(scene, frames: range, s: Settings, ladder: bool, seed: int = 0) 
 def accumulate(module: TemporalReprojection, clip: dict[str, Tensor], lo: int, hi: int) -> tuple[Tensor, Tensor]:
     """Accumulate frames [lo, hi) of a clip from no history. Returns colour (F, 3, H, W) and valid (F, 1, H, W)."""
     colors, valids = [], []
-    prev = None
+    state = None
     for i in range(lo, hi):
-        cur = {k: clip[k][i:i + 1] for k in ("color", "depth", "normal", "K", "T")}
-        if prev is None:
-            c, n, v = cur["color"], torch.ones_like(cur["depth"]), torch.zeros_like(cur["depth"], dtype=torch.bool)
-        else:
-            c, n, v = module(cur["color"], cur["depth"], cur["normal"], cur["K"], cur["T"], prev["c"], prev["n"],
-                             prev["depth"], prev["normal"], prev["K"], prev["T"])
-        prev = dict(cur, c=c, n=n)
-        colors.append(c)
-        valids.append(v)
+        state, valid, _ = temporal_step(module, state, *[clip[k][i:i + 1] for k in ("color", "depth", "normal", "K", "T")])
+        colors.append(state.color)
+        valids.append(valid)
     return torch.cat(colors), torch.cat(valids)
 
 
@@ -120,8 +115,8 @@ def _run(s: Settings, args) -> dict:
     test = render_clip(scene, range(*s.test_frames), s, True, args.seed)
     t_render = time.perf_counter() - t_start
 
-    hand = {"position_threshold": scene.position_threshold * 180.0 / s.height,
-            "normal_threshold": scene.normal_threshold, "alpha": 0.2}
+    position_threshold, normal_threshold = scene.thresholds(s.height)
+    hand = {"position_threshold": position_threshold, "normal_threshold": normal_threshold, "alpha": 0.2}
     model = TemporalReprojection(hand["position_threshold"], hand["normal_threshold"], hand["alpha"], soft=True)
     opt = torch.optim.Adam(model.parameters(), lr=s.lr)
     floor = {"position_threshold": 1e-3 * hand["position_threshold"], "normal_threshold": 1e-3}

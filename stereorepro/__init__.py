@@ -1,14 +1,26 @@
 """stereorepro: spatiotemporal sample reprojection for real-time stereoscopic path tracing.
 
-Conventions (camera axes, pixel centres, depth, "no surface") are documented once in
-:mod:`stereorepro.camera`.
+The package follows the pipeline: :mod:`~stereorepro.scenes` → :mod:`~stereorepro.render` →
+:mod:`~stereorepro.reproject` → :mod:`~stereorepro.accumulate` → :mod:`~stereorepro.measure`, with
+:mod:`~stereorepro.io` and :mod:`~stereorepro.cli` at the edges. Conventions (camera axes, pixel centres, depth,
+"no surface") are documented once in :mod:`stereorepro.camera`.
+
+``import stereorepro`` loads the reprojection layer only (torch and numpy); the renderer, the scenes and the EXR
+frame I/O are imported on first use of their names (``stereorepro.PathTracer``, ``load_scene``, ``read_exr``).
 """
+
+from __future__ import annotations
+
+import importlib
 
 __version__ = "0.1.0"
 
-from .camera import (  # noqa: F401
+from .accumulate import EyeState, SpatiotemporalReprojection, temporal_step
+from .camera import (
     PinholeCamera,
     StereoRig,
+    Warp,
+    compose_warp,
     has_surface,
     intrinsics_from_fov,
     invert_rigid,
@@ -17,20 +29,9 @@ from .camera import (  # noqa: F401
     project,
     unproject,
 )
-from .reproject import (  # noqa: F401
-    Reason,
-    StereoReprojection,
-    TemporalReprojection,
-    backward_reproject,
-    reason_to_rgb,
-    stereo_reproject,
-    temporal_blend,
-    temporal_reproject,
-)
-from .onnx_export import export_onnx  # noqa: F401
-
-# --- metrics (stereorepro/metrics.py): image errors and effective spp ---
-from .metrics import (  # noqa: F401
+from .errors import SceneError, SequenceError, ShapeError, StereoreproError, UserError
+from .io.onnx import export_onnx
+from .measure.metrics import (
     EFFECTIVE_SPP_FLAGS,
     EffectiveSppLadder,
     effective_spp,
@@ -42,9 +43,54 @@ from .metrics import (  # noqa: F401
     ssim,
     suggest_reference_spp,
 )
-# --- end metrics ---
-from .pipeline import SpatiotemporalReprojection  # noqa: F401
-# --- render (path tracer, scenes, EXR frames) ---
-from .render import PathTracer, RenderResult, read_exr, write_exr  # noqa: F401,E402
-from .scenes import list_scenes, load_scene  # noqa: F401,E402
-# --- end render ---
+from .reproject import (
+    Reason,
+    StereoReprojection,
+    TemporalReprojection,
+    backward_reproject,
+    reason_to_rgb,
+    stereo_reproject,
+    temporal_blend,
+    temporal_reproject,
+)
+
+#: Names loaded on first use: (module, attribute). The renderer pulls in embreex and trimesh; EXR I/O OpenEXR.
+_LAZY = {
+    "PathTracer": ("stereorepro.render", "PathTracer"),
+    "RenderResult": ("stereorepro.render", "RenderResult"),
+    "read_exr": ("stereorepro.io.exr", "read_exr"),
+    "write_exr": ("stereorepro.io.exr", "write_exr"),
+    "list_scenes": ("stereorepro.scenes", "list_scenes"),
+    "load_scene": ("stereorepro.scenes", "load_scene"),
+}
+
+__all__ = [
+    # cameras and conventions
+    "PinholeCamera", "StereoRig", "Warp", "compose_warp", "has_surface", "intrinsics_from_fov", "invert_rigid",
+    "look_at", "pixel_centers", "project", "unproject",
+    # reprojection ops and modules
+    "Reason", "StereoReprojection", "TemporalReprojection", "backward_reproject", "reason_to_rgb",
+    "stereo_reproject", "temporal_blend", "temporal_reproject", "export_onnx",
+    # accumulation over a sequence
+    "SpatiotemporalReprojection", "EyeState", "temporal_step",
+    # metrics
+    "EFFECTIVE_SPP_FLAGS", "EffectiveSppLadder", "effective_spp", "effective_spp_many", "fit_ladder",
+    "ladder_rmse", "mse", "rmse", "ssim", "suggest_reference_spp",
+    # errors
+    "StereoreproError", "ShapeError", "SceneError", "SequenceError", "UserError",
+    # loaded on first use
+    *_LAZY,
+]
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        module, attr = _LAZY[name]
+        value = getattr(importlib.import_module(module), attr)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'stereorepro' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_LAZY))

@@ -11,23 +11,41 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-__all__ = ["check_shape", "check_floating", "check_camera", "check_same_hw", "ShapeError"]
+from .errors import ShapeError
+
+__all__ = ["check_shape", "check_floating", "check_device", "check_camera", "check_same_hw", "check_sampling",
+           "check_reprojection_inputs", "tracing", "ShapeError", "SAMPLINGS", "STEREO_NAMES", "TEMPORAL_NAMES"]
+
+#: Tap sampling of the reprojection: 2×2 bilinear taps (the paper's) or the one nearest tap.
+SAMPLINGS = ("bilinear", "nearest")
+
+#: Argument names of the reprojection roles, as the stereo and the temporal functions call them.
+STEREO_NAMES = dict(src_values="src_color", src_depth="src_depth", src_normal="src_normal", src="src",
+                    dst_depth="dst_depth", dst_normal="dst_normal", dst="dst")
+TEMPORAL_NAMES = dict(src_values="history_color", src_depth="prev_depth", src_normal="prev_normal", src="prev",
+                      dst_depth="depth", dst_normal="normal", dst="current")
 
 
-class ShapeError(ValueError):
-    """A tensor's rank, shape, dtype or device does not fit the operation."""
-
-
-def _tracing() -> bool:
+def tracing() -> bool:
     """True while torch.jit traces, torch.compile compiles or ONNX exports: the graph must be plain torch ops (no
     data-dependent Python checks, no native kernels). The one definition the package uses."""
     return torch.jit.is_tracing() or torch.compiler.is_compiling() or torch.onnx.is_in_onnx_export()
 
 
-def _skip(tracing: bool | None) -> bool:
-    """Whether a check is skipped: ``tracing`` as the caller found it (callers running many checks ask once: the
-    question costs microseconds), or asked now."""
-    return _tracing() if tracing is None else tracing
+_tracing = tracing  # the name the package used before
+
+
+def _skip(is_tracing: bool | None) -> bool:
+    """Whether a check is skipped: ``is_tracing`` as the caller found it (callers running many checks ask once:
+    the question costs microseconds), or asked now."""
+    return tracing() if is_tracing is None else is_tracing
+
+
+def check_sampling(sampling: str) -> str:
+    """``sampling`` if it is one of :data:`SAMPLINGS`, else ValueError naming the choices."""
+    if sampling not in SAMPLINGS:
+        raise ValueError(f"sampling must be one of {SAMPLINGS}, got {sampling!r}")
+    return sampling
 
 
 def check_shape(x, shape: Sequence[str], name: str, bind: dict | None = None, tracing: bool | None = None) -> dict:
@@ -88,3 +106,30 @@ def check_same_hw(a: Tensor, b: Tensor, name_a: str, name_b: str, tracing: bool 
         return
     if a.shape[-2:] != b.shape[-2:]:
         raise ShapeError(f"{name_a} and {name_b} must have the same H, W: got {tuple(a.shape)} and {tuple(b.shape)}")
+
+
+def check_reprojection_inputs(src_values, src_depth, src_normal, src_K, src_cam_from_world,
+                              dst_depth, dst_normal, dst_K, dst_cam_from_world, names: dict) -> None:
+    """Boundary checks of a backward reprojection; ``names`` maps roles to the caller's argument names
+    (:data:`STEREO_NAMES`, :data:`TEMPORAL_NAMES`) so errors name what the user passed."""
+    if tracing():
+        return
+    tr = False  # asked once for all the checks below
+    bind_src: dict = {}
+    check_shape(src_values, ["B", "C", "H", "W"], names["src_values"], bind_src, tr)
+    check_shape(src_depth, ["B", "1", "H", "W"], names["src_depth"], bind_src, tr)
+    check_shape(src_normal, ["B", "3", "H", "W"], names["src_normal"], bind_src, tr)
+    bind_b = {"B": bind_src["B"]} if "B" in bind_src else {}
+    check_shape(dst_depth, ["B", "1", "H", "W"], names["dst_depth"], dict(bind_b), tr)
+    check_shape(dst_normal, ["B", "3", "H", "W"], names["dst_normal"], {**bind_b, "H": dst_depth.shape[-2],
+                                                                         "W": dst_depth.shape[-1]}, tr)
+    check_camera(src_K, src_cam_from_world, names["src"], dict(bind_b), tr)
+    check_camera(dst_K, dst_cam_from_world, names["dst"], dict(bind_b), tr)
+    for role, t in (("src_values", src_values), ("src_depth", src_depth), ("src_normal", src_normal),
+                    ("dst_depth", dst_depth), ("dst_normal", dst_normal)):
+        check_floating(t, names[role], tr)
+    check_device({names["src_values"]: src_values, names["src_depth"]: src_depth,
+                  names["src_normal"]: src_normal, names["src"] + "_K": src_K,
+                  names["src"] + "_cam_from_world": src_cam_from_world, names["dst_depth"]: dst_depth,
+                  names["dst_normal"]: dst_normal, names["dst"] + "_K": dst_K,
+                  names["dst"] + "_cam_from_world": dst_cam_from_world}, "reprojection", tr)

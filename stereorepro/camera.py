@@ -27,11 +27,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
-from ._checks import check_camera, check_shape
+from ._checks import check_camera, check_shape, tracing
 
 __all__ = [
     "has_surface",
@@ -41,6 +42,9 @@ __all__ = [
     "invert_rigid",
     "unproject",
     "project",
+    "inverse_intrinsics",
+    "Warp",
+    "compose_warp",
     "PinholeCamera",
     "StereoRig",
 ]
@@ -136,6 +140,89 @@ def inverse_intrinsics(K: Tensor) -> Tensor:
     row1 = torch.stack([zero, 1.0 / fy, -cy / fy], dim=-1)
     row2 = torch.stack([zero, zero, one], dim=-1)
     return torch.stack([row0, row1, row2], dim=-2)
+
+
+class Warp(NamedTuple):
+    """Per-batch matrices of a backward warp from a destination camera into a source camera.
+
+    ``q = z · M @ [u, v, 1] + t`` is the destination pixel (u, v) at depth z as a point in the source camera's
+    frame, and ``uvw = P @ [u, v, 1] + kt / z`` its homogeneous source pixel, with ``M = R K_dst^-1``,
+    ``P = K_src M`` and ``kt = K_src t`` (R, t: ``src_cam_from_dst``).
+
+    Attributes:
+        M: (B, 3, 3). t: (B, 3, 1). P: (B, 3, 3). kt: (B, 3, 1). Ks_inv: (B, 3, 3) = ``K_src^-1``.
+    """
+
+    M: Tensor
+    t: Tensor
+    P: Tensor
+    kt: Tensor
+    Ks_inv: Tensor
+
+
+def _snap(A: Tensor, tol: float = 1e-12) -> Tensor:
+    """Round entries within ``tol`` (relative) of an integer to it (float64 camera compositions)."""
+    r = torch.round(A)
+    return torch.where((A - r).abs() <= tol * (1.0 + A.abs()), r, A)
+
+
+def compose_warp(src_K: Tensor, src_cam_from_world: Tensor, dst_K: Tensor, dst_cam_from_world: Tensor,
+                 dtype: torch.dtype) -> Warp:
+    """The :class:`Warp` from a destination camera into a source camera, composed in float64, cast to ``dtype``.
+
+    Entries within 1e-12 (relative) of an integer are snapped to it, so identical cameras give ``P = I`` and
+    ``t = 0`` exactly: identity warps and integer-pixel shifts are bit-exact. CPU cameras that need no gradient
+    and are not being traced are composed in numpy (the same formulas, a fraction of the per-call overhead of
+    some 40 tiny torch ops); otherwise in torch ops (autograd, ONNX export, other devices).
+
+    Args:
+        src_K, dst_K: (B, 3, 3) intrinsics. src_cam_from_world, dst_cam_from_world: (B, 4, 4) rigid extrinsics.
+        dtype: dtype of the returned matrices.
+    """
+    cams = (src_K, src_cam_from_world, dst_K, dst_cam_from_world)
+    if not tracing() and all(c.device.type == "cpu" and not (c.requires_grad and torch.is_grad_enabled())
+                             for c in cams):
+        return _compose_warp_numpy(*cams, dtype)
+    src_from_dst = _snap(src_cam_from_world.double() @ invert_rigid(dst_cam_from_world.double()))
+    M64 = src_from_dst[:, :3, :3] @ inverse_intrinsics(dst_K.double())
+    t64 = src_from_dst[:, :3, 3:]
+    P = _snap(src_K.double() @ M64).to(dtype)
+    kt = (src_K.double() @ t64).to(dtype)
+    Ks_inv = inverse_intrinsics(src_K.double()).to(dtype)
+    return Warp(M64.to(dtype), t64.to(dtype), P, kt, Ks_inv)
+
+
+def _compose_warp_numpy(src_K: Tensor, src_cam_from_world: Tensor, dst_K: Tensor, dst_cam_from_world: Tensor,
+                        dtype: torch.dtype) -> Warp:
+    """:func:`compose_warp` in float64 numpy: invert_rigid, the closed-form K^-1 and _snap written out."""
+    import numpy as np
+
+    def f64(x):
+        return x.detach().to(torch.float64).numpy()
+
+    def snap(A, tol=1e-12):
+        r = np.round(A)  # half to even, as torch.round
+        return np.where(np.abs(A - r) <= tol * (1.0 + np.abs(A)), r, A)
+
+    def k_inv(K):  # inverse_intrinsics
+        fx, s, cx, fy, cy = K[:, 0, 0], K[:, 0, 1], K[:, 0, 2], K[:, 1, 1], K[:, 1, 2]
+        out = np.zeros_like(K)
+        out[:, 0, 0], out[:, 0, 1], out[:, 0, 2] = 1.0 / fx, -s / (fx * fy), (s * cy - cx * fy) / (fx * fy)
+        out[:, 1, 1], out[:, 1, 2], out[:, 2, 2] = 1.0 / fy, -cy / fy, 1.0
+        return out
+
+    sK, sT, dK, dT = f64(src_K), f64(src_cam_from_world), f64(dst_K), f64(dst_cam_from_world)
+    Rt = dT[:, :3, :3].transpose(0, 2, 1)
+    dst_inv = np.concatenate([np.concatenate([Rt, -(Rt @ dT[:, :3, 3:])], 2), dT[:, 3:, :]], 1)  # invert_rigid
+    src_from_dst = snap(sT @ dst_inv)
+    M64 = src_from_dst[:, :3, :3] @ k_inv(dK)
+    t64 = src_from_dst[:, :3, 3:]
+    P = snap(sK @ M64)
+    out = (M64, t64, P, sK @ t64, k_inv(sK))
+    if dtype in (torch.float32, torch.float64):  # numpy's cast rounds to nearest, as torch's
+        npd = np.float32 if dtype == torch.float32 else np.float64
+        return Warp(*(torch.from_numpy(np.ascontiguousarray(a, dtype=npd)) for a in out))
+    return Warp(*(torch.from_numpy(np.ascontiguousarray(a)).to(dtype) for a in out))
 
 
 def unproject(depth: Tensor, K: Tensor) -> Tensor:

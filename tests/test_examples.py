@@ -16,7 +16,7 @@ import pytest
 import torch
 
 from stereorepro import StereoReprojection, TemporalReprojection, export_onnx, temporal_reproject
-from stereorepro.onnx_export import example_inputs
+from stereorepro.io.onnx import example_inputs
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 

@@ -1,18 +1,16 @@
 // stereorepro._core: optional native kernels. Pure torch / numpy (stereorepro/*.py) is the reference;
-// every kernel has a Python twin and a parity test (tests/test_native.py, tests/test_render_native.py).
+// every kernel has a Python twin and a parity test (tests/reproject/test_reproject_native.py, tests/render/test_render_native.py).
 #include <nanobind/nanobind.h>
 
 namespace nb = nanobind;
 
 void bind_info(nb::module_ &m);
-void bind_blend(nb::module_ &m);
 void bind_reproject(nb::module_ &m);
 void bind_shade_tracer(nb::module_ &m);
 
 NB_MODULE(_core, m) {
     m.doc() = "stereorepro native CPU kernels (optional accelerator; torch is the reference)";
     bind_info(m);
-    bind_blend(m);
     bind_reproject(m);
     bind_shade_tracer(m);
 }

@@ -1,10 +1,12 @@
-"""Path tracer (embreex wavefront), EXR frame I/O and procedural scene geometry.
+"""The path tracer: an embreex wavefront tracer producing radiance and G-buffers (depth, normal, position).
 
-Public names: :class:`PathTracer`, :class:`RenderResult`, :func:`read_exr`, :func:`write_exr`,
-:func:`exr_to_tensors`. Scenes are loaded by :func:`stereorepro.scenes.load_scene`.
+Stages (:mod:`.tracer`): generate → intersect → shade + NEE → bounce → shadow, over structure-of-arrays batches;
+:mod:`.bsdf`, :mod:`.lights` and :mod:`.rng` hold their maths, :mod:`._embree` is the only importer of embreex.
+Scenes are loaded by :func:`stereorepro.scenes.load_scene`; frames are written by :mod:`stereorepro.io.exr`
+(``read_exr`` / ``write_exr`` stay importable from here).
 """
 
-from .exr import exr_to_tensors, read_exr, write_exr  # noqa: F401
+from ..io.exr import exr_to_tensors, read_exr, write_exr  # noqa: F401
 from .tracer import PathTracer, RenderResult, ray_epsilon  # noqa: F401
 
 __all__ = ["PathTracer", "RenderResult", "ray_epsilon", "read_exr", "write_exr", "exr_to_tensors"]

@@ -76,6 +76,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .. import _backend
 from ..camera import PinholeCamera
 from . import bsdf as _bsdf
 from ._embree import TriangleBVH
@@ -91,7 +92,7 @@ __all__ = ["PathTracer", "RenderResult", "ray_epsilon", "native_available", "res
            "ENV_VAR"]
 
 BACKENDS = ("auto", "numpy", "native", "torch")
-ENV_VAR = "STEREOREPRO_BACKEND"
+ENV_VAR = _backend.ENV_VAR
 
 
 def native_available() -> bool:
@@ -100,25 +101,13 @@ def native_available() -> bool:
 
 
 def resolve_backend(backend: str = "auto") -> str:
-    """``"numpy"`` or ``"native"`` for a requested tracer backend (``STEREOREPRO_BACKEND`` overrides it when set;
-    ``"torch"`` means the reference path, numpy). Raises ValueError for an unknown name and RuntimeError when
-    ``"native"`` is asked for but ``_core`` lacks the kernels."""
-    if backend not in BACKENDS:
-        raise ValueError(f"PathTracer: backend must be one of {BACKENDS}, got {backend!r}")
-    env = os.environ.get(ENV_VAR, "").strip().lower()
-    if env:
-        if env not in BACKENDS:
-            raise ValueError(f"{ENV_VAR} must be one of {BACKENDS}, got {env!r}")
-        backend = env
-    if backend == "torch":
-        backend = "numpy"
-    if backend == "auto":
-        return "native" if native_available() else "numpy"
-    if backend == "native" and not native_available():
-        source = f" (from {ENV_VAR})" if env else ""
-        raise RuntimeError(f"PathTracer: backend='native'{source} is not possible: stereorepro._core with the "
-                           "tracer kernels is not built or not importable")
-    return backend
+    """``"numpy"`` or ``"native"`` for a requested tracer backend, by the package's one backend rule
+    (:mod:`stereorepro._backend`: ``STEREOREPRO_BACKEND`` overrides the argument; ``"torch"`` and ``"reference"``
+    name the reference path, which for the tracer is numpy). Raises ValueError for an unknown name and
+    RuntimeError when ``"native"`` is asked for but ``_core`` lacks the kernels."""
+    why = "stereorepro._core with the tracer kernels is not built or not importable"
+    chosen = _backend.resolve(backend, BACKENDS, lambda: None if native_available() else why, who="PathTracer: ")
+    return "native" if chosen == "native" else "numpy"
 
 
 def _tick(times: dict | None, name: str, t0: float) -> float:

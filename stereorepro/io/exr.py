@@ -1,23 +1,27 @@
-"""EXR frames: the project's frame format.
+"""EXR frames: the project's frame format, its channel names (defined here, once) and their reading and writing.
 
 Channels (all 32-bit float, ZIP-compressed, lossless): radiance ``R, G, B``; depth ``Z`` (camera z, ``+inf``
 where there is no surface); shading normal ``N.X, N.Y, N.Z``; world position ``P.X, P.Y, P.Z``. Optional extra
-channels may be added (e.g. ``albedo.R``). The same layout is read by ``stereorepro reproject``.
+channels may be added (e.g. ``albedo.R``). The same layout is read by ``stereorepro reproject``
+(:mod:`stereorepro.io.frames`). The radiance group is the image a reprojection calls its ``color``.
 """
 
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 import torch
 
-__all__ = ["write_exr", "read_exr", "exr_to_tensors", "result_channels"]
+from .atomic import atomic_path
 
-_GROUPS = {"radiance": ("R", "G", "B"), "depth": ("Z",), "normal": ("N.X", "N.Y", "N.Z"),
-           "position": ("P.X", "P.Y", "P.Z")}
+__all__ = ["write_exr", "read_exr", "exr_to_tensors", "result_channels", "CHANNELS"]
+
+#: Channel names of each group of the frame format (a RenderResult's field name → its EXR channels).
+CHANNELS = {"radiance": ("R", "G", "B"), "depth": ("Z",), "normal": ("N.X", "N.Y", "N.Z"),
+            "position": ("P.X", "P.Y", "P.Z")}
+_GROUPS = CHANNELS
 
 
 def result_channels(result) -> dict[str, np.ndarray]:
@@ -36,7 +40,7 @@ def result_channels(result) -> dict[str, np.ndarray]:
 
 
 def write_exr(path: str | os.PathLike, data) -> None:
-    """Write an EXR atomically (temporary file in the same folder, then ``os.replace``).
+    """Write an EXR atomically (:func:`stereorepro.io.atomic.atomic_path`).
 
     Args:
         path: output file.
@@ -52,19 +56,9 @@ def write_exr(path: str | os.PathLike, data) -> None:
         raise ValueError(f"write_exr: all channels must be (H, W) arrays of one size, got {shapes}")
     # OpenEXR ignores numpy strides and rewrites the dict it is given: pass fresh, contiguous copies.
     fresh = {str(k): np.ascontiguousarray(np.asarray(v, dtype=np.float32)).copy() for k, v in chans.items()}
-    path = Path(path)
-    folder = path.parent if str(path.parent) else Path(".")
-    folder.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp.exr", dir=folder)
-    os.close(fd)
-    try:
-        header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-        OpenEXR.File(header, fresh).write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    with atomic_path(path) as tmp:
+        OpenEXR.File(header, fresh).write(str(tmp))
 
 
 def read_exr(path: str | os.PathLike) -> dict[str, np.ndarray]:

@@ -4,11 +4,7 @@ Parity policy: colours within 1e-5; ``valid`` / ``reason`` identical except at e
 that lands on the squared threshold and rounds differently), which are counted and must stay <= 0.01 % of the
 pixels. The kernels follow the torch arithmetic operation by operation, so in practice there are none.
 
-Temporal variant (measured at 1280x720, see the report of the change): one fused pass
-(``_core.temporal_reproject``: warp [history colour, length] and blend) was faster than ``reproject`` with C = 4
-followed by ``_core.temporal_blend`` (an extra concatenation and an intermediate write); the fused kernel is the
-one used, the two-pass variant is kept in ``stereorepro.native._temporal_two_pass`` for benchmarks and is checked
-equal here.
+Temporal: ``_core.temporal_reproject`` warps [history colour, length] and blends in one fused pass.
 """
 
 import math
@@ -17,7 +13,9 @@ import pytest
 import torch
 
 from stereorepro import StereoReprojection, TemporalReprojection, native
-from stereorepro._checks import ShapeError
+from stereorepro.camera import compose_warp
+from stereorepro.errors import ShapeError
+from stereorepro.reproject import _native, functional
 from stereorepro.reproject import (
     Reason,
     backward_reproject,
@@ -31,10 +29,9 @@ if not native.available():
     pytest.skip("stereorepro._core without the reprojection kernels", allow_module_level=True)
 
 from stereorepro.native import _core, native_backward_reproject, native_temporal_reproject  # noqa: E402
-from test_reproject import ARGS, plane_pair, scene_pair  # noqa: E402
+from test_reproject import ARGS, plane_pair, scene_pair  # noqa: E402  (tests/reproject/ is on sys.path)
 
 MAX_TIE_FRACTION = 1e-4  # 0.01 %
-TIES = {"pixels": 0, "mismatches": 0}  # running totals over this module, reported by test_zz_tie_summary
 
 
 def assert_parity(ref, got, what=""):
@@ -46,8 +43,6 @@ def assert_parity(ref, got, what=""):
     mismatch = (valid_r != valid_g) | (reason_r != reason_g)
     n_pix = valid_r.numel()
     n_bad = int(mismatch.sum())
-    TIES["pixels"] += n_pix
-    TIES["mismatches"] += n_bad
     assert n_bad <= MAX_TIE_FRACTION * n_pix, f"{what}: {n_bad} valid/reason mismatches of {n_pix} pixels"
     same = (~mismatch).expand_as(values_r)
     assert torch.isfinite(values_g).all(), what
@@ -259,8 +254,8 @@ class TestNativeStereo:
             native_backward_reproject(*[bad[a] for a in ARGS], 0.01, 0.1)
         # direct kernel calls: shapes are checked, outputs must be exactly right (noconvert: no hidden copies)
         B, C, H, W = 1, 3, 6, 8
-        P, kt, M, t, Ki = native._cameras(*[inp[a] for a in ("src_K", "src_cam_from_world", "dst_K",
-                                                               "dst_cam_from_world")])
+        M, t, P, kt, Ki = [x.reshape(1, -1).contiguous() for x in compose_warp(
+            *[inp[a] for a in ("src_K", "src_cam_from_world", "dst_K", "dst_cam_from_world")], torch.float32)]
         ins = [inp["src_color"], inp["src_depth"], inp["src_normal"], P, kt, M, t, Ki, inp["dst_depth"],
                inp["dst_normal"], 1e-4, 1e-2, True]
         outs = [torch.empty(B, C, H, W), torch.empty(B, 1, H, W, dtype=torch.bool),
@@ -430,14 +425,6 @@ class TestNativeTemporal:
                        prev_cam_from_world=s["src_cam_from_world"])
             self._parity(*self._both(inp, pos, nrm), f"{hw} seed {seed}")
 
-    def test_two_pass_variant_equals_fused(self):
-        inp = self._inputs(n=None)
-        args = [inp[k] for k in self.NAMES]
-        fused = native_temporal_reproject(*args, 0.05, 0.3)
-        two = native._temporal_two_pass(*args, 0.05, 0.3)
-        for a, b in zip(fused, two):
-            assert torch.equal(a, b)
-
     def test_module(self):
         inp = self._inputs(n=None)
         args = [inp[k] for k in self.NAMES]
@@ -445,44 +432,6 @@ class TestNativeTemporal:
             got = TemporalReprojection(0.05, 0.3, backend="native")(*args)
             ref = TemporalReprojection(0.05, 0.3, backend="torch")(*args)
         self._parity(ref, got, "module")
-
-
-class TestNativeBlend:
-    """The pre-existing ``_core.temporal_blend`` against :func:`stereorepro.reproject.temporal_blend` (bool mask,
-    finite inputs, n >= 0: the kernel does not clamp n at 0 and returns ``current`` exactly where a >= 1 even for a
-    non-finite history, where torch gives NaN)."""
-
-    def _inputs(self, seed=0, B=2, C=3, H=5, W=7):
-        g = torch.Generator().manual_seed(seed)
-        return (torch.rand(B, C, H, W, generator=g), torch.rand(B, C, H, W, generator=g),
-                torch.randint(0, 300, (B, 1, H, W), generator=g).float(),
-                torch.rand(B, 1, H, W, generator=g) > 0.3)
-
-    def _native(self, cur, hist, n, valid, alpha, warmup, cap):
-        out, n_out = torch.empty_like(cur), torch.empty_like(n)
-        _core.temporal_blend(cur, hist, n, valid, alpha, warmup, cap, out, n_out)
-        return out, n_out
-
-    def test_smoke(self):
-        out, n = self._native(*self._inputs(), 0.2, True, 255.0)
-        assert out.shape == (2, 3, 5, 7) and n.shape == (2, 1, 5, 7)
-
-    def test_exceptions(self):
-        cur, hist, n, valid = self._inputs()
-        with pytest.raises(ValueError, match="history"):
-            self._native(cur, hist[..., :-1].contiguous(), n, valid, 0.2, True, 255.0)
-        with pytest.raises(TypeError):
-            _core.temporal_blend(cur, hist, n, valid, 0.2, True, 255.0, torch.empty_like(cur).double(),
-                                 torch.empty_like(n))
-
-    @pytest.mark.parametrize("alpha,warmup,cap", [(0.2, True, 255.0), (0.2, False, 255.0), (1.0, True, 255.0),
-                                                  (1e-9, True, 10.0), (0.5, True, 1.0)])
-    def test_parity(self, alpha, warmup, cap):
-        for seed in range(3):
-            cur, hist, n, valid = self._inputs(seed)
-            ref = temporal_blend(cur, hist, n, valid, alpha, warmup, cap)
-            got = self._native(cur, hist, n, valid, alpha, warmup, cap)
-            assert (ref[0] - got[0]).abs().max() <= 1e-6 and torch.equal(ref[1], got[1])
 
 
 class TestBackendSelection:
@@ -539,9 +488,9 @@ class TestBackendSelection:
         """Which implementation the functions and modules run, observed by counting native calls."""
         monkeypatch.delenv(native.ENV_VAR, raising=False)
         calls = []
-        real_s, real_t = native.native_backward_reproject, native.native_temporal_reproject
-        monkeypatch.setattr(native, "native_backward_reproject", lambda *a, **k: calls.append("s") or real_s(*a, **k))
-        monkeypatch.setattr(native, "native_temporal_reproject", lambda *a, **k: calls.append("t") or real_t(*a, **k))
+        real_s, real_t = functional._native_backward, functional._native_temporal
+        monkeypatch.setattr(functional, "_native_backward", lambda *a, **k: calls.append("s") or real_s(*a, **k))
+        monkeypatch.setattr(functional, "_native_temporal", lambda *a, **k: calls.append("t") or real_t(*a, **k))
         inp = self._stereo_inputs()
         args = [inp[a] for a in ARGS]
         StereoReprojection(0.05, 0.3)(*args)
@@ -563,7 +512,7 @@ class TestBackendSelection:
 
     def test_without_core(self, monkeypatch):
         monkeypatch.delenv(native.ENV_VAR, raising=False)
-        monkeypatch.setattr(native, "_core", None)
+        monkeypatch.setattr(_native, "_core", None)
         assert not native.available()
         inp = self._stereo_inputs()
         args = [inp[a] for a in ARGS]
@@ -580,8 +529,3 @@ class TestBackendSelection:
         path = export_onnx(StereoReprojection(0.3, 0.3), tmp_path / "s.onnx")
         assert path.exists()
 
-
-def test_zz_tie_summary():
-    """Threshold-tie mismatches over every parity comparison of this module (runs last in file order)."""
-    assert TIES["mismatches"] <= MAX_TIE_FRACTION * max(TIES["pixels"], 1)
-    print(f"\nnative parity: {TIES['mismatches']} valid/reason mismatches over {TIES['pixels']} pixels")

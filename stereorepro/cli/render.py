@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import os
 
-from ..cli import parse_resolution
+from ..errors import UserError
+from .main import parse_resolution
 
 
 def _cmd_scenes(args) -> int:
@@ -21,10 +22,9 @@ def _cmd_scenes(args) -> int:
 
 
 def _cmd_render(args) -> int:
-    from ..cli import UserError
     from ..scenes import SceneError, load_scene
-    from .exr import write_exr
-    from .tracer import PathTracer
+    from ..io.exr import write_exr
+    from ..render import PathTracer
 
     if args.shared_scenes:
         os.environ["STEREOREPRO_SHARED_SCENES"] = args.shared_scenes

@@ -12,15 +12,9 @@ import torch
 from stereorepro import SpatiotemporalReprojection, StereoReprojection
 from stereorepro.cli import main
 from stereorepro.render import read_exr, write_exr
-from stereorepro.reproject_cli import (
-    NO_HISTORY,
-    REQUIRED_CHANNELS,
-    SequenceError,
-    export_sequence,
-    load_sequence,
-    read_frame,
-    reproject_sequence,
-)
+from stereorepro.errors import SequenceError
+from stereorepro.io.frames import REQUIRED_CHANNELS, export_sequence, load_sequence, read_frame
+from stereorepro.io.sequence import NO_HISTORY, reproject_sequence
 
 W, H, N = 32, 18, 3
 
@@ -225,7 +219,7 @@ class TestReprojectCliExceptions:
         assert _frames(out) == ["keep.txt"]
 
     def test_failure_mid_sequence_leaves_nothing(self, work_dir, tmp_path, monkeypatch):
-        import stereorepro.reproject_cli as rc
+        import stereorepro.io.sequence as rc
 
         real = rc.read_frame
 

@@ -1,4 +1,4 @@
-"""Tests for stereorepro.metrics: pixel errors, SSIM, the ladder fit and the effective-spp estimator.
+"""Tests for stereorepro.measure.metrics: pixel errors, SSIM, the ladder fit and the effective-spp estimator.
 
 The synthetic validation (TestSyntheticValidation) simulates path tracing as truth + Gaussian noise: one sample
 has per-pixel standard deviation SIGMA, an n-spp image averages n samples (variance SIGMA² / n), ladder rungs
@@ -18,8 +18,8 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from stereorepro._checks import ShapeError
-from stereorepro.metrics import (
+from stereorepro.errors import ShapeError
+from stereorepro.measure.metrics import (
     EFFECTIVE_SPP_FLAGS,
     EffectiveSppLadder,
     effective_spp,

@@ -1,24 +1,16 @@
 """Command line: ``stereorepro <command> ...`` (also ``python -m stereorepro``).
 
-Each subsystem registers its own sub-commands through a ``register(subparsers)`` function; this file only
-collects them. A command returns an exit code; errors a user can fix (bad file, bad option) print one line to
-stderr and exit with code 2.
+Each command module of this package registers its sub-commands through ``register(subparsers)``; this file
+collects them and holds the shared argument types. A command returns an exit code; errors a user can fix (bad
+file, bad option) raise :class:`~stereorepro.errors.UserError`: one line on stderr, exit code 2.
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib
 import sys
 
-# Modules that provide ``register(subparsers)``. A module that is missing (an optional subsystem not built yet)
-# is skipped; any other import error is raised.
-_COMMAND_MODULES = [
-    "stereorepro.render.cli",
-    "stereorepro.experiment",
-    "stereorepro.reproject_cli",
-    "stereorepro.demo",
-]
+from ..errors import UserError
 
 
 def parse_resolution(s: str) -> tuple[int, int]:
@@ -33,21 +25,13 @@ def parse_resolution(s: str) -> tuple[int, int]:
         raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT (e.g. 320x180), got {s!r}") from None
 
 
-class UserError(Exception):
-    """An error caused by the user's input (file, option); printed without a traceback, exit code 2."""
-
-
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="stereorepro", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
-    for name in _COMMAND_MODULES:
-        try:
-            mod = importlib.import_module(name)
-        except ModuleNotFoundError as e:
-            if e.name == name:
-                continue
-            raise
-        mod.register(sub)
+    from . import demo, experiment, render, reproject  # each imports its heavy dependencies inside its commands
+
+    for module in (render, experiment, reproject, demo):
+        module.register(sub)
     return parser
 
 

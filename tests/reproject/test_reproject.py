@@ -23,9 +23,10 @@ from stereorepro import (
     stereo_reproject,
     temporal_reproject,
 )
-from stereorepro._checks import ShapeError
+from stereorepro.camera import compose_warp
+from stereorepro.errors import ShapeError
 from stereorepro.camera import PinholeCamera, look_at
-from stereorepro.onnx_export import example_inputs, onnx_input_dims
+from stereorepro.io.onnx import example_inputs, onnx_input_dims
 from stereorepro.synthetic import camera_pair, default_scene, raycast
 
 ARGS = ["src_color", "src_depth", "src_normal", "src_K", "src_cam_from_world",
@@ -457,19 +458,19 @@ class TestFastPath:
 
     @staticmethod
     def _both(monkeypatch, args, block=None, **kw):
-        import stereorepro.reproject as rp
+        from stereorepro.reproject import _fast, functional
 
         calls = []
-        fast_impl = rp._fast_reproject
+        fast_impl = _fast.fast_reproject
         with monkeypatch.context() as m, torch.no_grad():
-            m.setattr(rp, "_fast_reproject", lambda *a, **k: calls.append(1) or fast_impl(*a, **k))
+            m.setattr(_fast, "fast_reproject", lambda *a, **k: calls.append(1) or fast_impl(*a, **k))
             if block is not None:
-                m.setattr(rp, "FAST_BLOCK_PIXELS", block)
-            fast = backward_reproject(*args, **kw)
+                m.setattr(_fast, "FAST_BLOCK_PIXELS", block)
+            fast = backward_reproject(*args, backend="torch", **kw)
         assert calls == [1], "the fast path was not taken"
         with monkeypatch.context() as m, torch.no_grad():
-            m.setattr(rp, "_inference_only", lambda inputs: False)
-            general = backward_reproject(*args, **kw)
+            m.setattr(functional, "inference_only", lambda inputs: False)
+            general = backward_reproject(*args, backend="torch", **kw)
         assert calls == [1]
         return fast, general
 
@@ -503,13 +504,13 @@ class TestFastPath:
     @pytest.mark.parametrize("shift", [0.0, 1.0, 1.25, -2.5])
     def test_rectified_planes(self, monkeypatch, shift):
         """fy = 0 everywhere: the fast path reads the y0 taps only."""
-        import stereorepro.reproject as rp
+        from stereorepro.reproject import _fast, functional
 
         inp = plane_pair(H=9, W=11, shift_px=shift, B=2)
         inp["src_depth"][0, 0, :, 4] = 2.5  # occluder: POSITION discards
         taps = []
-        accept = rp._fast_accept
-        monkeypatch.setattr(rp, "_fast_accept", lambda t, *a: taps.append(t.shape[2:4]) or accept(t, *a))
+        accept = _fast.fast_accept
+        monkeypatch.setattr(_fast, "fast_accept", lambda t, *a: taps.append(t.shape[2:4]) or accept(t, *a))
         fast, general = self._both(monkeypatch, [inp[a] for a in ARGS], block=30, position_threshold=0.01,
                                    normal_threshold=0.1)
         self._assert_same(fast, general)
@@ -554,9 +555,9 @@ class TestFastPath:
 
     def test_float64_table_indices(self, monkeypatch):
         """Source tables of 2^24 pixels or more index in float64 (forced here on a small image)."""
-        import stereorepro.reproject as rp
+        from stereorepro.reproject import _fast, functional
 
-        monkeypatch.setattr(rp, "_F32_EXACT", 100)
+        monkeypatch.setattr(_fast, "_F32_EXACT", 100)
         inp, *_ = scene_pair(H=12, W=16, forward=0.2)
         fast, general = self._both(monkeypatch, [inp[a] for a in ARGS], block=40, position_threshold=0.05,
                                    normal_threshold=0.2)
@@ -564,9 +565,9 @@ class TestFastPath:
 
     def test_not_taken(self, monkeypatch):
         """Gradients, soft tests and thresholds whose square is not finite take the general path."""
-        import stereorepro.reproject as rp
+        from stereorepro.reproject import _fast, functional
 
-        monkeypatch.setattr(rp, "_fast_reproject", None)  # would raise if called
+        monkeypatch.setattr(_fast, "fast_reproject", None)  # would raise if called
         inp, *_ = scene_pair(H=8, W=10)
         run(inp, 1e20, 0.3)
         run(inp, 0.05, 0.3, soft=True)
@@ -574,18 +575,18 @@ class TestFastPath:
             run({**inp, "src_color": inp["src_color"].clone().requires_grad_(True)}, 0.05, 0.3)
 
     def test_temporal(self, monkeypatch):
-        import stereorepro.reproject as rp
+        from stereorepro.reproject import _fast, functional
 
         m = TemporalReprojection(0.05, 0.3, backend="torch")
         args = example_inputs(m, batch=2, height=21, width=33, seed=5)
         calls = []
-        fast_impl = rp._fast_reproject
+        fast_impl = _fast.fast_reproject
         with monkeypatch.context() as mp:
-            mp.setattr(rp, "_fast_reproject", lambda *a, **k: calls.append(1) or fast_impl(*a, **k))
-            mp.setattr(rp, "FAST_BLOCK_PIXELS", 70)
+            mp.setattr(_fast, "fast_reproject", lambda *a, **k: calls.append(1) or fast_impl(*a, **k))
+            mp.setattr(_fast, "FAST_BLOCK_PIXELS", 70)
             fast = m(*args)
         with monkeypatch.context() as mp, torch.no_grad():
-            mp.setattr(rp, "_inference_only", lambda inputs: False)
+            mp.setattr(functional, "inference_only", lambda inputs: False)
             general = m(*args)
         assert calls == [1]
         self._assert_same(fast, general)
@@ -596,15 +597,15 @@ class TestComposeCameras:
 
     @pytest.mark.parametrize("seed", [0, 1, 2])
     def test_numpy_equals_torch(self, seed):
-        import stereorepro.reproject as rp
+        from stereorepro.reproject import _fast, functional
 
         m = StereoReprojection(0.05, 0.3)
         a = dict(zip(m.input_names, example_inputs(m, batch=4, height=8, width=8, seed=seed)))
         cams = [a["src_K"].clone(), a["src_cam_from_world"], a["dst_K"], a["dst_cam_from_world"]]
         cams[0][:, 0, 1] = 0.37 * (seed + 1)  # skew
         for dtype in (torch.float32, torch.float64):
-            fast = rp._compose_cameras(*cams, dtype)
-            graph = rp._compose_cameras(*(c.clone().requires_grad_() for c in cams), dtype)  # torch ops
+            fast = compose_warp(*cams, dtype)
+            graph = compose_warp(*(c.clone().requires_grad_() for c in cams), dtype)  # torch ops
             for f, g in zip(fast, graph):
                 assert f.dtype == dtype and f.shape == g.shape
                 if dtype == torch.float32:

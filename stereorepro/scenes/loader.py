@@ -51,31 +51,43 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .camera import PinholeCamera, StereoRig, intrinsics_from_fov, look_at
+from ..camera import PinholeCamera, StereoRig, intrinsics_from_fov, look_at
+from ..errors import SceneError
 
 __all__ = ["Scene", "SceneError", "SceneGeometry", "list_scenes", "load_scene", "scenes_dir",
-           "shared_scenes_dir", "KNOWN_EFFECTS"]
+           "shared_scenes_dir", "KNOWN_EFFECTS", "THRESHOLD_ROWS", "threshold_scale"]
 
 KNOWN_EFFECTS = frozenset({"glossy", "moving_light"})
 BUILTIN_SCENES = ("atrium", "atrium_glossy", "atrium_moving_light", "living_room", "living_room_glossy",
                   "living_room_moving_light", "classroom")
 EXTERNAL_SCENES = ("shared_sponza", "shared_living_room", "shared_classroom")
 SHARED_ENV = "STEREOREPRO_SHARED_SCENES"
+#: Image rows for which scene files set their position thresholds (2–3 pixel footprints at a typical depth).
+THRESHOLD_ROWS = 180
 
 
-class SceneError(ValueError):
-    """A scene file is missing, malformed or inconsistent (the message names the file and the key)."""
+def threshold_scale(height: int) -> float:
+    """The one rule for thresholds against resolution: the factor on a scene's position threshold at ``height``
+    rows, ``max(1, THRESHOLD_ROWS / height)``.
+
+    The position test compares a tap's surface point with the destination point, so a tap half a pixel away on a
+    slanted surface differs by about half a pixel footprint. Below :data:`THRESHOLD_ROWS` rows a pixel covers more
+    of the scene and the threshold grows with it, so that the test keeps its meaning in pixels; at and above it
+    the scene's threshold is used as it is (it must not shrink below the geometric tolerance the scene needs).
+    """
+    if not height >= 1:
+        raise ValueError(f"height must be >= 1, got {height}")
+    return max(1.0, THRESHOLD_ROWS / float(height))
 
 
-# ----------------------------------------------------------------------------------------------- locations
 def scenes_dir() -> Path:
     """Folder of the built-in scene files: ``$STEREOREPRO_SCENES_DIR``, else ``scenes/`` of the repository
     (found relative to this package: repository layout and editable installs), else ``./scenes``."""
     cands = []
     if os.environ.get("STEREOREPRO_SCENES_DIR"):
         cands.append(Path(os.environ["STEREOREPRO_SCENES_DIR"]))
-    here = Path(__file__).resolve().parent
-    cands += [here.parent / "scenes", here / "scenes", Path.cwd() / "scenes"]
+    package = Path(__file__).resolve().parent.parent
+    cands += [package.parent / "scenes", package / "scenes", Path.cwd() / "scenes"]
     for c in cands:
         if (c / "atrium.toml").is_file():
             return c
@@ -88,7 +100,7 @@ def shared_scenes_dir() -> Path:
     env = os.environ.get(SHARED_ENV)
     if env:
         return Path(env)
-    return Path(__file__).resolve().parent.parent.parent / "shared" / "scenes"
+    return Path(__file__).resolve().parent.parent.parent.parent / "shared" / "scenes"
 
 
 def list_scenes(include_external: bool = False) -> list[str]:
@@ -97,7 +109,6 @@ def list_scenes(include_external: bool = False) -> list[str]:
     return list(BUILTIN_SCENES) + (list(EXTERNAL_SCENES) if include_external else [])
 
 
-# ----------------------------------------------------------------------------------------------- schema
 _VEC3 = "vec3"
 _SCHEMA = {
     "name": "str", "extends": "str", "description": "str", "effects": "strlist", "num_frames": "int",
@@ -199,7 +210,6 @@ def _req(data: dict, key: str, file: str, what: str):
     return cur
 
 
-# ----------------------------------------------------------------------------------------------- splines
 def catmull_rom(points: np.ndarray, t: float) -> np.ndarray:
     """Point at ``t`` in [0, 1] on the uniform Catmull-Rom spline through ``points`` (P, 3) (ends clamped)."""
     P = np.asarray(points, np.float64)
@@ -217,7 +227,6 @@ def catmull_rom(points: np.ndarray, t: float) -> np.ndarray:
     return 0.5 * ((2 * p1) + (-p0 + p2) * u + (2 * p0 - 5 * p1 + 4 * p2 - p3) * u2 + (-p0 + 3 * p1 - 3 * p2 + p3) * u3)
 
 
-# ----------------------------------------------------------------------------------------------- scene
 @dataclass(frozen=True)
 class SceneGeometry:
     """Triangle soup of a scene.
@@ -277,7 +286,12 @@ class Scene:
     _geometry: SceneGeometry | None = field(default=None, repr=False)
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
-    # camera ---------------------------------------------------------------------------------------
+    def thresholds(self, height: int, scale: float | None = None) -> tuple[float, float]:
+        """(position, normal) thresholds for images of ``height`` rows: the position threshold times ``scale``,
+        by default :func:`threshold_scale` (``max(1, 180 / height)``); the normal threshold as it is."""
+        s = threshold_scale(height) if scale is None else float(scale)
+        return float(self.position_threshold) * s, float(self.normal_threshold)
+
     def _t(self, frame: int) -> float:
         if not (0 <= int(frame) < self.num_frames):
             raise ValueError(f"scene {self.name}: frame must be in [0, {self.num_frames}), got {frame}")
@@ -305,7 +319,6 @@ class Scene:
         """(left, right) :class:`PinholeCamera` (B = 1, float64) of the stereo rig at ``frame``."""
         return self.rig.cameras(self.head_pose(frame), self.intrinsics(width, height), height, width)
 
-    # lights and materials -------------------------------------------------------------------------
     def point_lights(self, frame: int) -> tuple[np.ndarray, np.ndarray]:
         """Point lights at ``frame``: positions (L, 3) and intensities (L, 3), float32."""
         t = self._t(frame)
@@ -322,7 +335,6 @@ class Scene:
                 "exponent": np.array([m.exponent for m in ms], np.float32).reshape(-1),
                 "emission": np.array([m.emission for m in ms], np.float32).reshape(-1, 3)}
 
-    # geometry -------------------------------------------------------------------------------------
     def geometry(self) -> SceneGeometry:
         """The scene's triangles (loaded or generated once, then cached)."""
         with self._lock:
@@ -379,7 +391,7 @@ def _expand_path(s: str, base: Path) -> Path:
 
 
 def _build_geometry(scene: Scene) -> SceneGeometry:
-    from .render.procedural import GENERATORS, MeshBuilder
+    from .procedural import GENERATORS, MeshBuilder
 
     data, file = scene._data, str(scene.source)
     geo = data.get("geometry", {})

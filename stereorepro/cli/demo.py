@@ -1,14 +1,13 @@
 """``stereorepro demo``: the main job on a built-in default — a quick run of the paper's experiment.
 
-Runs :func:`stereorepro.experiment.run_experiment` on the built-in ``living_room`` scene at a small resolution,
+Runs :func:`stereorepro.measure.experiment.run_experiment` on the built-in ``living_room`` scene at a small resolution,
 few frames and a low reference spp (a few minutes on 2 cores), prints Tables 1 and 2 and the report's path.
 Every setting can be overridden with the same options as ``stereorepro experiment``.
 """
 
 from __future__ import annotations
 
-from .experiment import _cmd as run_command
-from .experiment import add_arguments
+from .experiment import add_arguments, run_command
 
 DEFAULTS = dict(scene="living_room", frames=24, resolution=(240, 135), reference_spp=128, ladder_spp=16,
                 out="runs/demo")

@@ -5,7 +5,7 @@ import json
 import pytest
 
 from stereorepro.cli import main
-from stereorepro.experiment import ExperimentConfig, RenderCache, run_experiment, tables_markdown
+from stereorepro.measure.experiment import ExperimentConfig, RenderCache, run_experiment, tables_markdown
 
 SMALL = dict(scene="living_room", frames=3, width=48, height=27, reference_spp=16, ladder_spp=4, progress=False,
              alphas=(0.5,))

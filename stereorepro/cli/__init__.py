@@ -1,0 +1,7 @@
+"""The command line (``stereorepro``): :func:`main` dispatches to the command modules of this package
+(``render``: scenes and render; ``reproject``: reproject and export-sequence; ``experiment``; ``demo``)."""
+
+from ..errors import UserError
+from .main import build_parser, main, parse_resolution
+
+__all__ = ["main", "build_parser", "parse_resolution", "UserError"]

@@ -1,0 +1,67 @@
+"""Sub-command ``stereorepro experiment``: the paper's experiment (:mod:`stereorepro.measure.experiment`)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from ..errors import UserError
+from ..measure.experiment import ExperimentConfig, run_experiment, tables_markdown
+from .main import parse_resolution
+
+__all__ = ["add_arguments", "config_from_args", "run_command", "register"]
+
+
+def add_arguments(p: argparse.ArgumentParser, defaults: dict | None = None) -> None:
+    d = defaults or {}
+    p.add_argument("--scene", default=d.get("scene"), required="scene" not in d, help="built-in name or .toml path")
+    p.add_argument("--frames", type=int, default=d.get("frames"), help="frames (default: the scene's)")
+    p.add_argument("--resolution", type=parse_resolution, default=d.get("resolution", (320, 180)), help="WxH")
+    p.add_argument("--reference-spp", type=int, default=d.get("reference_spp", 256))
+    p.add_argument("--ladder-spp", type=int, default=d.get("ladder_spp", 16))
+    p.add_argument("--out", default=d.get("out"), required="out" not in d)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--alphas", default="0.1,0.5", help="extra EMA weights measured beside 0.2")
+    p.add_argument("--threshold-scale", default="auto", help="'auto' = max(1, 180/height), or a number")
+    p.add_argument("--workers", type=int, default=None)
+    p.add_argument("--exr", action="store_true", help="also write EXR frames of both eyes")
+    p.add_argument("--force", action="store_true", help="recompute cached renders")
+    p.add_argument("--cache-dir", default=None, help="render cache (default: OUT/cache); runs may share one")
+    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--metric", choices=("hdr", "ldr"), default="ldr",
+                   help="RMSE on linear radiance (hdr) or on values clamped to [0, 1] (ldr, display-referred)")
+    p.add_argument("--renderer-version", default=None,
+                   help="cache key of a previous run's renderer (results.json 'code'): re-analyse its cached renders")
+
+
+def config_from_args(args) -> ExperimentConfig:
+    try:
+        alphas = tuple(float(a) for a in args.alphas.split(",") if a.strip())
+        scale = None if args.threshold_scale == "auto" else float(args.threshold_scale)
+    except ValueError as e:
+        raise UserError(f"bad --alphas/--threshold-scale: {e}") from None
+    w, h = args.resolution
+    return ExperimentConfig(scene=args.scene, out=args.out, frames=args.frames, width=w, height=h,
+                            reference_spp=args.reference_spp, ladder_spp=args.ladder_spp, seed=args.seed,
+                            alphas=alphas, threshold_scale=scale, workers=args.workers, exr=args.exr,
+                            force=args.force, progress=not args.no_progress, renderer_version=args.renderer_version,
+                            cache_dir=args.cache_dir, metric=args.metric)
+
+
+def run_command(args) -> int:
+    """Run the experiment of parsed ``args`` (shared by ``experiment`` and ``demo``); print the tables."""
+    cfg = config_from_args(args)
+    try:
+        results = run_experiment(cfg)
+    except (ValueError, FileNotFoundError) as e:
+        raise UserError(str(e)) from None
+    print(tables_markdown(results))
+    print(f"report: {Path(cfg.out) / 'report.md'} (figures and results.json beside it); "
+          f"wall {results['wall_s']:.0f} s")
+    return 0
+
+
+def register(sub) -> None:
+    p = sub.add_parser("experiment", help="the paper's experiment: effective spp, Tables 1-2, figures, time cost")
+    add_arguments(p)
+    p.set_defaults(func=run_command)

@@ -1,0 +1,95 @@
+"""Sub-commands ``stereorepro reproject`` (:func:`stereorepro.io.sequence.reproject_sequence`) and
+``stereorepro export-sequence`` (:func:`stereorepro.io.frames.export_sequence`)."""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+import torch
+
+from ..errors import SceneError, SequenceError, UserError
+from ..io.frames import export_sequence
+from ..io.sequence import MODES, reproject_sequence
+from .main import parse_resolution
+
+
+def _cmd_reproject(args) -> int:
+    if args.eye is not None and args.mode != "temporal":
+        raise UserError(f"--eye applies to --mode temporal only (got --mode {args.mode})")
+    device = args.device
+    if device == "auto":
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    try:
+        summary = reproject_sequence(args.input, args.out, args.mode, args.eye or "right", args.position_threshold,
+                                     args.normal_threshold, args.alpha, args.sampling, device,
+                                     log=None if args.quiet else print)
+    except SequenceError as e:
+        raise UserError(str(e)) from None
+    if not args.quiet:
+        mean = ", ".join(f"{e} {v:.1f} %" for e, v in summary["mean_discard_pct"].items())
+        print(f"{args.out}: {summary['frames']} frame(s), {args.mode}; mean discarded: {mean}")
+    return 0
+
+
+def _cmd_export(args) -> int:
+    from ..scenes import load_scene
+
+    w, h = args.resolution
+    if args.frames < 1 or args.spp < 1 or args.stride < 1 or args.start < 0:
+        raise UserError("--frames, --spp and --stride must be >= 1 and --start >= 0")
+    try:
+        scene = load_scene(args.scene)
+    except SceneError as e:
+        raise UserError(str(e)) from None
+    ids = [args.start + k * args.stride for k in range(args.frames)]
+    if ids[-1] >= scene.num_frames:
+        raise UserError(f"frames {ids[0]}..{ids[-1]} exceed the scene's {scene.num_frames} frames")
+    export_sequence(scene, ids, w, h, args.out, args.spp, args.seed, args.workers)
+    if not args.quiet:
+        print(f"{args.out}: {len(ids)} stereo frame(s) of {scene.name} at {w}x{h}, {args.spp} spp")
+    return 0
+
+
+def _positive(s: str) -> float:
+    try:
+        v = float(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {s!r}") from None
+    if not (math.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {s!r}")
+    return v
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("reproject", help="stereo/temporal reprojection of a directory of EXR frames",
+                              description="Reproject a directory of frames from any renderer (cameras.json + "
+                                          "{frame:04d}_{left|right}.exr with R,G,B, Z, N.X/N.Y/N.Z).")
+    p.add_argument("--input", required=True, help="directory with cameras.json and the frames")
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--mode", choices=MODES, default="both",
+                   help="stereo: right->left per frame; temporal: accumulation per eye; both: the paper's scheme")
+    p.add_argument("--eye", choices=("left", "right", "both"), default=None,
+                   help="eyes accumulated in temporal mode (default right)")
+    p.add_argument("--position-threshold", type=_positive, default=None,
+                   help="max |P_src - P_dst| in scene units (default: cameras.json reprojection.position_threshold)")
+    p.add_argument("--normal-threshold", type=_positive, default=None,
+                   help="max |N_src - N_dst| of unit normals (default: cameras.json reprojection.normal_threshold)")
+    p.add_argument("--alpha", type=_positive, default=0.2, help="minimum EMA weight of a new frame (paper: 0.2)")
+    p.add_argument("--sampling", choices=("bilinear", "nearest"), default="bilinear")
+    p.add_argument("--device", choices=("cpu", "cuda", "auto"), default="cpu")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=_cmd_reproject)
+
+    p = subparsers.add_parser("export-sequence", help="trace a scene into a `stereorepro reproject` input directory")
+    p.add_argument("--scene", required=True, help="built-in scene name or path to a .toml")
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--frames", type=int, default=8, help="number of frames")
+    p.add_argument("--start", type=int, default=0, help="first scene frame")
+    p.add_argument("--stride", type=int, default=1, help="scene frames between exported frames")
+    p.add_argument("--resolution", type=parse_resolution, default=(320, 180), metavar="WxH")
+    p.add_argument("--spp", type=int, default=1)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--workers", type=int, default=None)
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=_cmd_export)

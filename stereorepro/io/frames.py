@@ -1,0 +1,311 @@
+"""The frame-sequence format that ``stereorepro reproject`` reads: a directory of EXR frames and their cameras.
+
+Input directory (``--input DIR``)
+---------------------------------
+``DIR/cameras.json``::
+
+    {"frames": [{"left":  {"K": [[fx, s, cx], [0, fy, cy], [0, 0, 1]], "cam_from_world": [[...4 numbers...] x 4]},
+                 "right": {"K": ..., "cam_from_world": ...}},
+                ...],
+     "reprojection": {"position_threshold": 0.25, "normal_threshold": 0.25},   # optional defaults
+     "meta": {...}}                                                             # optional, ignored
+
+and ``DIR/{frame:04d}_{left|right}.exr`` for every listed frame (frame = index into ``frames``), with 32-bit
+float channels ``R, G, B`` (linear radiance), ``Z`` (camera-space z, **not** ray length; NaN, ±inf or <= 0 where
+there is no surface) and ``N.X, N.Y, N.Z`` (unit world-space shading normals). Extra channels are ignored; our
+tracer's EXR output (:func:`stereorepro.render.write_exr`) is valid input. All files share one size. Cameras follow
+:mod:`stereorepro.camera`: OpenCV axes (x right, y down, z forward), ``K`` maps camera space to pixel coordinates
+whose pixel centres are at +0.5, ``cam_from_world`` is rigid. Unknown keys are errors (a typo is not silence).
+
+:func:`export_sequence` (and ``stereorepro export-sequence``) writes such a directory from our path tracer.
+"""
+
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..errors import SequenceError
+from .atomic import atomic_write
+from .exr import CHANNELS
+
+__all__ = ["REQUIRED_CHANNELS", "SequenceError", "EyeCamera", "FrameSequence", "load_sequence", "read_frame",
+           "export_sequence", "EYES"]
+
+#: Channels every input EXR must have (others are ignored): the radiance, depth and normal groups.
+REQUIRED_CHANNELS = CHANNELS["radiance"] + CHANNELS["depth"] + CHANNELS["normal"]
+EYES = ("left", "right")
+_FILE_RE = re.compile(r"^(\d{4,})_(left|right)\.exr$")
+
+
+@dataclass(frozen=True)
+class EyeCamera:
+    """One eye's camera of one frame.
+
+    Attributes:
+        K: (1, 3, 3) float64 intrinsics (pixel centres at +0.5).
+        cam_from_world: (1, 4, 4) float64 rigid extrinsics (OpenCV axes).
+    """
+
+    K: Tensor
+    cam_from_world: Tensor
+
+
+@dataclass(frozen=True)
+class FrameSequence:
+    """A validated input directory.
+
+    Attributes:
+        root: the directory.
+        cameras: per frame, eye name → :class:`EyeCamera` (only the eyes that were asked for).
+        height, width: the common image size.
+        position_threshold, normal_threshold: defaults from ``cameras.json`` (``None`` when absent).
+    """
+
+    root: Path
+    cameras: tuple
+    height: int
+    width: int
+    position_threshold: float | None = None
+    normal_threshold: float | None = None
+
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+    def path(self, frame: int, eye: str) -> Path:
+        return self.root / f"{frame:04d}_{eye}.exr"
+
+
+
+def _matrix(value, rows: int, where: str) -> np.ndarray:
+    ok = (isinstance(value, list) and len(value) == rows
+          and all(isinstance(r, list) and len(r) == rows for r in value)
+          and all(isinstance(x, (int, float)) and not isinstance(x, bool) for r in value for x in r))
+    if not ok:
+        raise SequenceError(f"{where}: expected a {rows}x{rows} list of numbers, got {json.dumps(value)[:80]}")
+    a = np.asarray(value, np.float64)
+    if not np.isfinite(a).all():
+        raise SequenceError(f"{where}: values must be finite, got {a.tolist()}")
+    return a
+
+
+def _check_K(K: np.ndarray, where: str) -> None:
+    if not (K[0, 0] > 0 and K[1, 1] > 0 and K[1, 0] == 0 and np.array_equal(K[2], [0.0, 0.0, 1.0])):
+        raise SequenceError(f"{where}: expected pinhole intrinsics [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with "
+                            f"fx, fy > 0, got {K.tolist()}")
+
+
+def _check_rigid(T: np.ndarray, where: str, tol: float = 1e-4) -> None:
+    R = T[:3, :3]
+    rigid = (np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9) and np.allclose(R.T @ R, np.eye(3), atol=tol)
+             and np.linalg.det(R) > 0)
+    if not rigid:
+        raise SequenceError(f"{where}: expected a rigid transform (rotation + translation, last row [0, 0, 0, 1]), "
+                            f"got {T.tolist()}")
+
+
+def _threshold(table, key: str, where: str) -> float | None:
+    if key not in table:
+        return None
+    v = table[key]
+    if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0):
+        raise SequenceError(f"{where}.{key}: expected a positive number, got {v!r}")
+    return float(v)
+
+
+def _parse_cameras(path: Path, eyes: tuple[str, ...]) -> tuple[list[dict], dict]:
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise SequenceError(f"{path}: not found (the input directory needs cameras.json)") from None
+    except OSError as e:
+        raise SequenceError(f"{path}: cannot read: {e}") from None
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise SequenceError(f"{path}: malformed JSON: {e}") from None
+    if not isinstance(data, dict):
+        raise SequenceError(f"{path}: expected an object {{\"frames\": [...]}}, got {type(data).__name__}")
+    unknown = set(data) - {"frames", "reprojection", "meta"}
+    if unknown:
+        raise SequenceError(f"{path}: unknown key(s) {sorted(unknown)} (expected frames, reprojection, meta)")
+    frames = data.get("frames")
+    if not isinstance(frames, list) or not frames:
+        raise SequenceError(f"{path}: 'frames' must be a non-empty list, got {json.dumps(frames)[:80]}")
+    out = []
+    for i, fr in enumerate(frames):
+        where = f"{path}: frames[{i}]"
+        if not isinstance(fr, dict):
+            raise SequenceError(f"{where}: expected an object with 'left'/'right', got {type(fr).__name__}")
+        unknown = set(fr) - set(EYES)
+        if unknown:
+            raise SequenceError(f"{where}: unknown key(s) {sorted(unknown)} (expected left, right)")
+        cams = {}
+        for eye in EYES:
+            if eye not in fr:
+                if eye in eyes:
+                    raise SequenceError(f"{where}: missing key '{eye}'")
+                continue
+            cam = fr[eye]
+            if not isinstance(cam, dict):
+                raise SequenceError(f"{where}.{eye}: expected an object with 'K' and 'cam_from_world'")
+            unknown = set(cam) - {"K", "cam_from_world"}
+            if unknown:
+                raise SequenceError(f"{where}.{eye}: unknown key(s) {sorted(unknown)} (expected K, cam_from_world)")
+            for key in ("K", "cam_from_world"):
+                if key not in cam:
+                    raise SequenceError(f"{where}.{eye}: missing key '{key}'")
+            K = _matrix(cam["K"], 3, f"{where}.{eye}.K")
+            _check_K(K, f"{where}.{eye}.K")
+            T = _matrix(cam["cam_from_world"], 4, f"{where}.{eye}.cam_from_world")
+            _check_rigid(T, f"{where}.{eye}.cam_from_world")
+            if eye in eyes:
+                cams[eye] = EyeCamera(torch.from_numpy(K)[None], torch.from_numpy(T)[None])
+        out.append(cams)
+    rep = data.get("reprojection", {})
+    if not isinstance(rep, dict) or set(rep) - {"position_threshold", "normal_threshold"}:
+        raise SequenceError(f"{path}: 'reprojection' must be an object with position_threshold and/or "
+                            f"normal_threshold, got {json.dumps(rep)[:80]}")
+    thr = {k: _threshold(rep, k, f"{path}: reprojection") for k in ("position_threshold", "normal_threshold")}
+    return out, thr
+
+
+def _exr_header(path: Path) -> tuple[list[str], int, int]:
+    import OpenEXR
+
+    try:
+        h = OpenEXR.File(str(path), header_only=True).header()
+        names = [c.name for c in h["channels"]]
+        lo, hi = h["dataWindow"]
+    except Exception as e:  # noqa: BLE001 - any reader failure is a bad file
+        raise SequenceError(f"{path}: not a readable EXR: {e}") from None
+    return names, int(hi[1] - lo[1] + 1), int(hi[0] - lo[0] + 1)
+
+
+def load_sequence(input_dir, eyes: tuple[str, ...] = EYES) -> FrameSequence:
+    """Validate an input directory without reading pixels: ``cameras.json`` (shapes, rigidity, keys), the frame
+    files present against the frames listed, and every needed EXR's channels and size (from its header).
+
+    Args:
+        input_dir: the directory.
+        eyes: the eyes whose cameras and files are needed.
+
+    Raises:
+        SequenceError: naming the file, and the frame and key for ``cameras.json``.
+    """
+    root = Path(input_dir)
+    if not root.is_dir():
+        raise SequenceError(f"{root}: not a directory")
+    cams, thr = _parse_cameras(root / "cameras.json", tuple(eyes))
+    n = len(cams)
+    beyond = sorted(p.name for p in root.iterdir() if (m := _FILE_RE.match(p.name)) and int(m.group(1)) >= n)
+    if beyond:
+        raise SequenceError(f"{root / 'cameras.json'}: lists {n} frame(s) but {root} has frame files beyond them: "
+                            f"{', '.join(beyond[:4])}{' ...' if len(beyond) > 4 else ''}")
+    size = None
+    first = None
+    for i in range(n):
+        for eye in eyes:
+            p = root / f"{i:04d}_{eye}.exr"
+            if not p.is_file():
+                raise SequenceError(f"{p}: missing (cameras.json lists {n} frame(s); frame {i} needs {eye} eye)")
+            names, H, W = _exr_header(p)
+            missing = [c for c in REQUIRED_CHANNELS if c not in names]
+            if missing:
+                raise SequenceError(f"{p}: missing channel(s) {', '.join(missing)} (required: "
+                                    f"{', '.join(REQUIRED_CHANNELS)}; found: {', '.join(sorted(names))})")
+            if size is None:
+                size, first = (H, W), p
+            elif (H, W) != size:
+                raise SequenceError(f"{p}: size {W}x{H} differs from {first.name}: {size[1]}x{size[0]} "
+                                    "(all frames and eyes must have one size)")
+    return FrameSequence(root, tuple(cams), size[0], size[1], thr["position_threshold"], thr["normal_threshold"])
+
+
+def read_frame(seq: FrameSequence, frame: int, eye: str, device=None) -> dict[str, Tensor]:
+    """Read one eye of one frame.
+
+    Returns:
+        dict with ``color`` (1, 3, H, W), ``depth`` (1, 1, H, W), ``normal`` (1, 3, H, W) float32 and ``K``
+        (1, 3, 3), ``cam_from_world`` (1, 4, 4) float64, on ``device``.
+    """
+    from .exr import read_exr
+
+    p = seq.path(frame, eye)
+    try:
+        ch = read_exr(p)
+    except (FileNotFoundError, ValueError) as e:
+        raise SequenceError(str(e)) from None
+    for c in REQUIRED_CHANNELS:  # the header was checked; a file changed since is still named
+        if c not in ch or ch[c].shape != (seq.height, seq.width):
+            raise SequenceError(f"{p}: channel {c} missing or not {seq.width}x{seq.height}")
+
+    def stack(names):
+        return torch.from_numpy(np.stack([ch[c] for c in names])[None].astype(np.float32)).to(device)
+
+    cam = seq.cameras[frame][eye]
+    return {"color": stack(CHANNELS["radiance"]), "depth": stack(CHANNELS["depth"]), "normal": stack(CHANNELS["normal"]),
+            "K": cam.K.to(device), "cam_from_world": cam.cam_from_world.to(device)}
+
+
+
+def _json_matrix(t: Tensor) -> list:
+    return [[float(x) for x in row] for row in t[0].double().tolist()]
+
+
+def export_sequence(scene, frames, width: int, height: int, out_dir, spp: int = 1, seed: int = 0,
+                    workers: int | None = None) -> Path:
+    """Write an input directory for ``stereorepro reproject`` from our path tracer.
+
+    Frame ``i`` of the directory is scene frame ``frames[i]``; both eyes are traced at ``spp`` (RNG eye keys 0 =
+    left, 1 = right) and written with all the tracer's channels (``R,G,B, Z, N.*, P.*``). ``cameras.json`` gets
+    the scene's thresholds with the position threshold scaled by ``180 / height`` (scene files are tuned for
+    ~180 rows; a pixel's footprint grows as the resolution drops) and a ``meta`` record. ``cameras.json`` is
+    written last.
+
+    Args:
+        scene: a scene name or a :class:`~stereorepro.scenes.Scene`.
+        frames: number of frames (0..n-1) or an iterable of scene frame indices.
+        width, height: image size.
+        out_dir: directory (created).
+        spp, seed, workers: tracer settings.
+
+    Returns:
+        ``out_dir`` as a Path.
+    """
+    from ..render import PathTracer
+    from ..scenes import load_scene
+    from .exr import write_exr
+
+    scene = load_scene(scene) if isinstance(scene, (str, os.PathLike)) else scene
+    frame_ids = list(range(int(frames))) if isinstance(frames, int) else [int(f) for f in frames]
+    if not frame_ids:
+        raise ValueError("export_sequence: no frames")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    tracer = PathTracer(scene, seed=seed, workers=workers)
+    records = []
+    for i, f in enumerate(frame_ids):
+        left, right = scene.stereo_cameras(f, width, height)
+        rec = {}
+        for eye, cam, key in (("left", left, 0), ("right", right, 1)):
+            res = tracer.render(cam, f, spp, eye=key)
+            write_exr(out / f"{i:04d}_{eye}.exr", res)
+            rec[eye] = {"K": _json_matrix(cam.K), "cam_from_world": _json_matrix(cam.cam_from_world)}
+        records.append(rec)
+    position_threshold, normal_threshold = scene.thresholds(height)
+    doc = {"frames": records,
+           "reprojection": {"position_threshold": position_threshold, "normal_threshold": normal_threshold},
+           "meta": {"scene": scene.name, "scene_frames": frame_ids, "spp": int(spp), "seed": int(seed),
+                    "width": int(width), "height": int(height), "writer": "stereorepro.io.frames.export_sequence"}}
+    atomic_write(out / "cameras.json", json.dumps(doc, indent=1))
+    return out

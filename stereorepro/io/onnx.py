@@ -1,0 +1,116 @@
+"""ONNX export of the stateless reprojection modules, with symbolic batch and image sizes.
+
+onnxruntime notes: opset ≥ 17 is required (we default to 18); the exported graph uses Gather/GatherElements
+(no GridSample), so it runs in float32 and float64; float16 inputs are not supported by every onnxruntime
+kernel used here — cast to float32 before running.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+from torch import Tensor, nn
+
+from .atomic import atomic_path
+
+__all__ = ["export_onnx", "example_inputs", "onnx_input_dims"]
+
+# Symbolic dimension names per input, by its role. Cameras keep (B, 3, 3) / (B, 4, 4).
+_IMAGE_DIMS = {0: "B", 2: "H", 3: "W"}
+_PREV_IMAGE_DIMS = {0: "B", 2: "Hp", 3: "Wp"}
+_CAMERA_DIMS = {0: "B"}
+
+
+def _dims_for(name: str) -> dict[int, str]:
+    if name.endswith("K") or name.endswith("cam_from_world"):
+        return _CAMERA_DIMS
+    if name.startswith("src_") or name.startswith("prev_") or name.startswith("history_"):
+        return _PREV_IMAGE_DIMS
+    return _IMAGE_DIMS
+
+
+def example_inputs(module: nn.Module, batch: int = 1, height: int = 24, width: int = 32,
+                   dtype: torch.dtype = torch.float32, seed: int = 0, head_motion: bool = True) -> tuple[Tensor, ...]:
+    """Realistic inputs for a module's forward: :func:`stereorepro.synthetic.default_scene` seen by a stereo
+    pair with a little head motion (occlusions, disocclusions, out-of-frame taps, background without surface).
+
+    ``head_motion=False`` gives the paper's same-instant case instead: a parallel rig (6.5 cm baseline), whose
+    epipolar lines are image rows.
+
+    Returns a tuple in the order of ``module.input_names``.
+    """
+    from ..synthetic import camera_pair, default_scene, raycast
+
+    motion = dict(forward=0.05, yaw_deg=0.5) if head_motion else {}
+    dst, src = camera_pair(height, width, batch, baseline=0.065, **motion)
+    scene = default_scene()
+    gd, gs = raycast(dst, scene), raycast(src, scene)
+    g = torch.Generator().manual_seed(seed)
+    noisy = gs["color"] * (0.5 + torch.rand(gs["color"].shape, generator=g, dtype=gs["color"].dtype))  # 1-spp-like
+    f = {k: v.to(dtype) for k, v in gd.items()}
+    s = {k: v.to(dtype) for k, v in gs.items()}
+    by_name = {
+        "src_color": noisy.to(dtype), "src_depth": s["depth"], "src_normal": s["normal"], "src_K": src.K.to(dtype),
+        "src_cam_from_world": src.cam_from_world.to(dtype),
+        "dst_depth": f["depth"], "dst_normal": f["normal"], "dst_K": dst.K.to(dtype),
+        "dst_cam_from_world": dst.cam_from_world.to(dtype),
+        "current_color": (f["color"] * (0.5 + torch.rand(f["color"].shape, generator=g, dtype=f["color"].dtype))),
+        "depth": f["depth"], "normal": f["normal"], "K": dst.K.to(dtype), "cam_from_world": dst.cam_from_world.to(dtype),
+        "history_color": s["color"], "history_len": torch.full_like(s["depth"], 3.0),
+        "prev_depth": s["depth"], "prev_normal": s["normal"], "prev_K": src.K.to(dtype),
+        "prev_cam_from_world": src.cam_from_world.to(dtype),
+    }
+    return tuple(by_name[n] for n in module.input_names)
+
+
+def export_onnx(module: nn.Module, path, opset: int = 18, inputs: tuple[Tensor, ...] | None = None,
+                check_symbolic: bool = True) -> Path:
+    """Export a stateless reprojection module to ONNX with symbolic B, H, W (and Hp, Wp for source images).
+
+    Args:
+        module: :class:`~stereorepro.StereoReprojection` or :class:`~stereorepro.TemporalReprojection` (any
+            module with ``input_names`` / ``output_names``).
+        path: output file; written atomically (:func:`stereorepro.io.atomic.atomic_path`).
+        opset: ONNX opset, ≥ 17.
+        inputs: example inputs (default :func:`example_inputs`).
+        check_symbolic: verify that the exported image inputs really have symbolic B/H/W (the dynamo exporter
+            can silently specialise them) and raise otherwise.
+
+    Returns:
+        the path written.
+    """
+    if opset < 17:
+        raise ValueError(f"opset must be >= 17 (GridSample/ReduceMax semantics), got {opset}")
+    names = list(getattr(module, "input_names", []))
+    if not names:
+        raise TypeError(f"{type(module).__name__} has no `input_names`; cannot export")
+    inputs = example_inputs(module) if inputs is None else tuple(inputs)
+    if len(inputs) != len(names):
+        raise ValueError(f"expected {len(names)} inputs ({', '.join(names)}), got {len(inputs)}")
+    path = Path(path)
+    dynamic_axes = {n: _dims_for(n) for n in names}
+    module = module.eval()
+    with atomic_path(path) as tmp:
+        torch.onnx.export(module, inputs, str(tmp), input_names=names, output_names=list(module.output_names),
+                          dynamic_axes=dynamic_axes, opset_version=opset, dynamo=False,
+                          do_constant_folding=True)
+        if check_symbolic:
+            dims = onnx_input_dims(tmp)
+            for n in names:
+                for axis, sym in dynamic_axes[n].items():
+                    if not isinstance(dims[n][axis], str):
+                        raise RuntimeError(f"export_onnx: input {n!r} axis {axis} was fixed to {dims[n][axis]} "
+                                           f"instead of symbolic {sym!r}")
+    return path
+
+
+def onnx_input_dims(path) -> dict[str, list]:
+    """Input name → list of dims (int for fixed, str for symbolic) of an ONNX file."""
+    import onnx
+
+    model = onnx.load(str(path))
+    out = {}
+    for i in model.graph.input:
+        out[i.name] = [d.dim_param if d.dim_param else d.dim_value for d in i.type.tensor_type.shape.dim]
+    return out

@@ -1,0 +1,193 @@
+"""``stereorepro reproject`` as a library function: stereo and/or temporal reprojection over a frame directory
+(:mod:`stereorepro.io.frames`), written to an output directory with nothing partial.
+
+Modes (``--mode``)
+------------------
+* ``stereo``: per frame, the right eye reprojected into the left (paper §4.1). Output ``{frame}_left``: the
+  reprojected colour (0 where discarded: trace those pixels), ``valid``, ``reason``.
+* ``temporal``: per eye (``--eye right|left|both``, default right), exponential accumulation over the sequence
+  (EMA ``--alpha`` with warm-up). Output ``{frame}_{eye}``: accumulated colour, ``valid`` (history kept),
+  ``reason``, ``history_len``.
+* ``both``: the paper's combined scheme (:class:`~stereorepro.SpatiotemporalReprojection`): the right eye is
+  accumulated, reprojected into the left, and the left eye's discarded pixels take the left EXR's own colour as
+  the "traced" samples (accumulated with the left eye's own history). Outputs for both eyes; for the left eye
+  ``valid``/``reason`` are the stereo test's.
+
+Outputs (``--out DIR``): ``{frame:04d}_{eye}_reprojected.exr`` with channels ``R, G, B``, ``valid`` (0/1),
+``reason`` (:class:`~stereorepro.Reason` codes as floats; ``Reason.NO_HISTORY`` on the first frame of an accumulation)
+and, for temporal and both, ``history_len``; and ``summary.json`` (per-frame discard percentage and counts per
+reason). Everything is validated before anything is written; outputs are staged and moved into place only when
+every frame has succeeded, so a failure leaves no partial output.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..accumulate import SpatiotemporalReprojection, temporal_step
+from ..errors import SequenceError
+from ..reproject import Reason, StereoReprojection, TemporalReprojection
+from .exr import write_exr
+from .frames import EYES, FrameSequence, load_sequence, read_frame
+
+__all__ = ["MODES", "NO_HISTORY", "reproject_sequence"]
+
+MODES = ("stereo", "temporal", "both")
+#: ``reason`` value of a pixel with no history to reproject (first frame of a temporal accumulation).
+NO_HISTORY = int(Reason.NO_HISTORY)
+
+
+def _stats(valid: Tensor, reason: Tensor) -> dict:
+    codes = reason.flatten().to(torch.int64).bincount(minlength=256).tolist()
+    names = {int(r): r.name for r in Reason}
+    names[NO_HISTORY] = "NO_HISTORY"
+    return {"discard_pct": 100.0 * (1.0 - float(valid.float().mean())),
+            "reasons": {names.get(c, str(c)): n for c, n in enumerate(codes) if n and c != 0}}
+
+
+def _channels(color: Tensor, valid: Tensor, reason: Tensor, history_len: Tensor | None) -> dict:
+    c = color[0].detach().float().cpu().numpy()
+    out = {"R": c[0], "G": c[1], "B": c[2], "valid": valid[0, 0].float().cpu().numpy(),
+           "reason": reason[0, 0].float().cpu().numpy()}
+    if history_len is not None:
+        out["history_len"] = history_len[0, 0].detach().float().cpu().numpy()
+    return out
+
+
+def _process(seq: FrameSequence, mode: str, eyes: tuple[str, ...], pos: float, nrm: float, alpha: float,
+             sampling: str, device, emit, log) -> list[dict]:
+    """Run the mode over the sequence; ``emit(frame, eye, channels)`` receives every output frame."""
+    per_frame = []
+    if mode == "stereo":
+        module = StereoReprojection(pos, nrm, sampling).to(device)
+        for i in range(len(seq)):
+            L, R = read_frame(seq, i, "left", device), read_frame(seq, i, "right", device)
+            color, valid, reason = module(R["color"], R["depth"], R["normal"], R["K"], R["cam_from_world"],
+                                          L["depth"], L["normal"], L["K"], L["cam_from_world"])
+            emit(i, "left", _channels(color, valid, reason, None))
+            per_frame.append({"frame": i, "left": _stats(valid, reason)})
+            log(f"frame {i:4d}: left {per_frame[-1]['left']['discard_pct']:5.1f} % discarded")
+    elif mode == "temporal":
+        module = TemporalReprojection(pos, nrm, alpha, sampling=sampling).to(device)
+        states: dict = {e: None for e in eyes}
+        for i in range(len(seq)):
+            rec = {"frame": i}
+            for eye in eyes:
+                cur = read_frame(seq, i, eye, device)
+                states[eye], valid, reason = temporal_step(module, states[eye], cur["color"], cur["depth"],
+                                                           cur["normal"], cur["K"], cur["cam_from_world"])
+                emit(i, eye, _channels(states[eye].color, valid, reason, states[eye].history_len))
+                rec[eye] = _stats(valid, reason)
+            per_frame.append(rec)
+            log(f"frame {i:4d}: " + ", ".join(f"{e} {rec[e]['discard_pct']:5.1f} %" for e in eyes) + " discarded")
+    else:
+        driver = SpatiotemporalReprojection(pos, nrm, alpha, sampling=sampling)
+        for i in range(len(seq)):
+            L, R = read_frame(seq, i, "left", device), read_frame(seq, i, "right", device)
+            out_r = driver.right(R["color"], R["depth"], R["normal"], R["K"], R["cam_from_world"])
+            if driver.right_valid is None:  # first frame: no history
+                valid_r = torch.zeros_like(R["depth"], dtype=torch.bool)
+                reason_r = torch.full_like(R["depth"], NO_HISTORY, dtype=torch.uint8)
+            else:
+                valid_r, reason_r = driver.right_valid, driver.right_reason
+            driver.left_trace_mask(L["depth"], L["normal"], L["K"], L["cam_from_world"])
+            out_l = driver.left(L["color"])  # the left EXR's own colour stands in for the traced discards
+            emit(i, "right", _channels(out_r, valid_r, reason_r, driver.right_state.history_len))
+            emit(i, "left", _channels(out_l, driver.stereo_valid, driver.stereo_reason,
+                                      driver.left_state.history_len))
+            per_frame.append({"frame": i, "right": _stats(valid_r, reason_r),
+                              "left": _stats(driver.stereo_valid, driver.stereo_reason)})
+            log(f"frame {i:4d}: right {per_frame[-1]['right']['discard_pct']:5.1f} %, "
+                f"left (stereo) {per_frame[-1]['left']['discard_pct']:5.1f} % discarded")
+    return per_frame
+
+
+def reproject_sequence(input_dir, out_dir, mode: str = "both", eye: str = "right",
+                       position_threshold: float | None = None, normal_threshold: float | None = None,
+                       alpha: float = 0.2, sampling: str = "bilinear", device="cpu", log=None) -> dict:
+    """Reproject a directory of frames (see the module docstring for the format and the modes).
+
+    Args:
+        input_dir: directory with ``cameras.json`` and ``{frame:04d}_{eye}.exr``.
+        out_dir: output directory (created); receives ``{frame:04d}_{eye}_reprojected.exr`` and ``summary.json``.
+        mode: ``"stereo"`` | ``"temporal"`` | ``"both"``.
+        eye: eyes accumulated in ``"temporal"`` mode: ``"right"`` | ``"left"`` | ``"both"``.
+        position_threshold, normal_threshold: accept limits; ``None`` takes ``cameras.json``'s ``reprojection``.
+        alpha: minimum EMA weight of a new frame (temporal and both).
+        sampling: ``"bilinear"`` | ``"nearest"``.
+        device: torch device for the reprojection (EXRs are read on the CPU).
+        log: ``print``-like callable for progress, or ``None``.
+
+    Returns:
+        the summary written to ``summary.json``.
+
+    Raises:
+        SequenceError: the input is malformed or an option is invalid; nothing was written.
+    """
+    if mode not in MODES:
+        raise SequenceError(f"mode must be one of {MODES}, got {mode!r}")
+    if eye not in ("left", "right", "both"):
+        raise SequenceError(f"eye must be left, right or both, got {eye!r}")
+    if sampling not in ("bilinear", "nearest"):
+        raise SequenceError(f"sampling must be bilinear or nearest, got {sampling!r}")
+    if not (0.0 < float(alpha) <= 1.0):
+        raise SequenceError(f"alpha must be in (0, 1], got {alpha}")
+    eyes = (EYES if eye == "both" else (eye,)) if mode == "temporal" else EYES
+    seq = load_sequence(input_dir, eyes)
+    pos = position_threshold if position_threshold is not None else seq.position_threshold
+    nrm = normal_threshold if normal_threshold is not None else seq.normal_threshold
+    for name, v in (("position_threshold", pos), ("normal_threshold", nrm)):
+        if v is None:
+            raise SequenceError(f"--{name.replace('_', '-')} is required ({seq.root / 'cameras.json'} has no "
+                                f"reprojection.{name})")
+        if not (math.isfinite(v) and v > 0):
+            raise SequenceError(f"{name} must be a positive number, got {v}")
+    device = torch.device(device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise SequenceError("device cuda asked for but torch.cuda.is_available() is False")
+    log = log or (lambda *a, **k: None)
+
+    out = Path(out_dir)
+    created = not out.exists()
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise SequenceError(f"{out}: cannot create the output directory: {e}") from None
+    staging = Path(tempfile.mkdtemp(prefix=".staging-", dir=out))
+    written: list[str] = []
+    try:
+        def emit(frame, e, chans):
+            name = f"{frame:04d}_{e}_reprojected.exr"
+            write_exr(staging / name, chans)
+            written.append(name)
+
+        with torch.no_grad():
+            per_frame = _process(seq, mode, eyes, float(pos), float(nrm), float(alpha), sampling, device, emit, log)
+        eyes_out = ("left",) if mode == "stereo" else eyes
+        summary = {
+            "mode": mode, "eyes": list(eyes_out), "input": str(seq.root), "frames": len(seq),
+            "width": seq.width, "height": seq.height, "position_threshold": float(pos),
+            "normal_threshold": float(nrm), "alpha": float(alpha) if mode != "stereo" else None,
+            "sampling": sampling,
+            "mean_discard_pct": {e: float(np.mean([f[e]["discard_pct"] for f in per_frame])) for e in eyes_out},
+            "per_frame": per_frame,
+        }
+        (staging / "summary.json").write_text(json.dumps(summary, indent=1))
+        for name in written + ["summary.json"]:  # summary.json last: its presence marks a complete output
+            os.replace(staging / name, out / name)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        if created:
+            shutil.rmtree(out, ignore_errors=True)
+        raise
+    shutil.rmtree(staging, ignore_errors=True)
+    return summary

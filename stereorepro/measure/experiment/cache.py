@@ -1,0 +1,102 @@
+"""The content-addressed render cache of the experiment: npz files keyed by a hash of what determines a render
+(scene file, mesh files, frame, eye, sample range, resolution, seed, renderer source), written atomically, so a
+killed run resumes and a cached run reproduces the same tables."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ... import __version__
+from ...io.atomic import atomic_path
+
+__all__ = ["RenderCache", "code_version", "scene_fingerprint"]
+
+
+def _sha(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def code_version() -> str:
+    """Hash of the renderer's sources (Python, and the native shading stages when their sources are present):
+    renders are recomputed when the renderer changes."""
+    root = Path(__file__).resolve().parents[2]  # the package
+    h = hashlib.sha256(__version__.encode())
+    cpp = root.parent / "cpp_ext" / "src"
+    native = sorted(cpp.glob("*tracer*")) if cpp.is_dir() else []
+    for p in sorted(list((root / "render").glob("*.py")) + list((root / "scenes").glob("*.py"))) + native:
+        h.update(p.read_bytes())
+    try:
+        from ... import _core
+
+        h.update(repr(sorted(_core.build_info().items())).encode())
+    except ImportError:
+        h.update(b"no-core")
+    return h.hexdigest()[:16]
+
+
+def scene_fingerprint(scene) -> str:
+    """Hash of the scene's resolved description and of every file it references (path, size, mtime)."""
+    h = hashlib.sha256(str(getattr(scene, "name", "")).encode())
+    data = getattr(scene, "_data", None)
+    h.update(json.dumps(data, sort_keys=True, default=str).encode())
+    src = getattr(scene, "source", None)
+    if src and Path(src).is_file():
+        h.update(Path(src).read_bytes())
+
+    from ...scenes.loader import _expand_path
+
+    base = Path(src).parent if src else Path.cwd()
+
+    def files(x):
+        if isinstance(x, dict):
+            for v in x.values():
+                yield from files(v)
+        elif isinstance(x, (list, tuple)):
+            for v in x:
+                yield from files(v)
+        elif isinstance(x, (str, Path)) and str(x).lower().endswith((".ply", ".obj", ".glb", ".gltf", ".json")):
+            f = _expand_path(str(x), base)
+            yield f
+            if f.suffix.lower() == ".ply":
+                yield f.with_suffix(".json")  # the default material sidecar
+
+    for f in files(data):
+        if f.is_file():
+            st = f.stat()
+            h.update(f"{f}:{st.st_size}:{st.st_mtime_ns}".encode())
+    return h.hexdigest()[:16]
+
+
+class RenderCache:
+    """npz files keyed by a hash of what determines a render; atomic writes."""
+
+    def __init__(self, root: Path, force: bool = False):
+        self.root = Path(root)
+        self.root.mkdir(parents=True, exist_ok=True)
+        self.force = force
+        self.hits = 0
+        self.misses = 0
+
+    def _path(self, key: dict) -> Path:
+        return self.root / (_sha(json.dumps(key, sort_keys=True).encode())[:32] + ".npz")
+
+    def get_or_make(self, key: dict, make):
+        path = self._path(key)
+        if path.exists() and not self.force:
+            try:
+                with np.load(path, allow_pickle=False) as z:
+                    data = {k: z[k] for k in z.files}
+                meta = json.loads(str(data.pop("__meta__")))
+                self.hits += 1
+                return data, meta
+            except (OSError, ValueError, KeyError):
+                pass  # corrupt or partial file: recompute
+        data, meta = make()
+        with atomic_path(path) as tmp, open(tmp, "wb") as f:
+            np.savez(f, __meta__=np.array(json.dumps(meta)), **data)
+        self.misses += 1
+        return data, meta

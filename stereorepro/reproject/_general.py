@@ -1,0 +1,255 @@
+"""The general path of the backward reprojection: differentiable, traceable, exportable; soft or hard tests.
+
+Every other implementation (the fast inference path, the native kernels) is defined by this one: they compute the
+same per-element float arithmetic and are parity-tested against it. The discard tests are those of
+:func:`stereorepro.reproject.backward_reproject`.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from .._checks import tracing
+from ..camera import Warp, has_surface
+from .reason import Reason
+
+def compute_dtype(*tensors: Tensor) -> torch.dtype:
+    return torch.float64 if any(t.dtype == torch.float64 for t in tensors) else torch.float32
+
+
+def as_scalar(x, like: Tensor) -> Tensor:
+    if isinstance(x, Tensor):
+        return x.to(device=like.device, dtype=like.dtype).reshape(())
+    return torch.full((), float(x), device=like.device, dtype=like.dtype)
+
+
+def finite_or_zero(x: Tensor) -> Tensor:
+    return torch.where(torch.isfinite(x), x, torch.zeros((), dtype=x.dtype, device=x.device))
+
+
+#: Smallest accepted weight the soft path divides by (see :func:`backward_reproject`).
+SOFT_DEN_FLOOR = 1e-3
+
+#: Destination pixels per block in blocked inference (see :func:`backward_reproject`).
+BLOCK_PIXELS = 1 << 16
+
+#: Destination pixels per block in the fast path (its per-block working set is larger).
+FAST_BLOCK_PIXELS = 1 << 15
+
+
+def inference_only(inputs) -> bool:
+    """True when no autograd graph is needed and nothing traces/exports/compiles the call: the row-blocked and
+    fast paths apply (tracing and ONNX export always take the single-block general path)."""
+    if tracing():
+        return False
+    return not (torch.is_grad_enabled() and any(isinstance(x, Tensor) and x.requires_grad for x in inputs))
+
+
+def squared_thresholds(position_threshold, normal_threshold, wdt: torch.dtype, dev) -> Tensor:
+    """(1, 2, 1, 1, 1) = (thr_p², thr_n²) in the compute dtype, squared exactly as the general path does."""
+    like = torch.empty((), dtype=wdt, device=dev)
+    thr_p, thr_n = as_scalar(position_threshold, like), as_scalar(normal_threshold, like)
+    return torch.stack([thr_p * thr_p, thr_n * thr_n]).view(1, 2, 1, 1, 1)
+
+
+def pixel_centres(r0: int, r1: int, W: int, wdt: torch.dtype, dev) -> dict:
+    """Pixel centres of destination rows r0 .. r1 - 1 for :func:`warp_pixels`: u_c (1, 1, 1, W), v_c (1, 1, h, 1)."""
+    return dict(u_c=torch.arange(W, device=dev, dtype=wdt).view(1, 1, 1, W) + 0.5,
+                v_c=torch.arange(r1 - r0, device=dev, dtype=wdt).view(1, 1, r1 - r0, 1) + (r0 + 0.5))
+
+
+def source_features(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, wdt: torch.dtype) -> Tensor:
+    """The source, sanitised once, as gatherable rows: (B, C+5, Hs·Ws) = values, depth, normal, flags.
+
+    Non-finite values and missing surfaces become finite placeholders that the flags reject, so a rejected tap
+    can never leak NaN/Inf (0 · NaN = NaN). Flags: bit 0 = has a surface, bit 1 = finite values. Purely per
+    pixel, so it may equally be applied to already gathered pixels (B, ·, 1, M).
+    """
+    B, C = src_values.shape[:2]
+    zero = torch.zeros((), dtype=wdt, device=src_values.device)
+    one = torch.ones((), dtype=wdt, device=src_values.device)
+    sv = src_values.to(wdt)
+    sv_finite = torch.isfinite(sv.sum(1, keepdim=True))  # any NaN/Inf in a pixel makes its sum non-finite
+    sz = src_depth.to(wdt)
+    s_ok = has_surface(sz)
+    flags = s_ok.to(wdt) + 2.0 * sv_finite.to(wdt)
+    return torch.cat([torch.where(sv_finite, sv, zero), torch.where(s_ok, sz, one),
+                      finite_or_zero(src_normal.to(wdt)), flags], 1).reshape(B, C + 5, -1)
+
+
+def feature_reader(feats: Tensor):
+    """``read_taps`` for :func:`warp_pixels` over the whole source: index (B, T, ...) -> (B, C+5, T·...)."""
+    def read_taps(index: Tensor) -> Tensor:
+        B, Fg = feats.shape[:2]
+        return torch.gather(feats, 2, index.reshape(B, 1, -1).expand(B, Fg, index[0].numel()))
+    return read_taps
+
+
+def raw_reader(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, b: int, wdt: torch.dtype):
+    """``read_taps`` for :func:`warp_pixels` that sanitises only the gathered pixels of batch item ``b`` (the
+    fast path's reason pass touches few pixels; building the whole feature table would cost more)."""
+    Ws = src_values.shape[-1]
+
+    def read_taps(index: Tensor) -> Tensor:
+        flat = index.reshape(-1)
+        yy, xx = flat // Ws, flat % Ws  # (C, Hs, Ws) inputs of any strides, indexed without a copy
+        take = [x[b][:, yy, xx][None, :, None] for x in (src_values, src_depth, src_normal)]  # (1, ·, 1, M)
+        return source_features(*take, wdt)
+    return read_taps
+
+
+def warp_pixels(read_taps, C: int, Hs: int, Ws: int, warp, dst_depth: Tensor, dst_normal: Tensor, u_c: Tensor,
+                 v_c: Tensor, position_threshold, normal_threshold, sampling: str, soft: bool, temperature: float,
+                 out_dtype: torch.dtype) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The general path (differentiable, traceable): reproject destination pixels; see :func:`backward_reproject`.
+
+    Args:
+        read_taps: index (B, T, *S) into the source pixels -> (B, C+5, T·prod(S)) :func:`source_features` rows.
+        dst_depth: (B, 1, *S), dst_normal: (B, 3, *S) with S = (h, W) rows or (1, K) a list of pixels.
+        u_c, v_c: their pixel centres, broadcastable to (1, 1, *S) (see :func:`pixel_centres`).
+
+    Returns:
+        values (B, C, *S), valid, reason, confidence (B, 1, *S).
+    """
+    M, t, P, kt, Ks_inv = warp
+    wdt = Ks_inv.dtype
+    dev = dst_depth.device
+    B = Ks_inv.shape[0]
+    H, W = dst_depth.shape[-2:]
+    m = M.reshape(B, 3, 3, 1, 1)  # m[:, :, j] is column j as (B, 3, 1, 1)
+    t = t.reshape(B, 3, 1, 1)
+    p = P.reshape(B, 9, 1, 1)  # p[:, 3*i+j : 3*i+j+1] is P[i, j]
+    kt = kt.reshape(B, 3, 1, 1)
+    # --- destination pixels → source pixels and source-camera points.
+    z_dst = dst_depth.to(wdt)
+    dst_ok = has_surface(z_dst)  # Bx1xHxW
+    one = torch.ones((), dtype=wdt, device=dev)
+    z_dst = torch.where(dst_ok, z_dst, one)
+    inv_z = 1.0 / z_dst
+    wx = p[:, 0:1] * u_c + p[:, 1:2] * v_c + p[:, 2:3] + kt[:, 0:1] * inv_z  # Bx1xHxW
+    wy = p[:, 3:4] * u_c + p[:, 4:5] * v_c + p[:, 5:6] + kt[:, 1:2] * inv_z
+    wz = p[:, 6:7] * u_c + p[:, 7:8] * v_c + p[:, 8:9] + kt[:, 2:3] * inv_z  # = q_z / z
+    front = wz > 0
+    wz = torch.where(front, wz, one)
+    u = wx / wz
+    v = wy / wz
+    q = (m[:, :, 0] * u_c + m[:, :, 1] * v_c + m[:, :, 2]) * z_dst + t  # Bx3xHxW
+    qz = q[:, 2:3]
+    front = front & torch.isfinite(u) & torch.isfinite(v)
+    # Keep coordinates finite and in a small range: anything clamped is out of frame anyway.
+    u = torch.where(front, u, torch.full((), -4.0, dtype=wdt, device=dev)).clamp(-4.0, Ws + 4.0)
+    v = torch.where(front, v, torch.full((), -4.0, dtype=wdt, device=dev)).clamp(-4.0, Hs + 4.0)
+
+    # --- taps (T = 4 or 1) and their bilinear weights, shapes BxTxHxW.
+    if sampling == "bilinear":
+        x = u - 0.5
+        y = v - 0.5
+        x0 = torch.floor(x)
+        y0 = torch.floor(y)
+        fx = x - x0  # gradient 1 w.r.t. u
+        fy = y - y0
+        xi = torch.cat([x0, x0 + 1, x0, x0 + 1], 1)
+        yi = torch.cat([y0, y0, y0 + 1, y0 + 1], 1)
+        wts = torch.cat([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], 1)
+    else:
+        xi = torch.floor(u)
+        yi = torch.floor(v)
+        wts = torch.ones_like(u)
+    T = xi.shape[1]
+    in_frame = (xi >= 0) & (xi <= Ws - 1) & (yi >= 0) & (yi <= Hs - 1)
+    # integer arithmetic: float32 would be exact only below 2^24 source pixels
+    index = yi.clamp(0, Hs - 1).to(torch.int64) * Ws + xi.clamp(0, Ws - 1).to(torch.int64)  # BxTxHxW
+
+    zero = torch.zeros((), dtype=wdt, device=dev)
+    g = read_taps(index).reshape(B, C + 5, T, H, W)
+    g_val = g[:, :C]
+    z_src = g[:, C]  # BxTxHxW, 1 where no surface
+    n_src = g[:, C + 1:C + 4]  # Bx3xTxHxW
+    g_flags = g[:, C + 4]
+    src_ok = (g_flags == 1.0) | (g_flags == 3.0)
+    finite = g_flags >= 2.0
+
+    ki = Ks_inv.reshape(B, 9, 1, 1)
+    ut = xi + 0.5
+    vt = yi + 0.5
+    px = z_src * (ki[:, 0:1] * ut + ki[:, 1:2] * vt + ki[:, 2:3])
+    py = z_src * (ki[:, 4:5] * vt + ki[:, 5:6])
+    d_pos2 = (q[:, 0:1] - px).square() + (q[:, 1:2] - py).square() + (qz - z_src).square()
+    n_dst = finite_or_zero(dst_normal.to(wdt)).unsqueeze(2)  # Bx3x1xHxW
+    d_n2 = (n_src - n_dst).square().sum(1)  # BxTxHxW
+
+    thr_p = as_scalar(position_threshold, d_pos2)
+    thr_n = as_scalar(normal_threshold, d_n2)
+    pos_ok = d_pos2 <= thr_p * thr_p
+    nrm_ok = d_n2 <= thr_n * thr_n
+
+    pixel_ok = dst_ok & front  # Bx1xHxW
+    base_ok = pixel_ok & in_frame & src_ok & finite  # BxTxHxW: the tests that stay hard
+    hard = base_ok & pos_ok & nrm_ok
+    if soft:
+        tau = float(temperature)
+        tp2 = (thr_p * thr_p).clamp_min(torch.finfo(wdt).tiny)
+        tn2 = (thr_n * thr_n).clamp_min(torch.finfo(wdt).tiny)
+        a_soft = torch.sigmoid((tp2 - d_pos2) / (2 * tau * tp2)) * torch.sigmoid((tn2 - d_n2) / (2 * tau * tn2))
+        accept_w = torch.where(base_ok, a_soft, zero)
+    else:
+        accept_w = hard.to(wdt)
+
+    ws = wts * accept_w  # BxTxHxW
+    den = ws.sum(1, keepdim=True)  # Bx1xHxW
+    num = (ws.unsqueeze(1) * g_val).sum(2)  # BxCxHxW (g_val is finite: sanitised above)
+    has_w = den > 0
+    # Soft weights can be tiny but positive; dividing by them gives gradients of ~num/den² that overflow. The soft
+    # path renormalises by max(den, SOFT_DEN_FLOOR): a pixel that is all but rejected fades to 0 instead.
+    den_safe = den.clamp_min(SOFT_DEN_FLOOR) if soft else torch.where(has_w, den, one)
+    values = torch.where(has_w, num / den_safe, zero)
+    valid = (wts * hard.to(wdt)).sum(1, keepdim=True) > 0
+
+    # --- reason codes (uint8): first failing test per tap; invalid pixel -> max over taps with weight > 0.
+    def u8(r: Reason) -> Tensor:
+        return torch.full((), int(r), dtype=torch.uint8, device=dev)
+
+    code = torch.where(finite, u8(Reason.KEPT), u8(Reason.NONFINITE))
+    code = torch.where(nrm_ok, code, u8(Reason.NORMAL))
+    code = torch.where(pos_ok, code, u8(Reason.POSITION))
+    code = torch.where(src_ok, code, u8(Reason.NO_SURFACE_SRC))
+    code = torch.where(in_frame & (wts > 0), code, torch.where(wts > 0, u8(Reason.OUT_OF_FRAME), u8(Reason.KEPT)))
+    reason = code.amax(1, keepdim=True)
+    reason = torch.where(front, reason, u8(Reason.BEHIND_CAMERA))
+    reason = torch.where(dst_ok, reason, u8(Reason.NO_SURFACE_DST))
+    reason = torch.where(valid, u8(Reason.KEPT), reason)
+    return values.to(out_dtype), valid, reason, den
+
+
+def general_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, dst_depth: Tensor,
+                      dst_normal: Tensor, warp: Warp, position_threshold, normal_threshold, sampling: str, soft: bool,
+                      temperature: float, inference: bool) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """:func:`~stereorepro.reproject.backward_reproject` on the general path, with the cameras composed.
+
+    In inference (``inference``: no autograd graph, nothing traces) on large images, destination rows are
+    processed in blocks of :data:`BLOCK_PIXELS`, so that the per-tap intermediates stay in cache (the op is
+    memory-bound); results are bit-identical to one block. Gradients and tracing need one graph.
+    """
+    wdt = warp.Ks_inv.dtype
+    dev = dst_depth.device
+    B, C, Hs, Ws = src_values.shape
+    H, W = dst_depth.shape[-2:]
+    feats = source_features(src_values, src_depth, src_normal, wdt)
+    args = dict(read_taps=feature_reader(feats), C=C, Hs=Hs, Ws=Ws, warp=warp,
+                position_threshold=position_threshold, normal_threshold=normal_threshold, sampling=sampling,
+                soft=soft, temperature=temperature, out_dtype=src_values.dtype)
+    rows = max(1, BLOCK_PIXELS // max(1, B * W)) if inference else None
+    if rows is None or rows >= H:
+        return warp_pixels(dst_depth=dst_depth, dst_normal=dst_normal, **pixel_centres(0, H, W, wdt, dev), **args)
+    values = torch.empty(B, C, H, W, dtype=src_values.dtype, device=dev)
+    valid = torch.empty(B, 1, H, W, dtype=torch.bool, device=dev)
+    reason = torch.empty(B, 1, H, W, dtype=torch.uint8, device=dev)
+    den = torch.empty(B, 1, H, W, dtype=wdt, device=dev)
+    for r0 in range(0, H, rows):
+        r1 = min(H, r0 + rows)
+        out = warp_pixels(dst_depth=dst_depth[:, :, r0:r1], dst_normal=dst_normal[:, :, r0:r1],
+                          **pixel_centres(r0, r1, W, wdt, dev), **args)
+        for buf, o in zip((values, valid, reason, den), out):
+            buf[:, :, r0:r1] = o
+    return values, valid, reason, den

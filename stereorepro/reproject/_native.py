@@ -1,0 +1,117 @@
+"""The native (C++/OpenMP) reprojection kernels of ``stereorepro._core``, wrapped for torch tensors. A leaf: it
+imports nothing from the rest of the package but the compiled core.
+
+The kernels (``cpp_ext/src/reproject.cpp``) compute what the torch reference computes, hard tests in float32 on
+the CPU, in one fused pass per pixel; they take the warp already composed (:func:`stereorepro.camera.compose_warp`)
+and the squared thresholds. Which calls may run here is decided by the op layer
+(:mod:`stereorepro.reproject.functional`). Inputs are made contiguous float32 once, here, then cross to C++
+without copies; outputs are allocated with ``torch.empty`` and written in place (``.noconvert()`` on the C++ side,
+so a wrong layout raises instead of silently writing into a temporary copy).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+try:  # optional: the package works without the compiled core
+    from .. import _core
+except ImportError:  # pragma: no cover - depends on the build
+    _core = None
+
+__all__ = ["available", "reproject", "temporal_reproject"]
+
+
+def available() -> bool:
+    """True when ``stereorepro._core`` is importable and has the reprojection kernels."""
+    return _core is not None and hasattr(_core, "reproject") and hasattr(_core, "temporal_reproject")
+
+
+def _require() -> None:
+    if not available():
+        raise RuntimeError("native: stereorepro._core with the reprojection kernels is not available")
+
+
+def _f32_contiguous(x: Tensor, name: str) -> Tensor:
+    if x.device.type != "cpu":
+        raise RuntimeError(f"native: {name} must be on the CPU, got {x.device}")
+    if x.dtype != torch.float32:
+        raise TypeError(f"native: {name} must be float32, got {x.dtype} (use backend='torch' for other dtypes)")
+    return x.contiguous()  # the one visible copy, only when x is not C-contiguous
+
+
+def _warp_args(warp) -> tuple[Tensor, ...]:
+    """(P, kt, M, t, Ks_inv) of a float32 :class:`~stereorepro.camera.Warp` as contiguous CPU (B, 9) / (B, 3)."""
+    M, t, P, kt, Ks_inv = warp
+    B = M.shape[0]
+    return tuple(x.reshape(B, -1).contiguous().cpu() for x in (P, kt, M, t, Ks_inv))
+
+
+def reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, warp, dst_depth: Tensor,
+              dst_normal: Tensor, thr2: tuple[float, float], bilinear: bool, want_confidence: bool = True
+              ) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
+    """Backward reprojection with hard tests.
+
+    Args:
+        src_values: (B, C, Hs, Ws), src_depth: (B, 1, Hs, Ws), src_normal: (B, 3, Hs, Ws) float32.
+        warp: the float32 :class:`~stereorepro.camera.Warp` from the destination into the source camera.
+        dst_depth: (B, 1, H, W), dst_normal: (B, 3, H, W) float32.
+        thr2: squared position and normal thresholds (float32 values).
+        bilinear: 2×2 taps, else the nearest one.
+        want_confidence: also write the accepted weight (else None: saves writing it).
+
+    Returns:
+        values (B, C, H, W) float32, valid (B, 1, H, W) bool, reason (B, 1, H, W) uint8, confidence
+        (B, 1, H, W) float32 or None.
+    """
+    _require()
+    sv = _f32_contiguous(src_values, "src_values")
+    sd = _f32_contiguous(src_depth, "src_depth")
+    sn = _f32_contiguous(src_normal, "src_normal")
+    dd = _f32_contiguous(dst_depth, "dst_depth")
+    dn = _f32_contiguous(dst_normal, "dst_normal")
+    B, C = sv.shape[:2]
+    H, W = dd.shape[-2:]
+    values = torch.empty(B, C, H, W, dtype=torch.float32)
+    valid = torch.empty(B, 1, H, W, dtype=torch.bool)
+    reason = torch.empty(B, 1, H, W, dtype=torch.uint8)
+    confidence = torch.empty(B, 1, H, W, dtype=torch.float32) if want_confidence else None
+    _core.reproject(sv, sd, sn, *_warp_args(warp), dd, dn, float(thr2[0]), float(thr2[1]), bool(bilinear), values,
+                    valid, reason, confidence)
+    return values, valid, reason, confidence
+
+
+def temporal_reproject(current_color: Tensor, history_color: Tensor, history_len: Tensor, prev_depth: Tensor,
+                       prev_normal: Tensor, warp, depth: Tensor, normal: Tensor, thr2: tuple[float, float],
+                       bilinear: bool, alpha: float, warmup: bool, max_history: float
+                       ) -> tuple[Tensor, Tensor, Tensor]:
+    """Temporal reprojection in one fused pass: warp [history_color, history_len] and blend with the current frame.
+
+    Args:
+        current_color: (B, 3, H, W); history_color: (B, 3, Hp, Wp); history_len: (B, 1, Hp, Wp);
+            prev_depth: (B, 1, Hp, Wp); prev_normal: (B, 3, Hp, Wp); depth: (B, 1, H, W); normal: (B, 3, H, W),
+            all float32.
+        warp: the float32 :class:`~stereorepro.camera.Warp` from this frame's camera into the previous one.
+        thr2, bilinear: as :func:`reproject`.
+        alpha: minimum weight of the current frame, already clamped to [0, 1]; warmup: ``max(1/(n+1), alpha)``;
+            max_history: cap of n.
+
+    Returns:
+        color (B, 3, H, W), history_len (B, 1, H, W) float32, valid (B, 1, H, W) bool.
+    """
+    _require()
+    cur = _f32_contiguous(current_color, "current_color")
+    hc = _f32_contiguous(history_color, "history_color")
+    hl = _f32_contiguous(history_len, "history_len")
+    pd = _f32_contiguous(prev_depth, "prev_depth")
+    pn = _f32_contiguous(prev_normal, "prev_normal")
+    dd = _f32_contiguous(depth, "depth")
+    dn = _f32_contiguous(normal, "normal")
+    B, C = hc.shape[:2]
+    H, W = dd.shape[-2:]
+    color = torch.empty(B, C, H, W, dtype=torch.float32)
+    n_out = torch.empty(B, 1, H, W, dtype=torch.float32)
+    valid = torch.empty(B, 1, H, W, dtype=torch.bool)
+    _core.temporal_reproject(cur, hc, hl, pd, pn, *_warp_args(warp), dd, dn, float(thr2[0]), float(thr2[1]),
+                             bool(bilinear), float(alpha), bool(warmup), float(max_history), color, n_out, valid)
+    return color, n_out, valid

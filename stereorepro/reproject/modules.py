@@ -1,0 +1,128 @@
+"""The reprojection ops as nn.Modules: each stores its configuration (thresholds, sampling, backend; learnable
+with ``soft=True``) and calls its pure function. Forwards take and return plain tensors (ONNX export needs that).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from .._checks import check_sampling
+from .functional import BACKENDS, stereo_reproject, temporal_reproject
+
+__all__ = ["StereoReprojection", "TemporalReprojection"]
+
+
+def _threshold_param(value, learnable: bool) -> Tensor:
+    t = torch.as_tensor(float(value), dtype=torch.float32)
+    return nn.Parameter(t) if learnable else t
+
+
+class _ReprojectionBase(nn.Module):
+    def __init__(self, position_threshold: float, normal_threshold: float, sampling: str, soft: bool,
+                 temperature: float, backend: str = "auto"):
+        super().__init__()
+        if backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+        self.backend = backend
+        check_sampling(sampling)
+        for name, val in (("position_threshold", position_threshold), ("normal_threshold", normal_threshold)):
+            if not float(val) > 0:
+                raise ValueError(f"{name} must be > 0, got {val}")
+        if soft and not temperature > 0:
+            raise ValueError(f"temperature must be > 0, got {temperature}")
+        self.sampling = sampling
+        self.soft = bool(soft)
+        self.temperature = float(temperature)
+        if soft:  # learnable
+            self.position_threshold = _threshold_param(position_threshold, True)
+            self.normal_threshold = _threshold_param(normal_threshold, True)
+        else:
+            self.register_buffer("position_threshold", _threshold_param(position_threshold, False))
+            self.register_buffer("normal_threshold", _threshold_param(normal_threshold, False))
+
+    def extra_repr(self) -> str:
+        return (f"position_threshold={float(self.position_threshold):g}, "
+                f"normal_threshold={float(self.normal_threshold):g}, sampling={self.sampling!r}, soft={self.soft}")
+
+
+class StereoReprojection(_ReprojectionBase):
+    """Stereo backward reprojection (one eye → the other) with discard masks. See :func:`stereo_reproject`.
+
+    Args:
+        position_threshold: max |P_src − P_dst| in scene units (the scene's limit; paper §4.1).
+        normal_threshold: max |N_src − N_dst| between unit shading normals.
+        sampling: ``"bilinear"`` or ``"nearest"``.
+        soft: smooth accept tests; the thresholds become learnable ``nn.Parameter``s.
+        temperature: softness relative to the thresholds.
+        backend: ``"auto"`` (native kernel when built, on CPU, float32, hard, without autograd), ``"torch"`` or
+            ``"native"``; ``STEREOREPRO_BACKEND`` overrides it. See :func:`~stereorepro.reproject.select_backend`.
+
+    Forward:
+        ``forward(src_color, src_depth, src_normal, src_K, src_cam_from_world,
+        dst_depth, dst_normal, dst_K, dst_cam_from_world) -> (color, valid, reason)`` with shapes
+        (B,3,Hs,Ws), (B,1,Hs,Ws), (B,3,Hs,Ws), (B,3,3), (B,4,4), (B,1,H,W), (B,3,H,W), (B,3,3), (B,4,4)
+        → (B,3,H,W), (B,1,H,W) bool, (B,1,H,W) uint8.
+    """
+
+    input_names = ["src_color", "src_depth", "src_normal", "src_K", "src_cam_from_world",
+                   "dst_depth", "dst_normal", "dst_K", "dst_cam_from_world"]
+    output_names = ["color", "valid", "reason"]
+
+    def __init__(self, position_threshold: float, normal_threshold: float, sampling: str = "bilinear",
+                 soft: bool = False, temperature: float = 0.1, backend: str = "auto"):
+        super().__init__(position_threshold, normal_threshold, sampling, soft, temperature, backend)
+
+    def forward(self, src_color: Tensor, src_depth: Tensor, src_normal: Tensor, src_K: Tensor,
+                src_cam_from_world: Tensor, dst_depth: Tensor, dst_normal: Tensor, dst_K: Tensor,
+                dst_cam_from_world: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        return stereo_reproject(src_color, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal,
+                                dst_K, dst_cam_from_world, self.position_threshold, self.normal_threshold,
+                                self.sampling, self.soft, self.temperature, self.backend)
+
+
+class TemporalReprojection(_ReprojectionBase):
+    """Temporal reprojection + EMA accumulation. See :func:`temporal_reproject`.
+
+    Args:
+        position_threshold, normal_threshold, sampling, soft, temperature, backend: as :class:`StereoReprojection`.
+        alpha: minimum weight of the current frame (paper: 0.2); learnable when ``soft``.
+        warmup: running mean until the weight reaches ``alpha`` (BMFR); ``False`` = fixed EMA.
+        max_history: cap of the accumulated sample count.
+
+    Forward:
+        ``forward(current_color, depth, normal, K, cam_from_world, history_color, history_len, prev_depth,
+        prev_normal, prev_K, prev_cam_from_world) -> (color, history_len, valid)`` with shapes
+        (B,3,H,W), (B,1,H,W), (B,3,H,W), (B,3,3), (B,4,4), (B,3,H,W), (B,1,H,W), (B,1,H,W), (B,3,H,W),
+        (B,3,3), (B,4,4) → (B,3,H,W), (B,1,H,W) float, (B,1,H,W) bool.
+    """
+
+    input_names = ["current_color", "depth", "normal", "K", "cam_from_world", "history_color", "history_len",
+                   "prev_depth", "prev_normal", "prev_K", "prev_cam_from_world"]
+    output_names = ["color", "history_len_out", "valid"]
+
+    def __init__(self, position_threshold: float, normal_threshold: float, alpha: float = 0.2,
+                 warmup: bool = True, max_history: float = 255.0, sampling: str = "bilinear", soft: bool = False,
+                 temperature: float = 0.1, backend: str = "auto"):
+        super().__init__(position_threshold, normal_threshold, sampling, soft, temperature, backend)
+        if not (0.0 < float(alpha) <= 1.0):
+            raise ValueError(f"alpha must be in (0, 1], got {alpha}")
+        if not max_history >= 1:
+            raise ValueError(f"max_history must be >= 1, got {max_history}")
+        self.warmup = bool(warmup)
+        self.max_history = float(max_history)
+        if soft:
+            self.alpha = nn.Parameter(torch.as_tensor(float(alpha), dtype=torch.float32))
+        else:
+            self.register_buffer("alpha", torch.as_tensor(float(alpha), dtype=torch.float32))
+
+    def extra_repr(self) -> str:
+        return super().extra_repr() + f", alpha={float(self.alpha):g}, warmup={self.warmup}, max_history={self.max_history:g}"
+
+    def forward(self, current_color: Tensor, depth: Tensor, normal: Tensor, K: Tensor, cam_from_world: Tensor,
+                history_color: Tensor, history_len: Tensor, prev_depth: Tensor, prev_normal: Tensor,
+                prev_K: Tensor, prev_cam_from_world: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        return temporal_reproject(current_color, depth, normal, K, cam_from_world, history_color, history_len,
+                                  prev_depth, prev_normal, prev_K, prev_cam_from_world, self.position_threshold,
+                                  self.normal_threshold, self.alpha, self.warmup, self.max_history, self.sampling,
+                                  self.soft, self.temperature, self.backend)

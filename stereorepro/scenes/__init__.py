@@ -1,0 +1,25 @@
+"""Scenes: declarative scene files (``scenes/*.toml``), their loader, the built-in procedural geometry, and the one
+rule for reprojection thresholds against image resolution (:func:`threshold_scale`, :meth:`Scene.thresholds`).
+"""
+
+from .loader import (
+    BUILTIN_SCENES,
+    EXTERNAL_SCENES,
+    KNOWN_EFFECTS,
+    SHARED_ENV,
+    THRESHOLD_ROWS,
+    Scene,
+    SceneError,
+    SceneGeometry,
+    _expand_path,
+    catmull_rom,
+    list_scenes,
+    load_scene,
+    scenes_dir,
+    shared_scenes_dir,
+    threshold_scale,
+)
+
+__all__ = ["Scene", "SceneError", "SceneGeometry", "list_scenes", "load_scene", "scenes_dir", "shared_scenes_dir",
+           "KNOWN_EFFECTS", "BUILTIN_SCENES", "EXTERNAL_SCENES", "SHARED_ENV", "THRESHOLD_ROWS", "threshold_scale",
+           "catmull_rom"]
