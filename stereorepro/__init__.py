@@ -9,9 +9,7 @@ The package follows the pipeline: :mod:`~stereorepro.scenes` → :mod:`~stereore
 frame I/O are imported on first use of their names (``stereorepro.PathTracer``, ``load_scene``, ``read_exr``).
 """
 
-from __future__ import annotations
-
-import importlib
+import importlib as _importlib
 
 __version__ = "0.1.0"
 
@@ -86,7 +84,7 @@ __all__ = [
 def __getattr__(name: str):
     if name in _LAZY:
         module, attr = _LAZY[name]
-        value = getattr(importlib.import_module(module), attr)
+        value = getattr(_importlib.import_module(module), attr)
         globals()[name] = value
         return value
     raise AttributeError(f"module 'stereorepro' has no attribute {name!r}")

@@ -30,6 +30,7 @@ def load_example(name: str):
 
 
 class TestExamples:
+    @pytest.mark.onnx
     def test_onnx_deploy(self, tmp_path):
         res = load_example("onnx_deploy").main(["--smoke", "--out", str(tmp_path)])
         saved = json.loads((tmp_path / "onnx_deploy.json").read_text())
@@ -126,6 +127,7 @@ class TestSupportTable:
         loss.backward()
         assert all(p.grad is not None and torch.isfinite(p.grad) for p in m.parameters())
 
+    @pytest.mark.onnx
     @pytest.mark.parametrize("kind", sorted(MODULES))
     @pytest.mark.parametrize("dt", ["float32", "float64", "float16"])
     def test_onnx(self, kind, dt, tmp_path):
@@ -143,6 +145,28 @@ class TestSupportTable:
             assert o.dtype == r.numpy().dtype
             np.testing.assert_allclose(o.astype(np.float64), r.double().numpy(), atol=1e-5, rtol=0)
 
+    @staticmethod
+    def _assert_outputs_agree(module, ref, got):
+        """``got`` (another device's outputs) against ``ref``: valid masks agree on > 99.9 % of the pixels and the
+        colours agree where both are valid."""
+        names = list(module.output_names)
+        valid_r, valid_g = ref[names.index("valid")], got[names.index("valid")].cpu()
+        assert valid_r.dtype == torch.bool and valid_g.dtype == torch.bool
+        assert (valid_r == valid_g).float().mean() > 0.999
+        both = (valid_r & valid_g).expand_as(ref[0])
+        assert both.any(), "nothing valid to compare"
+        torch.testing.assert_close(got[0].cpu()[both], ref[0][both], atol=1e-4, rtol=1e-4)
+
+    def test_device_check_can_fail(self):
+        """The comparison used for CUDA fails on a colour off by 1e-3 where valid (checked on the CPU)."""
+        for kind in sorted(MODULES):
+            module = MODULES[kind]()
+            ref = module(*_inputs(module, torch.float32, "cpu"))
+            self._assert_outputs_agree(module, ref, ref)
+            bad = (ref[0] + 1e-3,) + tuple(ref[1:])
+            with pytest.raises(AssertionError):
+                self._assert_outputs_agree(module, ref, bad)
+
     def test_cuda_matches_cpu(self):
         if not torch.cuda.is_available():
             pytest.skip("no CUDA device")
@@ -151,7 +175,4 @@ class TestSupportTable:
             cpu = module(*_inputs(module, torch.float32, "cpu"))
             gpu = module.cuda()(*_inputs(module, torch.float32, "cuda"))
             assert gpu[0].is_cuda
-            valid = (cpu[-1] == gpu[-1].cpu()).float().mean()
-            assert valid > 0.999
-            both = (cpu[-1] & gpu[-1].cpu()).expand_as(cpu[0])
-            torch.testing.assert_close(gpu[0].cpu()[both], cpu[0][both], atol=1e-4, rtol=1e-4)
+            self._assert_outputs_agree(module, cpu, gpu)

@@ -2,6 +2,7 @@
 (``render``: scenes and render; ``reproject``: reproject and export-sequence; ``experiment``; ``demo``)."""
 
 from ..errors import UserError
-from .main import build_parser, main, parse_resolution
+from ._args import parse_resolution
+from .main import build_parser, main
 
 __all__ = ["main", "build_parser", "parse_resolution", "UserError"]

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from ..errors import UserError
 from ..measure.experiment import ExperimentConfig, run_experiment, tables_markdown
-from .main import parse_resolution
+from ._args import parse_resolution
 
 __all__ = ["add_arguments", "config_from_args", "run_command", "register"]
 

@@ -1,7 +1,7 @@
 """Command line: ``stereorepro <command> ...`` (also ``python -m stereorepro``).
 
 Each command module of this package registers its sub-commands through ``register(subparsers)``; this file
-collects them and holds the shared argument types. A command returns an exit code; errors a user can fix (bad
+collects them (the shared argument types are in :mod:`._args`). A command returns an exit code; errors a user can fix (bad
 file, bad option) raise :class:`~stereorepro.errors.UserError`: one line on stderr, exit code 2.
 """
 
@@ -11,18 +11,7 @@ import argparse
 import sys
 
 from ..errors import UserError
-
-
-def parse_resolution(s: str) -> tuple[int, int]:
-    """``"320x180"`` → ``(320, 180)`` (width, height); an argparse type."""
-    try:
-        w, h = s.lower().split("x")
-        w, h = int(w), int(h)
-        if w < 1 or h < 1:
-            raise ValueError
-        return w, h
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT (e.g. 320x180), got {s!r}") from None
+from ._args import parse_resolution  # noqa: F401  (re-exported: the shared argument types live in _args)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 
 from ..errors import UserError
-from .main import parse_resolution
+from ._args import parse_resolution
 
 
 def _cmd_scenes(args) -> int:

@@ -11,7 +11,7 @@ import torch
 from ..errors import SceneError, SequenceError, UserError
 from ..io.frames import export_sequence
 from ..io.sequence import MODES, reproject_sequence
-from .main import parse_resolution
+from ._args import parse_resolution
 
 
 def _cmd_reproject(args) -> int:

@@ -75,7 +75,7 @@ class TestMse:
         assert out.dtype == F64
         torch.testing.assert_close(out, torch.full((2,), 0.25, dtype=F64))
 
-    def test_shapes(self):
+    def test_cardinality(self):
         x = torch.rand(3, 2, 6, 7)
         assert mse(x, torch.rand(3, 2, 6, 7)).shape == (3,)
         assert mse(x, torch.rand(1, 2, 6, 7)).shape == (3,)  # reference broadcast over the batch
@@ -152,7 +152,7 @@ class TestRmse:
         x = torch.zeros(1, 3, 4, 4)
         torch.testing.assert_close(rmse(x, torch.full_like(x, 2.0)), torch.tensor([2.0], dtype=F64))
 
-    def test_shapes(self):
+    def test_cardinality(self):
         x, ref = torch.rand(4, 3, 5, 5), torch.rand(4, 3, 5, 5)
         out = rmse(x, ref)
         assert out.shape == (4,)
@@ -174,7 +174,7 @@ class TestSsim:
         y = x + 0.2 * torch.randn(x.shape, generator=torch.Generator().manual_seed(1))
         assert bool((ssim(y, x) < 0.9).all())
 
-    def test_shapes(self):
+    def test_cardinality(self):
         x = torch.rand(3, 1, 12, 13)
         assert ssim(x, torch.rand(1, 1, 12, 13)).shape == (3,)
         assert ssim(x, torch.rand(3, 1, 12, 13), window_size=5).shape == (3,)
@@ -221,7 +221,7 @@ class TestLadderRmse:
         ladder = torch.stack([torch.full_like(ref, v) for v in (3.0, 2.0, 1.0)])  # 3x1x1x2x2
         torch.testing.assert_close(ladder_rmse(ladder, ref), torch.tensor([[3.0, 2.0, 1.0]], dtype=F64))
 
-    def test_shapes(self):
+    def test_cardinality(self):
         ref = torch.rand(2, 3, 5, 5)
         ladder = torch.rand(4, 2, 3, 5, 5)
         out = ladder_rmse(ladder, ref)
@@ -257,7 +257,7 @@ class TestFitLadder:
         assert float(a) == pytest.approx(0.3, rel=1e-10)
         assert float(b) == pytest.approx(0.002, rel=1e-8)
 
-    def test_shapes(self):
+    def test_cardinality(self):
         R = torch.tensor([_ideal_rmse(SPP16, a=1.0), _ideal_rmse(SPP16, a=2.0, b=0.01)], dtype=F64)
         a, b = fit_ladder(SPP16, R)
         assert a.shape == (2,) and b.shape == (2,)

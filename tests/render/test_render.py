@@ -8,7 +8,6 @@ Bit-parity between the two is tested in ``tests/test_render_native.py``.
 from __future__ import annotations
 
 import math
-import statistics
 
 import numpy as np
 import pytest
@@ -167,8 +166,8 @@ class TestRender:
         mask = torch.rand(180, 320, generator=torch.Generator().manual_seed(1)) < 0.03
         tr.render(left, 0, 1)  # warm-up
 
-        def med(**kw):
-            return statistics.median(tr.render(left, 0, 1, **kw).time_s for _ in range(3))
+        def med(**kw):  # the fastest of 5: the least disturbed by other load on the machine
+            return min(tr.render(left, 0, 1, **kw).time_s for _ in range(5))
 
         t_full, t_mask = med(), med(pixel_mask=mask)
         assert t_mask < 0.3 * t_full, (t_mask, t_full)

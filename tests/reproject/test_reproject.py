@@ -160,6 +160,7 @@ class TestStereoReproject:
             for a, b in zip(m(*[inp[a] for a in ARGS]), run(inp, 0.05, 0.2, **kw)):
                 assert torch.equal(a, b)
 
+    @pytest.mark.onnx
     def test_onnx_parity(self, tmp_path):
         m = StereoReprojection(0.3, 0.3)  # ~2 pixel footprints at these small sizes
         for dims, ref, got in onnx_runs(m, tmp_path, "stereo"):
@@ -723,6 +724,7 @@ class TestTemporalReproject:
             for a, b in zip(m(*[inp[n] for n in self.NAMES]), self._run(inp, **kw)):
                 assert torch.equal(a, b)
 
+    @pytest.mark.onnx
     def test_onnx_parity(self, tmp_path):
         m = TemporalReprojection(0.3, 0.3)
         for dims, ref, got in onnx_runs(m, tmp_path, "temporal"):

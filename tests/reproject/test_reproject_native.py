@@ -522,10 +522,28 @@ class TestBackendSelection:
         with pytest.raises(RuntimeError, match="not built"):
             StereoReprojection(0.05, 0.3, backend="native")(*args)
 
+    @pytest.mark.onnx
     def test_onnx_export_uses_torch(self, monkeypatch, tmp_path):
-        pytest.importorskip("onnx")
+        """Even with native forced, export traces the torch path: a graph of standard ONNX ops only, whose
+        onnxruntime outputs equal the torch reference's."""
+        import onnx
+        import onnxruntime as ort
+
         from stereorepro import export_onnx
-        monkeypatch.setenv(native.ENV_VAR, "native")  # even when forced, tracing/export runs the torch path
-        path = export_onnx(StereoReprojection(0.3, 0.3), tmp_path / "s.onnx")
-        assert path.exists()
+        from stereorepro.io.onnx import example_inputs
+
+        monkeypatch.setenv(native.ENV_VAR, "native")
+        module = StereoReprojection(0.3, 0.3)
+        path = export_onnx(module, tmp_path / "s.onnx")
+        graph = onnx.load(str(path)).graph
+        assert {n.domain for n in graph.node} <= {"", "ai.onnx"}
+        xs = example_inputs(module, height=10, width=14)
+        outs = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(
+            None, {n: x.numpy() for n, x in zip(module.input_names, xs)})
+        monkeypatch.delenv(native.ENV_VAR)
+        with torch.no_grad():
+            ref = StereoReprojection(0.3, 0.3, backend="torch")(*xs)
+        for o, r in zip(outs, ref):
+            assert o.dtype == r.numpy().dtype
+            torch.testing.assert_close(torch.from_numpy(o).double(), r.double(), atol=1e-5, rtol=0)
 
