@@ -33,8 +33,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ._checks import check_camera, check_shape
-from .reproject import Reason, StereoReprojection, TemporalReprojection, backward_reproject, temporal_reproject
+from ._checks import STEREO_NAMES, check_camera, check_reprojection_inputs, check_shape
+from .reproject import Reason, StereoReprojection, TemporalReprojection, temporal_reproject
+from .reproject.functional import warp_values
 from .reproject._general import compute_dtype
 
 __all__ = ["EyeState", "temporal_step", "SpatiotemporalReprojection"]
@@ -186,9 +187,10 @@ class SpatiotemporalReprojection:
         r, m = self.right_state, self.stereo_module
         work = compute_dtype(r.color, r.history_len)
         values = torch.cat([r.color.to(work), r.history_len.to(work)], 1)  # the sample count rides along
-        warped, valid, reason, _ = backward_reproject(
-            values, r.depth, r.normal, r.K, r.cam_from_world, depth, normal, K, cam_from_world,
-            m.position_threshold, m.normal_threshold, m.sampling, backend=m.backend)
+        args = (values, r.depth, r.normal, r.K, r.cam_from_world, depth, normal, K, cam_from_world)
+        check_reprojection_inputs(*args, dict(STEREO_NAMES, src_values="right history"))
+        warped, valid, reason = warp_values(*args, m.position_threshold, m.normal_threshold, m.sampling,
+                                            backend=m.backend)
         self._stereo_out = (warped[:, :3], warped[:, 3:4])
         self.stereo_valid, self.stereo_reason = valid, reason
         return ~valid

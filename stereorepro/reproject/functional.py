@@ -48,7 +48,7 @@ from . import _fast, _general, _native
 from ._general import as_scalar, compute_dtype, inference_only, squared_thresholds
 
 __all__ = ["BACKENDS", "backward_reproject", "stereo_reproject", "temporal_blend", "temporal_reproject",
-           "select_backend", "native_unsupported"]
+           "select_backend", "native_unsupported", "warp_values"]
 
 #: Backend names the ops accept (``STEREOREPRO_BACKEND`` also accepts ``numpy`` and ``reference`` for torch).
 BACKENDS = ("auto", "torch", "native")
@@ -251,15 +251,25 @@ def stereo_reproject(
     check_sampling(sampling)
     check_reprojection_inputs(src_color, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal,
                               dst_K, dst_cam_from_world, STEREO_NAMES)
-    args = (src_color, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal, dst_K,
+    return warp_values(src_color, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal, dst_K,
+                       dst_cam_from_world, position_threshold, normal_threshold, sampling, soft, temperature, backend)
+
+
+def warp_values(src_values, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal, dst_K,
+                dst_cam_from_world, position_threshold, normal_threshold, sampling="bilinear", soft=False,
+                temperature=0.1, backend="auto") -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`backward_reproject` without the confidence map (the native kernel then does not write it), arguments
+    assumed checked: (values (B, C, H, W), valid, reason (B, 1, H, W)). Used by :func:`stereo_reproject` and the
+    stereo step of :class:`~stereorepro.accumulate.SpatiotemporalReprojection`."""
+    args = (src_values, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal, dst_K,
             dst_cam_from_world, position_threshold, normal_threshold, sampling)
-    if select_backend(backend, (src_color, src_depth, src_normal, dst_depth, dst_normal),
+    if select_backend(backend, (src_values, src_depth, src_normal, dst_depth, dst_normal),
                       (src_K, src_cam_from_world, dst_K, dst_cam_from_world, position_threshold, normal_threshold),
                       soft) == "native":
-        color, valid, reason, _ = _native_backward(*args, want_confidence=False)
+        values, valid, reason, _ = _native_backward(*args, want_confidence=False)
     else:
-        color, valid, reason, _ = _torch_backward(*args, soft, temperature)
-    return color, valid, reason
+        values, valid, reason, _ = _torch_backward(*args, soft, temperature)
+    return values, valid, reason
 
 
 def temporal_blend(
