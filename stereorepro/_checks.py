@@ -6,15 +6,18 @@ carry Python-side asserts) but shapes are already fixed by then.
 
 from __future__ import annotations
 
+import math
 from typing import Sequence
 
+import numpy as np
 import torch
 from torch import Tensor
 
-from .errors import ShapeError
+from .errors import CameraError, ShapeError
 
 __all__ = ["check_shape", "check_floating", "check_device", "check_camera", "check_same_hw", "check_sampling",
-           "check_reprojection_inputs", "tracing", "ShapeError", "SAMPLINGS", "STEREO_NAMES", "TEMPORAL_NAMES"]
+           "check_reprojection_inputs", "check_camera_values", "check_scalar", "check_thresholds", "intrinsics_problem", "rigid_problem",
+           "tracing", "ShapeError", "CameraError", "SAMPLINGS", "STEREO_NAMES", "TEMPORAL_NAMES"]
 
 #: Tap sampling of the reprojection: 2×2 bilinear taps (the paper's) or the one nearest tap.
 SAMPLINGS = ("bilinear", "nearest")
@@ -91,14 +94,103 @@ def check_device(tensors: dict, name: str, tracing: bool | None = None) -> None:
                          + ", ".join(f"{k}={d}" for k, d in devices.items()))
 
 
+def intrinsics_problem(K: np.ndarray) -> str | None:
+    """What is wrong with pinhole intrinsics ``K`` (3, 3) (float64 numpy), or None. The one rule: finite,
+    ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` with ``fx, fy > 0`` (a zero focal length is singular; a negative one
+    is an axis flip)."""
+    if not np.isfinite(K).all():
+        return f"values must be finite, got {K.tolist()}"
+    if not (K[0, 0] > 0 and K[1, 1] > 0):
+        return (f"focal lengths must be > 0 (zero is singular, negative is an axis flip), got fx={K[0, 0]:g}, "
+                f"fy={K[1, 1]:g}")
+    if not (K[1, 0] == 0 and K[2, 0] == 0 and K[2, 1] == 0 and K[2, 2] == 1):
+        return f"expected pinhole intrinsics [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {K.tolist()}"
+    return None
+
+
+def rigid_problem(T: np.ndarray, tol: float = 1e-4) -> str | None:
+    """What is wrong with a rigid transform ``T`` (4, 4) (float64 numpy), or None: finite, last row
+    ``[0, 0, 0, 1]``, rotation part orthonormal within ``tol`` (no scale, no shear) with determinant +1 (a
+    determinant of −1 is a mirror / axis flip, typically another renderer's camera axes left unconverted)."""
+    if not np.isfinite(T).all():
+        return f"values must be finite, got {T.tolist()}"
+    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=tol, rtol=0.0):
+        return f"expected a rigid transform with last row [0, 0, 0, 1], got last row {T[3].tolist()}"
+    R = T[:3, :3]
+    if np.linalg.det(R) < 0:
+        return ("det(R) = -1: a mirror / axis flip, not a rotation (convert the camera axes to OpenCV's: x right, "
+                "y down, z forward)")
+    err = float(np.abs(R.T @ R - np.eye(3)).max())
+    if not err <= tol:
+        return (f"expected a rigid transform (rotation + translation): the rotation part is scaled or sheared "
+                f"(|R^T R - I| = {err:.3g})")
+    return None
+
+
+def _rigid_tol(dtype: torch.dtype) -> float:
+    return max(1e-4, 16.0 * torch.finfo(dtype).eps)
+
+
+def check_camera_values(K: Tensor, cam_from_world: Tensor, name: str, tracing: bool | None = None) -> None:
+    """CameraError naming ``name``, the batch item and the problem when a camera breaks
+    :func:`intrinsics_problem` or :func:`rigid_problem` (values are read, so this synchronises a GPU)."""
+    if _skip(tracing):
+        return
+    Ks = K.detach().to("cpu", torch.float64).numpy()
+    Ts = cam_from_world.detach().to("cpu", torch.float64).numpy()
+    tol = _rigid_tol(cam_from_world.dtype)
+    name = "" if name in ("", "current", "camera") else f"{name}_"
+    for b in range(Ks.shape[0]):
+        problem = intrinsics_problem(Ks[b])
+        if problem:
+            raise CameraError(f"{name}K[{b}]: {problem}")
+        problem = rigid_problem(Ts[b], tol)
+        if problem:
+            raise CameraError(f"{name}cam_from_world[{b}]: {problem}")
+
+
 def check_camera(K: Tensor, cam_from_world: Tensor, name: str, bind: dict | None = None,
                  tracing: bool | None = None) -> dict:
+    """Shapes (B, 3, 3) and (B, 4, 4), floating dtypes, and the values (:func:`check_camera_values`)."""
     tracing = _skip(tracing)
     bind = check_shape(K, ["B", "3", "3"], f"{name} K", bind, tracing)
     bind = check_shape(cam_from_world, ["B", "4", "4"], f"{name} cam_from_world", bind, tracing)
     check_floating(K, f"{name} K", tracing)
     check_floating(cam_from_world, f"{name} cam_from_world", tracing)
+    check_camera_values(K, cam_from_world, name, tracing)
     return bind
+
+
+def check_scalar(value, name: str, lo: float = -math.inf, hi: float = math.inf, lo_open: bool = False,
+                 allow_inf: bool = False, tracing: bool | None = None) -> None:
+    """ValueError unless ``value`` (a number or a one-element tensor) is a number in [lo, hi] ((lo, hi] with
+    ``lo_open``); NaN is never accepted, ±inf only with ``allow_inf``. Tensor values are read (a GPU syncs)."""
+    if _skip(tracing):
+        return
+    if isinstance(value, Tensor):
+        if value.numel() != 1:
+            raise ShapeError(f"{name}: expected a number or a one-element tensor, got shape {tuple(value.shape)}")
+        if not (value.is_floating_point() or value.dtype in (torch.int32, torch.int64, torch.int16, torch.int8,
+                                                             torch.uint8)):
+            raise TypeError(f"{name}: expected a real number, got a tensor of dtype {value.dtype}")
+        v = float(value.detach().reshape(()))
+    elif isinstance(value, (int, float)) and not isinstance(value, bool):
+        v = float(value)
+    else:
+        raise TypeError(f"{name}: expected a number or a one-element tensor, got {type(value).__name__}")
+    ok = (v > lo if lo_open else v >= lo) and v <= hi and not math.isnan(v) and (allow_inf or math.isfinite(v))
+    if not ok:
+        kind = "a number" if allow_inf else "a finite number"
+        span = "" if (lo, hi) == (-math.inf, math.inf) else f" in {'(' if lo_open else '['}{lo:g}, {hi:g}]"
+        raise ValueError(f"{name}: expected {kind}{span}, got {v!r}")
+
+
+def check_thresholds(position_threshold, normal_threshold, tracing: bool | None = None) -> None:
+    """The accept thresholds: each a number or one-element tensor, >= 0 (+inf accepts everything)."""
+    if _skip(tracing):
+        return
+    check_scalar(position_threshold, "position_threshold", 0.0, allow_inf=True, tracing=False)
+    check_scalar(normal_threshold, "normal_threshold", 0.0, allow_inf=True, tracing=False)
 
 
 def check_same_hw(a: Tensor, b: Tensor, name_a: str, name_b: str, tracing: bool | None = None) -> None:
@@ -117,6 +209,9 @@ def check_reprojection_inputs(src_values, src_depth, src_normal, src_K, src_cam_
     tr = False  # asked once for all the checks below
     bind_src: dict = {}
     check_shape(src_values, ["B", "C", "H", "W"], names["src_values"], bind_src, tr)
+    if src_values.shape[-2] == 0 or src_values.shape[-1] == 0:
+        raise ShapeError(f"{names['src_values']}: the source image needs at least one pixel, got shape "
+                         f"{tuple(src_values.shape)}")
     check_shape(src_depth, ["B", "1", "H", "W"], names["src_depth"], bind_src, tr)
     check_shape(src_normal, ["B", "3", "H", "W"], names["src_normal"], bind_src, tr)
     bind_b = {"B": bind_src["B"]} if "B" in bind_src else {}

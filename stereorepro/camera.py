@@ -99,12 +99,22 @@ def look_at(eye: Tensor, target: Tensor, up: Tensor) -> Tensor:
 
     Returns:
         cam_from_world: (B, 4, 4), rigid.
+
+    Raises:
+        ValueError: a non-finite input, ``target == eye``, a zero ``up`` or one parallel to the view direction.
     """
     check_shape(eye, ["B", "3"], "eye")
     check_shape(target, ["B", "3"], "target")
     check_shape(up, ["B", "3"], "up")
     forward = target - eye
-    forward = forward / forward.pow(2).sum(-1, keepdim=True).sqrt()
+    length = forward.pow(2).sum(-1, keepdim=True).sqrt()
+    if not bool(torch.isfinite(eye).all() and torch.isfinite(target).all() and torch.isfinite(up).all()):
+        raise ValueError("look_at: eye, target and up must be finite")
+    if bool((length <= 0).any()):
+        raise ValueError("look_at: target equals eye (no viewing direction)")
+    if bool((up.pow(2).sum(-1) <= 0).any()):
+        raise ValueError("look_at: `up` is the zero vector")
+    forward = forward / length
     right = torch.cross(forward, up.to(forward), dim=-1)
     norm = right.pow(2).sum(-1, keepdim=True).sqrt()
     if bool((norm < 1e-12).any()):

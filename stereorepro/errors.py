@@ -6,7 +6,7 @@ built-ins keeps working. Messages name what was wrong and where: the argument, t
 
 from __future__ import annotations
 
-__all__ = ["StereoreproError", "ShapeError", "SceneError", "SequenceError", "UserError"]
+__all__ = ["StereoreproError", "ShapeError", "SceneError", "SequenceError", "CameraError", "UserError"]
 
 
 class StereoreproError(Exception):
@@ -23,6 +23,10 @@ class SceneError(StereoreproError, ValueError):
 
 class SequenceError(StereoreproError, ValueError):
     """A malformed frame-sequence directory; the message names the file (and the frame/key)."""
+
+
+class CameraError(StereoreproError, ValueError):
+    """A camera matrix that breaks the conventions: non-finite, not pinhole, singular, not rigid, or mirrored."""
 
 
 class UserError(StereoreproError):

@@ -447,9 +447,10 @@ SR_AVX2 int64_t blend_row(const float *n, const uint8_t *valid, const float *con
     for (; x + 8 <= W; x += 8) {
         const __m256i b = _mm256_cvtepu8_epi32(_mm_loadl_epi64(reinterpret_cast<const __m128i *>(valid + x)));
         const __m256 v = _mm256_castsi256_ps(_mm256_cmpgt_epi32(b, _mm256_setzero_si256()));
-        const __m256 nx = _mm256_loadu_ps(n + x);
+        // n > 0 ? n : 0 (negative or NaN: no history): _mm256_max_ps returns its second operand unless first > second
+        const __m256 nx = _mm256_max_ps(_mm256_loadu_ps(n + x), zero);
         // std::max(p, q) is (p < q) ? q : p, i.e. _mm256_max_ps(q, p) (which returns its second operand on ties)
-        const __m256 a = warmup ? _mm256_max_ps(va, _mm256_div_ps(one, add(_mm256_max_ps(zero, nx), one))) : va;
+        const __m256 a = warmup ? _mm256_max_ps(va, _mm256_div_ps(one, add(nx, one))) : va;
         _mm256_storeu_ps(len + x, sel(v, _mm256_min_ps(add(nx, one), cap), one));
         const __m256 ga = sub(one, a);
         for (int64_t c = 0; c < Cc; ++c) {
@@ -518,8 +519,8 @@ struct TemporalSink {
         return o;
     }
     void finish(int64_t b, int64_t y, const RowOut &o) const {
-        // same operations as reproject.temporal_blend: a = max(1/(max(n, 0) + 1), alpha) (warmup) or alpha,
-        // out = (1 - a)·hist + a·cur where valid else cur, n_out = min(n + 1, max_history) where valid else 1.
+        // same operations as reproject.temporal_blend: n = n > 0 ? n : 0, a = max(1/(n + 1), alpha) (warmup) or
+        // alpha, out = (1 - a)·hist + a·cur where valid else cur, n_out = min(n + 1, max_history) where valid else 1.
         const int64_t Cc = C - 1, row = (b * H + y) * W;
         const float *n = o.num[Cc];
         const uint8_t *v = o.valid;
@@ -537,8 +538,9 @@ struct TemporalSink {
         if (vector) x0 = v8::blend_row(n, v, hist, cur, out, lo, alpha, max_history, warmup, Cc, W);
 #endif
         for (int64_t x = x0; x < W; ++x) {
-            const float a = warmup ? std::max(1.0f / (std::max(n[x], 0.0f) + 1.0f), alpha) : alpha;
-            lo[x] = v[x] ? std::min(n[x] + 1.0f, max_history) : 1.0f;
+            const float nx = n[x] > 0.0f ? n[x] : 0.0f;
+            const float a = warmup ? std::max(1.0f / (nx + 1.0f), alpha) : alpha;
+            lo[x] = v[x] ? std::min(nx + 1.0f, max_history) : 1.0f;
             for (int64_t c = 0; c < Cc; ++c)
                 out[c][x] = v[x] ? (1.0f - a) * hist[c][x] + a * cur[c][x] : cur[c][x];
         }

@@ -53,6 +53,44 @@ def squared_thresholds(position_threshold, normal_threshold, wdt: torch.dtype, d
     return torch.stack([thr_p * thr_p, thr_n * thr_n]).view(1, 2, 1, 1, 1)
 
 
+#: Logit below which a soft accept weight is treated as saturated: ``sigmoid(-SOFT_LOGIT_FLOOR)`` ≈ 8.8e-27.
+SOFT_LOGIT_FLOOR = 60.0
+
+
+def _reciprocal(z: Tensor) -> Tensor:
+    """``1 / z``; when ``z`` needs a gradient, the gradient is that of ``1 / max(z, tiny**0.4)`` (≈ 6e-16 in
+    fp32): ``-1/z²`` would overflow for depths below ~5e-20 and turn a zero upstream gradient into NaN. The
+    forward value is exactly ``1 / z``."""
+    inv = 1.0 / z
+    if not (z.requires_grad and torch.is_grad_enabled()):
+        return inv
+    safe = 1.0 / z.clamp_min(torch.finfo(z.dtype).tiny ** 0.4)
+    return inv.detach() + (safe - safe.detach())
+
+
+def _soft_distance2(diff: tuple[Tensor, Tensor, Tensor]) -> Tensor:
+    """|P_src − P_dst|² for the soft test from its components, each clamped to ±1e18 (fp32; ±1e150 in fp64) and
+    non-finite ones (inf − inf) read as the bound: the sum stays finite and so do its gradients, for huge depths
+    (a renderer's FLT_MAX sky) too. The hard decisions use the unclamped distance."""
+    lim = 1e18 if diff[0].dtype != torch.float64 else 1e150
+    total = 0.0
+    for d in diff:
+        d = torch.where(torch.isfinite(d), d, torch.full((), lim, dtype=d.dtype, device=d.device))
+        total = total + d.clamp(-lim, lim).square()
+    return total
+
+
+def _soft_accept(d2: Tensor, thr2: Tensor, tau: float) -> Tensor:
+    """``sigmoid((thr² − d²) / (2·tau·thr²))``, with d² capped where the logit passes ``-SOFT_LOGIT_FLOOR`` (the
+    weight is ~1e-26 there either way), thr² floored at 1e-30 and an infinite thr² giving 1, so that neither the value nor its gradients in
+    ``d2`` and ``thr2`` overflow (a huge but finite depth gave NaN threshold gradients)."""
+    unbounded = torch.isinf(thr2)  # an infinite threshold accepts everything: weight 1
+    one = torch.ones((), dtype=d2.dtype, device=d2.device)
+    t2 = torch.where(unbounded, one, thr2).clamp_min(max(torch.finfo(d2.dtype).tiny, 1e-30))
+    d2 = torch.minimum(d2, t2 * (1.0 + 2.0 * tau * SOFT_LOGIT_FLOOR))
+    return torch.where(unbounded, one, torch.sigmoid((t2 - d2) / (2 * tau * t2)))
+
+
 def pixel_centres(r0: int, r1: int, W: int, wdt: torch.dtype, dev) -> dict:
     """Pixel centres of destination rows r0 .. r1 - 1 for :func:`warp_pixels`: u_c (1, 1, 1, W), v_c (1, 1, h, 1)."""
     return dict(u_c=torch.arange(W, device=dev, dtype=wdt).view(1, 1, 1, W) + 0.5,
@@ -126,7 +164,7 @@ def warp_pixels(read_taps, C: int, Hs: int, Ws: int, warp, dst_depth: Tensor, ds
     dst_ok = has_surface(z_dst)  # Bx1xHxW
     one = torch.ones((), dtype=wdt, device=dev)
     z_dst = torch.where(dst_ok, z_dst, one)
-    inv_z = 1.0 / z_dst
+    inv_z = _reciprocal(z_dst)
     wx = p[:, 0:1] * u_c + p[:, 1:2] * v_c + p[:, 2:3] + kt[:, 0:1] * inv_z  # Bx1xHxW
     wy = p[:, 3:4] * u_c + p[:, 4:5] * v_c + p[:, 5:6] + kt[:, 1:2] * inv_z
     wz = p[:, 6:7] * u_c + p[:, 7:8] * v_c + p[:, 8:9] + kt[:, 2:3] * inv_z  # = q_z / z
@@ -175,7 +213,8 @@ def warp_pixels(read_taps, C: int, Hs: int, Ws: int, warp, dst_depth: Tensor, ds
     vt = yi + 0.5
     px = z_src * (ki[:, 0:1] * ut + ki[:, 1:2] * vt + ki[:, 2:3])
     py = z_src * (ki[:, 4:5] * vt + ki[:, 5:6])
-    d_pos2 = (q[:, 0:1] - px).square() + (q[:, 1:2] - py).square() + (qz - z_src).square()
+    diff = (q[:, 0:1] - px, q[:, 1:2] - py, qz - z_src)
+    d_pos2 = diff[0].square() + diff[1].square() + diff[2].square()
     n_dst = finite_or_zero(dst_normal.to(wdt)).unsqueeze(2)  # Bx3x1xHxW
     d_n2 = (n_src - n_dst).square().sum(1)  # BxTxHxW
 
@@ -189,9 +228,8 @@ def warp_pixels(read_taps, C: int, Hs: int, Ws: int, warp, dst_depth: Tensor, ds
     hard = base_ok & pos_ok & nrm_ok
     if soft:
         tau = float(temperature)
-        tp2 = (thr_p * thr_p).clamp_min(torch.finfo(wdt).tiny)
-        tn2 = (thr_n * thr_n).clamp_min(torch.finfo(wdt).tiny)
-        a_soft = torch.sigmoid((tp2 - d_pos2) / (2 * tau * tp2)) * torch.sigmoid((tn2 - d_n2) / (2 * tau * tn2))
+        a_soft = (_soft_accept(_soft_distance2(diff), thr_p * thr_p, tau)
+                  * _soft_accept(d_n2, thr_n * thr_n, tau))
         accept_w = torch.where(base_ok, a_soft, zero)
     else:
         accept_w = hard.to(wdt)

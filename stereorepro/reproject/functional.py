@@ -42,7 +42,7 @@ from torch import Tensor
 
 from .. import _backend
 from .._checks import (STEREO_NAMES, TEMPORAL_NAMES, check_floating, check_reprojection_inputs, check_sampling,
-                       check_shape, tracing)
+                       check_scalar, check_shape, check_thresholds, tracing)
 from ..camera import compose_warp
 from . import _fast, _general, _native
 from ._general import as_scalar, compute_dtype, inference_only, squared_thresholds
@@ -157,6 +157,9 @@ def backward_reproject(
     if check:
         check_reprojection_inputs(src_values, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal,
                                   dst_K, dst_cam_from_world, dict(STEREO_NAMES, src_values="src_values"))
+        check_thresholds(position_threshold, normal_threshold)
+    if _is_empty(dst_depth):
+        return _empty_outputs(src_values, dst_depth, confidence=True)
     if select_backend(backend, (src_values, src_depth, src_normal, dst_depth, dst_normal),
                       (src_K, src_cam_from_world, dst_K, dst_cam_from_world, position_threshold, normal_threshold),
                       soft) == "native":
@@ -251,6 +254,7 @@ def stereo_reproject(
     check_sampling(sampling)
     check_reprojection_inputs(src_color, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal,
                               dst_K, dst_cam_from_world, STEREO_NAMES)
+    check_thresholds(position_threshold, normal_threshold)
     return warp_values(src_color, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal, dst_K,
                        dst_cam_from_world, position_threshold, normal_threshold, sampling, soft, temperature, backend)
 
@@ -261,6 +265,8 @@ def warp_values(src_values, src_depth, src_normal, src_K, src_cam_from_world, ds
     """:func:`backward_reproject` without the confidence map (the native kernel then does not write it), arguments
     assumed checked: (values (B, C, H, W), valid, reason (B, 1, H, W)). Used by :func:`stereo_reproject` and the
     stereo step of :class:`~stereorepro.accumulate.SpatiotemporalReprojection`."""
+    if _is_empty(dst_depth):
+        return _empty_outputs(src_values, dst_depth)
     args = (src_values, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal, dst_K,
             dst_cam_from_world, position_threshold, normal_threshold, sampling)
     if select_backend(backend, (src_values, src_depth, src_normal, dst_depth, dst_normal),
@@ -270,6 +276,27 @@ def warp_values(src_values, src_depth, src_normal, src_K, src_cam_from_world, ds
     else:
         values, valid, reason, _ = _torch_backward(*args, soft, temperature)
     return values, valid, reason
+
+
+def _is_empty(dst_depth: Tensor) -> bool:
+    """True for a destination without pixels (B = 0, H = 0 or W = 0): the ops return empty outputs."""
+    return not tracing() and dst_depth.numel() == 0
+
+
+def _empty_outputs(values_like: Tensor, dst_depth: Tensor, confidence: bool = False) -> tuple[Tensor, ...]:
+    """(values (B, C, H, W), valid, reason[, confidence] (B, 1, H, W)) for an empty destination."""
+    B, _, H, W = dst_depth.shape
+    dev = dst_depth.device
+    out = (values_like.new_zeros(B, values_like.shape[1], H, W), torch.zeros(B, 1, H, W, dtype=torch.bool, device=dev),
+           torch.zeros(B, 1, H, W, dtype=torch.uint8, device=dev))
+    if confidence:
+        out += (torch.zeros(B, 1, H, W, dtype=compute_dtype(values_like, dst_depth), device=dev),)
+    return out
+
+
+def _check_blend_scalars(alpha, max_history) -> None:
+    check_scalar(alpha, "alpha")
+    check_scalar(max_history, "max_history", 1.0, allow_inf=True)
 
 
 def temporal_blend(
@@ -294,18 +321,26 @@ def temporal_blend(
         history_color: (B, C, H, W) history already warped into this frame.
         history_len: (B, 1, H, W) accumulated sample count n of the warped history (float).
         confidence: (B, 1, H, W) bool valid mask, or float in [0, 1].
-        alpha: minimum weight of the current frame, in (0, 1] (float or 0-d tensor; learnable).
+        alpha: minimum weight of the current frame, in (0, 1] (float or 0-d tensor; learnable): a finite number,
+            clamped to [0, 1] (a learnable alpha may step outside); NaN or ±inf raise ValueError.
         warmup: use ``max(1/(n+1), alpha)`` instead of a fixed ``alpha``.
-        max_history: cap of n.
+        max_history: cap of n, a number >= 1 (``inf``: no cap).
+
+    A negative or NaN ``history_len`` counts as no history (n = 0). The output colour is finite wherever
+    ``current_color`` is (a non-finite history never leaks; a non-finite current sample passes through where the
+    history is discarded, as the renderer produced it).
 
     Returns:
         color: (B, C, H, W), dtype of ``current_color``.
         history_len: (B, 1, H, W) float, the new n (1 where restarted, capped at ``max_history``).
     """
+    if not tracing():
+        _check_blend_scalars(alpha, max_history)
     wdt = compute_dtype(current_color, history_color)
     cur = current_color.to(wdt)
     hist = history_color.to(wdt)
-    n = history_len.to(wdt).clamp_min(0.0)
+    n = history_len.to(wdt)
+    n = torch.where(n > 0, n, torch.zeros((), dtype=wdt, device=n.device))  # negative and NaN: no history
     one = torch.ones((), dtype=wdt, device=cur.device)
     a_min = as_scalar(alpha, n).clamp(0.0, 1.0)
     a = torch.maximum(1.0 / (n + 1.0), a_min) if warmup else a_min.expand_as(n)
@@ -379,6 +414,13 @@ def temporal_reproject(
     check_reprojection_inputs(history_color, prev_depth, prev_normal, prev_K, prev_cam_from_world, depth, normal, K,
                   cam_from_world, TEMPORAL_NAMES)
     check_sampling(sampling)
+    if not tracing():
+        check_thresholds(position_threshold, normal_threshold)
+        _check_blend_scalars(alpha, max_history)
+    if _is_empty(depth):
+        color, valid, reason = _empty_outputs(current_color, depth)
+        n = torch.zeros(depth.shape, dtype=compute_dtype(history_color, history_len), device=depth.device)
+        return (color, n, valid, reason) if return_reason else (color, n, valid)
     images = (current_color, depth, normal, history_color, history_len, prev_depth, prev_normal)
     others = (K, cam_from_world, prev_K, prev_cam_from_world, position_threshold, normal_threshold, alpha)
     native = select_backend(backend, images, others, soft) == "native"
