@@ -7,7 +7,7 @@ from pathlib import Path
 
 from ..errors import UserError
 from ..measure.experiment import ExperimentConfig, run_experiment, tables_markdown
-from ._args import parse_resolution
+from ._args import alpha_list, parse_resolution, positive_int, threshold_scale
 
 __all__ = ["add_arguments", "config_from_args", "run_command", "register"]
 
@@ -15,15 +15,17 @@ __all__ = ["add_arguments", "config_from_args", "run_command", "register"]
 def add_arguments(p: argparse.ArgumentParser, defaults: dict | None = None) -> None:
     d = defaults or {}
     p.add_argument("--scene", default=d.get("scene"), required="scene" not in d, help="built-in name or .toml path")
-    p.add_argument("--frames", type=int, default=d.get("frames"), help="frames (default: the scene's)")
+    p.add_argument("--frames", type=positive_int, default=d.get("frames"), help="frames (default: the scene's)")
     p.add_argument("--resolution", type=parse_resolution, default=d.get("resolution", (320, 180)), help="WxH")
-    p.add_argument("--reference-spp", type=int, default=d.get("reference_spp", 256))
-    p.add_argument("--ladder-spp", type=int, default=d.get("ladder_spp", 16))
+    p.add_argument("--reference-spp", type=positive_int, default=d.get("reference_spp", 256))
+    p.add_argument("--ladder-spp", type=positive_int, default=d.get("ladder_spp", 16), help=">= 2")
     p.add_argument("--out", default=d.get("out"), required="out" not in d)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--alphas", default="0.1,0.5", help="extra EMA weights measured beside 0.2")
-    p.add_argument("--threshold-scale", default="auto", help="'auto' = max(1, 180/height), or a number")
-    p.add_argument("--workers", type=int, default=None)
+    p.add_argument("--alphas", type=alpha_list, default=(0.1, 0.5),
+                   help="extra EMA weights in (0, 1] measured beside 0.2, comma-separated (default 0.1,0.5)")
+    p.add_argument("--threshold-scale", type=threshold_scale, default=None,
+                   help="'auto' (default) = max(1, 180/height), or a positive number")
+    p.add_argument("--workers", type=positive_int, default=None)
     p.add_argument("--exr", action="store_true", help="also write EXR frames of both eyes")
     p.add_argument("--force", action="store_true", help="recompute cached renders")
     p.add_argument("--cache-dir", default=None, help="render cache (default: OUT/cache); runs may share one")
@@ -35,17 +37,12 @@ def add_arguments(p: argparse.ArgumentParser, defaults: dict | None = None) -> N
 
 
 def config_from_args(args) -> ExperimentConfig:
-    try:
-        alphas = tuple(float(a) for a in args.alphas.split(",") if a.strip())
-        scale = None if args.threshold_scale == "auto" else float(args.threshold_scale)
-    except ValueError as e:
-        raise UserError(f"bad --alphas/--threshold-scale: {e}") from None
     w, h = args.resolution
     return ExperimentConfig(scene=args.scene, out=args.out, frames=args.frames, width=w, height=h,
                             reference_spp=args.reference_spp, ladder_spp=args.ladder_spp, seed=args.seed,
-                            alphas=alphas, threshold_scale=scale, workers=args.workers, exr=args.exr,
-                            force=args.force, progress=not args.no_progress, renderer_version=args.renderer_version,
-                            cache_dir=args.cache_dir, metric=args.metric)
+                            alphas=tuple(args.alphas), threshold_scale=args.threshold_scale, workers=args.workers,
+                            exr=args.exr, force=args.force, progress=not args.no_progress,
+                            renderer_version=args.renderer_version, cache_dir=args.cache_dir, metric=args.metric)
 
 
 def run_command(args) -> int:
@@ -53,7 +50,7 @@ def run_command(args) -> int:
     cfg = config_from_args(args)
     try:
         results = run_experiment(cfg)
-    except (ValueError, FileNotFoundError) as e:
+    except (ValueError, FileNotFoundError) as e:  # SceneError and the config's checks are ValueErrors
         raise UserError(str(e)) from None
     print(tables_markdown(results))
     print(f"report: {Path(cfg.out) / 'report.md'} (figures and results.json beside it); "

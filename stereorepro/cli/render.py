@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 
 from ..errors import UserError
-from ._args import parse_resolution
+from ._args import nonnegative_int, parse_resolution, positive_int
 
 
 def _cmd_scenes(args) -> int:
@@ -44,10 +44,7 @@ def _cmd_render(args) -> int:
                             eye=1 if args.eye == "right" else 0, progress=not args.quiet)
     except SceneError as e:
         raise UserError(str(e)) from None
-    try:
-        write_exr(args.out, res)
-    except OSError as e:
-        raise UserError(f"cannot write {args.out}: {e}") from None
+    write_exr(args.out, res)  # a full disk / permission error: exit 2 with one line (cli.main's policy)
     if not args.quiet:
         rays = sum(res.ray_counts.values())
         print(f"{args.out}: {w}x{h} {args.spp} spp in {res.time_s:.2f} s ({rays / res.time_s / 1e6:.2f} Mrays/s)")
@@ -61,14 +58,14 @@ def register(subparsers) -> None:
 
     p = subparsers.add_parser("render", help="path trace one frame of a scene to an EXR")
     p.add_argument("--scene", required=True, help="built-in scene name or path to a .toml")
-    p.add_argument("--frame", type=int, default=0)
-    p.add_argument("--spp", type=int, default=1)
+    p.add_argument("--frame", type=nonnegative_int, default=0)
+    p.add_argument("--spp", type=positive_int, default=1)
     p.add_argument("--resolution", type=parse_resolution, default=(320, 180), metavar="WxH")
     p.add_argument("--out", required=True, help="output .exr (R,G,B, Z, N.X/Y/Z, P.X/Y/Z)")
     p.add_argument("--eye", choices=("left", "right", "head"), default="left")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--sample-offset", type=int, default=0)
-    p.add_argument("--workers", type=int, default=None)
+    p.add_argument("--sample-offset", type=nonnegative_int, default=0)
+    p.add_argument("--workers", type=positive_int, default=None)
     p.add_argument("--shared-scenes", default=None,
                    help="folder of the shared meshes (overrides $STEREOREPRO_SHARED_SCENES)")
     p.add_argument("--quiet", action="store_true")

@@ -3,15 +3,13 @@
 
 from __future__ import annotations
 
-import argparse
-import math
 
 import torch
 
 from ..errors import SceneError, SequenceError, UserError
 from ..io.frames import export_sequence
 from ..io.sequence import MODES, reproject_sequence
-from ._args import parse_resolution
+from ._args import nonnegative_int, parse_resolution, positive_float, positive_int
 
 
 def _cmd_reproject(args) -> int:
@@ -51,16 +49,6 @@ def _cmd_export(args) -> int:
     return 0
 
 
-def _positive(s: str) -> float:
-    try:
-        v = float(s)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {s!r}") from None
-    if not (math.isfinite(v) and v > 0):
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {s!r}")
-    return v
-
-
 def register(subparsers) -> None:
     p = subparsers.add_parser("reproject", help="stereo/temporal reprojection of a directory of EXR frames",
                               description="Reproject a directory of frames from any renderer (cameras.json + "
@@ -71,11 +59,11 @@ def register(subparsers) -> None:
                    help="stereo: right->left per frame; temporal: accumulation per eye; both: the paper's scheme")
     p.add_argument("--eye", choices=("left", "right", "both"), default=None,
                    help="eyes accumulated in temporal mode (default right)")
-    p.add_argument("--position-threshold", type=_positive, default=None,
+    p.add_argument("--position-threshold", type=positive_float, default=None,
                    help="max |P_src - P_dst| in scene units (default: cameras.json reprojection.position_threshold)")
-    p.add_argument("--normal-threshold", type=_positive, default=None,
+    p.add_argument("--normal-threshold", type=positive_float, default=None,
                    help="max |N_src - N_dst| of unit normals (default: cameras.json reprojection.normal_threshold)")
-    p.add_argument("--alpha", type=_positive, default=0.2, help="minimum EMA weight of a new frame (paper: 0.2)")
+    p.add_argument("--alpha", type=positive_float, default=0.2, help="minimum EMA weight of a new frame (paper: 0.2)")
     p.add_argument("--sampling", choices=("bilinear", "nearest"), default="bilinear")
     p.add_argument("--device", choices=("cpu", "cuda", "auto"), default="cpu")
     p.add_argument("--quiet", action="store_true")
@@ -84,12 +72,12 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("export-sequence", help="trace a scene into a `stereorepro reproject` input directory")
     p.add_argument("--scene", required=True, help="built-in scene name or path to a .toml")
     p.add_argument("--out", required=True, help="output directory")
-    p.add_argument("--frames", type=int, default=8, help="number of frames")
-    p.add_argument("--start", type=int, default=0, help="first scene frame")
-    p.add_argument("--stride", type=int, default=1, help="scene frames between exported frames")
+    p.add_argument("--frames", type=positive_int, default=8, help="number of frames")
+    p.add_argument("--start", type=nonnegative_int, default=0, help="first scene frame")
+    p.add_argument("--stride", type=positive_int, default=1, help="scene frames between exported frames")
     p.add_argument("--resolution", type=parse_resolution, default=(320, 180), metavar="WxH")
-    p.add_argument("--spp", type=int, default=1)
+    p.add_argument("--spp", type=positive_int, default=1)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--workers", type=int, default=None)
+    p.add_argument("--workers", type=positive_int, default=None)
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_export)

@@ -1,23 +1,36 @@
 """The one atomic write of the package: nothing half-written on disk, ever.
 
-A file is written to a temporary name in its destination folder (``.NAME.XXXXXXXX.tmp``), flushed to disk
+A file is written to a temporary name in its destination folder (``.NAME.PID.XXXXXXXX.tmp``), flushed to disk
 (``fsync``), then renamed over the destination (``os.replace``, atomic on POSIX) and the folder entry synced; on
 any failure the temporary file is removed and the destination is untouched. Temporary files are created with mode
 0666 minus the umask, as ``open()`` would create the destination itself.
+
+A set of files that belong together (a command's outputs) is written into a staging folder beside them
+(``.staging-PID-XXXXXXXX``) and renamed into place only once every file is complete (:func:`staged_outputs`), the
+marker file last. A process killed mid-write leaves only such temporaries; :func:`sweep` removes those of
+processes that are no longer running (the commands sweep their output folders and the cache on start).
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import re
 import secrets
+import shutil
 from pathlib import Path
-from typing import Iterator
+from typing import Iterable, Iterator
 
-__all__ = ["atomic_path", "atomic_write", "TMP_SUFFIX"]
+__all__ = ["atomic_path", "atomic_write", "staged_outputs", "sweep", "TMP_SUFFIX", "STAGING_PREFIX"]
 
 #: Suffix of the temporary files (a crash can leave one behind; nothing else ends so in our folders).
 TMP_SUFFIX = ".tmp"
+
+#: Prefix of staging folders (:func:`staged_outputs`).
+STAGING_PREFIX = ".staging-"
+
+_TMP_RE = re.compile(r"^\..+\.(\d+)\.[0-9a-f]{8}" + re.escape(TMP_SUFFIX) + "$")
+_STAGING_RE = re.compile("^" + re.escape(STAGING_PREFIX) + r"(\d+)-[0-9a-f]{8}$")
 
 
 def _fsync_path(path: Path, directory: bool = False) -> None:
@@ -45,7 +58,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     folder = path.parent if str(path.parent) else Path(".")
     folder.mkdir(parents=True, exist_ok=True)
     while True:
-        tmp = folder / f".{path.name}.{secrets.token_hex(4)}{TMP_SUFFIX}"
+        tmp = folder / f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}{TMP_SUFFIX}"
         try:
             os.close(os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666))
             break
@@ -55,6 +68,12 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         yield tmp
         _fsync_path(tmp)
         os.replace(tmp, path)
+    except OSError as e:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        if e.filename in (None, str(tmp)):  # name the file the caller asked for, not the temporary
+            raise type(e)(e.errno, e.strerror or str(e), str(path)) from e
+        raise
     except BaseException:
         with contextlib.suppress(OSError):
             tmp.unlink()
@@ -67,3 +86,67 @@ def atomic_write(path: str | os.PathLike, data: bytes | str) -> None:
     """Write ``data`` (text is UTF-8 encoded) to ``path`` atomically (see :func:`atomic_path`)."""
     with atomic_path(path) as tmp:
         tmp.write_bytes(data.encode() if isinstance(data, str) else data)
+
+
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's live process
+        return True
+    return True
+
+
+def sweep(folder: str | os.PathLike) -> list[Path]:
+    """Remove the temporary files and staging folders (this module's names only) that processes no longer running
+    left in ``folder`` (not recursive); returns what was removed. Temporaries of live processes are left alone,
+    so concurrent runs sharing a folder (a render cache) do not disturb each other on one machine. (On a folder
+    shared between machines a process id means nothing elsewhere: sweep from one machine only.)"""
+    folder = Path(folder)
+    removed = []
+    if not folder.is_dir():
+        return removed
+    for p in folder.iterdir():
+        m = _TMP_RE.match(p.name) or _STAGING_RE.match(p.name)
+        if not m or _alive(int(m.group(1))):
+            continue
+        with contextlib.suppress(OSError):
+            if p.is_dir() and not p.is_symlink():
+                shutil.rmtree(p)
+            else:
+                p.unlink()
+            removed.append(p)
+    return removed
+
+
+@contextlib.contextmanager
+def staged_outputs(out: str | os.PathLike, last: Iterable[str] = ()) -> Iterator[Path]:
+    """Yield a staging folder inside ``out`` to write a set of files into (flat, by their final names); on
+    leaving the block without an exception every file is synced and renamed into ``out`` (the names in ``last``
+    after the others, in that order: a marker such as ``results.json`` appears only once the set is complete);
+    with an exception the staging folder is removed and ``out`` keeps what it had."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    while True:
+        staging = out / f"{STAGING_PREFIX}{os.getpid()}-{secrets.token_hex(4)}"
+        try:
+            staging.mkdir()
+            break
+        except FileExistsError:  # pragma: no cover - 2^-32 per attempt
+            continue
+    try:
+        yield staging
+        last = list(last)
+        names = sorted(p.name for p in staging.iterdir() if p.name not in last)
+        names += [n for n in last if (staging / n).exists()]
+        for n in names:
+            _fsync_path(staging / n)
+        for n in names:
+            os.replace(staging / n, out / n)
+        with contextlib.suppress(OSError):
+            _fsync_path(out, directory=True)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)

@@ -8,15 +8,19 @@ channels may be added (e.g. ``albedo.R``). The same layout is read by ``stereore
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
+import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from .atomic import atomic_path
+from .atomic import atomic_write
 
-__all__ = ["write_exr", "read_exr", "exr_to_tensors", "result_channels", "CHANNELS"]
+__all__ = ["write_exr", "read_exr", "exr_to_tensors", "result_channels", "CHANNELS", "MAX_SAMPLES", "exr_header"]
 
 #: Channel names of each group of the frame format (a RenderResult's field name → its EXR channels).
 CHANNELS = {"radiance": ("R", "G", "B"), "depth": ("Z",), "normal": ("N.X", "N.Y", "N.Z"),
@@ -40,7 +44,8 @@ def result_channels(result) -> dict[str, np.ndarray]:
 
 
 def write_exr(path: str | os.PathLike, data) -> None:
-    """Write an EXR atomically (:func:`stereorepro.io.atomic.atomic_path`).
+    """Write an EXR atomically (:func:`stereorepro.io.atomic.atomic_write`): encoded in memory, then written,
+    synced and renamed, so a full disk raises ``OSError(ENOSPC)`` naming ``path`` and leaves nothing behind.
 
     Args:
         path: output file.
@@ -57,34 +62,135 @@ def write_exr(path: str | os.PathLike, data) -> None:
     # OpenEXR ignores numpy strides and rewrites the dict it is given: pass fresh, contiguous copies.
     fresh = {str(k): np.ascontiguousarray(np.asarray(v, dtype=np.float32)).copy() for k, v in chans.items()}
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    with atomic_path(path) as tmp:
-        OpenEXR.File(header, fresh).write(str(tmp))
+    buf = io.BytesIO()
+    OpenEXR.File(header, fresh).write(buf)
+    atomic_write(path, buf.getvalue())
+
+
+#: Most samples (pixels × channels, over all parts) :func:`read_exr` decodes: a header claiming more is refused
+#: before any pixel memory is allocated (2^30 samples = 4 GiB of float32).
+MAX_SAMPLES = 1 << 30
+
+#: Compressions whose ratio is bounded (deflate: at most ~1032:1; RLE: 128:1; none: 1:1), and that bound with a
+#: margin: a header claiming more pixel bytes than that times the file size describes a truncated or forged file.
+_BOUNDED_COMPRESSION = ("NO_COMPRESSION", "RLE_COMPRESSION", "ZIPS_COMPRESSION", "ZIP_COMPRESSION")
+_MAX_RATIO = 1100
+
+
+@contextlib.contextmanager
+def _captured_output():
+    """Capture what C code writes to file descriptors 1 and 2 (OpenEXR prints its own errors and warnings there)
+    into a list of one string, instead of the user's terminal."""
+    text = [""]
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(OSError, ValueError, AttributeError):
+            stream.flush()
+    try:
+        saved = [os.dup(1), os.dup(2)]
+    except OSError:  # no standard streams to capture
+        yield text
+        return
+    py_text = io.StringIO()  # the bindings may also print through Python's sys.stdout
+    with tempfile.TemporaryFile(mode="w+b") as tmp:
+        os.dup2(tmp.fileno(), 1)
+        os.dup2(tmp.fileno(), 2)
+        try:
+            with contextlib.redirect_stdout(py_text), contextlib.redirect_stderr(py_text):
+                yield text
+        finally:
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            for fd in saved:
+                os.close(fd)
+            tmp.seek(0)
+            text[0] = tmp.read(4096).decode(errors="replace") + py_text.getvalue()[:4096]
+
+
+def _check_header(path: Path, parts) -> tuple[list[str], list[tuple[int, int]]]:
+    """Channel names and (H, W) of each part, after the size checks of :func:`read_exr`."""
+    size = path.stat().st_size
+    samples = 0
+    bounded = True
+    names, sizes = [], []
+    for part in parts:
+        h = part.header
+        lo, hi = (np.asarray(v, dtype=np.int64) for v in h["dataWindow"])
+        w, hgt = int(hi[0] - lo[0] + 1), int(hi[1] - lo[1] + 1)
+        if w < 1 or hgt < 1:
+            raise ValueError(f"data window {w}x{hgt} is empty")
+        samples += w * hgt * len(h["channels"])
+        bounded &= any(name in str(h.get("compression", "")) for name in _BOUNDED_COMPRESSION)
+        names += [c.name for c in h["channels"]]
+        sizes.append((hgt, w))
+    if samples > MAX_SAMPLES:
+        raise ValueError(f"its header claims {samples} samples (more than MAX_SAMPLES = {MAX_SAMPLES}); "
+                         f"refusing to allocate {samples * 4 / 2 ** 30:.1f} GiB")
+    if bounded and samples * 2 > _MAX_RATIO * size + (1 << 20):  # at least 2 bytes (half) per sample
+        raise ValueError(f"truncated or corrupt: its header claims {samples} samples, more than a file of {size} "
+                         f"bytes can hold with its compression")
+    return names, sizes
+
+
+def exr_header(path: str | os.PathLike) -> tuple[list[str], list[tuple[int, int]]]:
+    """Channel names (all parts) and each part's (H, W), from the header alone (no pixels are read).
+
+    Raises:
+        ValueError: not a readable EXR, or a header :func:`read_exr` would refuse.
+    """
+    import OpenEXR
+
+    path = Path(path)
+    with _captured_output():
+        try:
+            return _check_header(path, OpenEXR.File(str(path), header_only=True).parts)
+        except ValueError:
+            raise
+        except Exception as e:  # noqa: BLE001 - any reader failure is a bad file
+            raise ValueError(str(e).strip() or type(e).__name__) from None
 
 
 def read_exr(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """Read all channels of an EXR: name → (H, W) float32 array.
+    """Read all channels of all parts of an EXR: name → (H, W) float32 array (half and float channels alike).
+
+    Channel names are returned as written, grouped or dotted (``R``, ``N.X``, ``ViewLayer.Combined.R``); a
+    multi-part file (one part per pass, as Blender writes) gives the union of its parts' channels. The header is
+    checked before pixels are read: more than :data:`MAX_SAMPLES` samples, or more than the file's size can
+    hold, is refused without allocating them.
 
     Raises:
-        FileNotFoundError: the file does not exist. ValueError: it is not a readable EXR.
+        FileNotFoundError: the file does not exist. ValueError: it is not a readable EXR (the message says why;
+        OpenEXR's own messages are folded into it instead of being printed).
     """
     import OpenEXR
 
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"read_exr: no such file: {path}")
-    try:
-        f = OpenEXR.File(str(path))
-        chans = f.channels()
-        out = {}
-        for name, ch in chans.items():
-            px = np.asarray(ch.pixels)
-            if px.ndim == 3:  # an RGB(A) group read as one channel
-                for i, sub in enumerate(name):
-                    out[sub] = np.ascontiguousarray(px[..., i], dtype=np.float32)
-            else:
-                out[name] = np.ascontiguousarray(px, dtype=np.float32)
-    except Exception as e:
-        raise ValueError(f"read_exr: cannot read {path} as EXR: {e}") from None
+    out: dict[str, np.ndarray] = {}
+    with _captured_output() as noise:
+        try:
+            names, _ = _check_header(path, OpenEXR.File(str(path), header_only=True).parts)
+            f = OpenEXR.File(str(path), separate_channels=True)
+            for part in f.parts:
+                for name, ch in part.channels.items():
+                    px = np.asarray(ch.pixels)
+                    if px.ndim != 2:
+                        raise ValueError(f"channel {name!r} has shape {px.shape}, expected (H, W)")
+                    if name in out:
+                        raise ValueError(f"channel {name!r} appears in more than one part")
+                    out[name] = np.ascontiguousarray(px, dtype=np.float32)
+            missing = sorted(set(names) - set(out))
+            if missing:  # OpenEXR drops a part whose pixel data it cannot decode, with a warning on stdout
+                raise ValueError(f"corrupt pixel data: channel(s) {', '.join(missing)} could not be decoded")
+            error = None
+        except Exception as e:  # noqa: BLE001 - any reader failure is a bad file
+            error = e
+    if error is not None:
+        detail = str(error).strip() or type(error).__name__
+        c_line = next((ln.strip() for ln in noise[0].splitlines() if ln.strip()), "")
+        if c_line and c_line not in detail:
+            detail += f" ({c_line})"
+        raise ValueError(f"read_exr: cannot read {path} as EXR: {detail}") from None
     return out
 
 

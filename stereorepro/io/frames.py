@@ -27,6 +27,7 @@ import json
 import math
 import os
 import re
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -34,9 +35,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .._checks import intrinsics_problem, rigid_problem
 from ..errors import SequenceError
-from .atomic import atomic_write
-from .exr import CHANNELS
+from .atomic import atomic_write, staged_outputs, sweep
+from .exr import CHANNELS, exr_header
 
 __all__ = ["REQUIRED_CHANNELS", "SequenceError", "EyeCamera", "FrameSequence", "load_sequence", "read_frame",
            "export_sequence", "EYES"]
@@ -99,18 +101,15 @@ def _matrix(value, rows: int, where: str) -> np.ndarray:
 
 
 def _check_K(K: np.ndarray, where: str) -> None:
-    if not (K[0, 0] > 0 and K[1, 1] > 0 and K[1, 0] == 0 and np.array_equal(K[2], [0.0, 0.0, 1.0])):
-        raise SequenceError(f"{where}: expected pinhole intrinsics [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with "
-                            f"fx, fy > 0, got {K.tolist()}")
+    problem = intrinsics_problem(K)
+    if problem:
+        raise SequenceError(f"{where}: {problem}")
 
 
 def _check_rigid(T: np.ndarray, where: str, tol: float = 1e-4) -> None:
-    R = T[:3, :3]
-    rigid = (np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9) and np.allclose(R.T @ R, np.eye(3), atol=tol)
-             and np.linalg.det(R) > 0)
-    if not rigid:
-        raise SequenceError(f"{where}: expected a rigid transform (rotation + translation, last row [0, 0, 0, 1]), "
-                            f"got {T.tolist()}")
+    problem = rigid_problem(T, tol)
+    if problem:
+        raise SequenceError(f"{where}: {problem}")
 
 
 def _threshold(table, key: str, where: str) -> float | None:
@@ -124,7 +123,9 @@ def _threshold(table, key: str, where: str) -> float | None:
 
 def _parse_cameras(path: Path, eyes: tuple[str, ...]) -> tuple[list[dict], dict]:
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as e:
+        raise SequenceError(f"{path}: not a UTF-8 text (JSON) file: {e.reason} at byte {e.start}") from None
     except FileNotFoundError:
         raise SequenceError(f"{path}: not found (the input directory needs cameras.json)") from None
     except OSError as e:
@@ -133,6 +134,8 @@ def _parse_cameras(path: Path, eyes: tuple[str, ...]) -> tuple[list[dict], dict]
         data = json.loads(text)
     except json.JSONDecodeError as e:
         raise SequenceError(f"{path}: malformed JSON: {e}") from None
+    except RecursionError:
+        raise SequenceError(f"{path}: malformed: nested too deeply to be a cameras.json") from None
     if not isinstance(data, dict):
         raise SequenceError(f"{path}: expected an object {{\"frames\": [...]}}, got {type(data).__name__}")
     unknown = set(data) - {"frames", "reprojection", "meta"}
@@ -180,15 +183,15 @@ def _parse_cameras(path: Path, eyes: tuple[str, ...]) -> tuple[list[dict], dict]
 
 
 def _exr_header(path: Path) -> tuple[list[str], int, int]:
-    import OpenEXR
-
+    """Channel names (all parts) and the common size (H, W) from the headers alone; every part must have that
+    size, and the header must pass :func:`stereorepro.io.exr.read_exr`'s size checks."""
     try:
-        h = OpenEXR.File(str(path), header_only=True).header()
-        names = [c.name for c in h["channels"]]
-        lo, hi = h["dataWindow"]
-    except Exception as e:  # noqa: BLE001 - any reader failure is a bad file
+        names, sizes = exr_header(path)
+    except ValueError as e:
         raise SequenceError(f"{path}: not a readable EXR: {e}") from None
-    return names, int(hi[1] - lo[1] + 1), int(hi[0] - lo[0] + 1)
+    if len(set(sizes)) != 1:
+        raise SequenceError(f"{path}: its parts differ in size ({sorted(set(sizes))}); all must be one size")
+    return names, sizes[0][0], sizes[0][1]
 
 
 def load_sequence(input_dir, eyes: tuple[str, ...] = EYES) -> FrameSequence:
@@ -268,9 +271,10 @@ def export_sequence(scene, frames, width: int, height: int, out_dir, spp: int = 
 
     Frame ``i`` of the directory is scene frame ``frames[i]``; both eyes are traced at ``spp`` (RNG eye keys 0 =
     left, 1 = right) and written with all the tracer's channels (``R,G,B, Z, N.*, P.*``). ``cameras.json`` gets
-    the scene's thresholds with the position threshold scaled by ``180 / height`` (scene files are tuned for
-    ~180 rows; a pixel's footprint grows as the resolution drops) and a ``meta`` record. ``cameras.json`` is
-    written last.
+    the scene's thresholds at that height (:meth:`~stereorepro.scenes.Scene.thresholds`: the position threshold
+    scaled by ``max(1, 180 / height)``; scene files are tuned for ~180 rows) and a ``meta`` record. The files appear
+    together once all are written (:func:`~stereorepro.io.atomic.staged_outputs`), ``cameras.json`` last; on any
+    failure none do.
 
     Args:
         scene: a scene name or a :class:`~stereorepro.scenes.Scene`.
@@ -291,21 +295,32 @@ def export_sequence(scene, frames, width: int, height: int, out_dir, spp: int = 
     if not frame_ids:
         raise ValueError("export_sequence: no frames")
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"export_sequence: {out} exists and is not a directory")
     tracer = PathTracer(scene, seed=seed, workers=workers)
-    records = []
-    for i, f in enumerate(frame_ids):
-        left, right = scene.stereo_cameras(f, width, height)
-        rec = {}
-        for eye, cam, key in (("left", left, 0), ("right", right, 1)):
-            res = tracer.render(cam, f, spp, eye=key)
-            write_exr(out / f"{i:04d}_{eye}.exr", res)
-            rec[eye] = {"K": _json_matrix(cam.K), "cam_from_world": _json_matrix(cam.cam_from_world)}
-        records.append(rec)
-    position_threshold, normal_threshold = scene.thresholds(height)
-    doc = {"frames": records,
-           "reprojection": {"position_threshold": position_threshold, "normal_threshold": normal_threshold},
-           "meta": {"scene": scene.name, "scene_frames": frame_ids, "spp": int(spp), "seed": int(seed),
-                    "width": int(width), "height": int(height), "writer": "stereorepro.io.frames.export_sequence"}}
-    atomic_write(out / "cameras.json", json.dumps(doc, indent=1))
+    created = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)
+    sweep(out)
+    try:
+        with staged_outputs(out, last=["cameras.json"]) as stage:  # all frames or none; cameras.json last
+            records = []
+            for i, f in enumerate(frame_ids):
+                left, right = scene.stereo_cameras(f, width, height)
+                rec = {}
+                for eye, cam, key in (("left", left, 0), ("right", right, 1)):
+                    res = tracer.render(cam, f, spp, eye=key)
+                    write_exr(stage / f"{i:04d}_{eye}.exr", res)
+                    rec[eye] = {"K": _json_matrix(cam.K), "cam_from_world": _json_matrix(cam.cam_from_world)}
+                records.append(rec)
+            position_threshold, normal_threshold = scene.thresholds(height)
+            doc = {"frames": records,
+                   "reprojection": {"position_threshold": position_threshold, "normal_threshold": normal_threshold},
+                   "meta": {"scene": scene.name, "scene_frames": frame_ids, "spp": int(spp), "seed": int(seed),
+                            "width": int(width), "height": int(height),
+                            "writer": "stereorepro.io.frames.export_sequence"}}
+            atomic_write(stage / "cameras.json", json.dumps(doc, indent=1))
+    except BaseException:
+        if created:
+            shutil.rmtree(out, ignore_errors=True)
+        raise
     return out

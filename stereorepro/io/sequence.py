@@ -24,9 +24,7 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +34,7 @@ from torch import Tensor
 from ..accumulate import SpatiotemporalReprojection, temporal_step
 from ..errors import SequenceError
 from ..reproject import Reason, StereoReprojection, TemporalReprojection
+from .atomic import atomic_write, staged_outputs, sweep
 from .exr import write_exr
 from .frames import EYES, FrameSequence, load_sequence, read_frame
 
@@ -111,6 +110,15 @@ def _process(seq: FrameSequence, mode: str, eyes: tuple[str, ...], pos: float, n
     return per_frame
 
 
+def _check_output_dir(out: Path, input_root: Path) -> None:
+    """``out`` may be a new or an existing directory, but neither a file nor the input directory itself (the
+    outputs would mix with the inputs)."""
+    if out.exists() and not out.is_dir():
+        raise SequenceError(f"{out}: exists and is not a directory (--out needs a directory)")
+    if out.resolve() == Path(input_root).resolve():
+        raise SequenceError(f"{out}: is the input directory; write the outputs to another directory")
+
+
 def reproject_sequence(input_dir, out_dir, mode: str = "both", eye: str = "right",
                        position_threshold: float | None = None, normal_threshold: float | None = None,
                        alpha: float = 0.2, sampling: str = "bilinear", device="cpu", log=None) -> dict:
@@ -157,37 +165,33 @@ def reproject_sequence(input_dir, out_dir, mode: str = "both", eye: str = "right
     log = log or (lambda *a, **k: None)
 
     out = Path(out_dir)
+    _check_output_dir(out, seq.root)
     created = not out.exists()
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as e:
-        raise SequenceError(f"{out}: cannot create the output directory: {e}") from None
-    staging = Path(tempfile.mkdtemp(prefix=".staging-", dir=out))
-    written: list[str] = []
+        raise SequenceError(f"{out}: cannot create the output directory: {e.strerror or e}") from None
+    sweep(out)
     try:
-        def emit(frame, e, chans):
-            name = f"{frame:04d}_{e}_reprojected.exr"
-            write_exr(staging / name, chans)
-            written.append(name)
+        with staged_outputs(out, last=["summary.json"]) as staging:  # summary.json last: it marks a complete output
+            def emit(frame, e, chans):
+                write_exr(staging / f"{frame:04d}_{e}_reprojected.exr", chans)
 
-        with torch.no_grad():
-            per_frame = _process(seq, mode, eyes, float(pos), float(nrm), float(alpha), sampling, device, emit, log)
-        eyes_out = ("left",) if mode == "stereo" else eyes
-        summary = {
-            "mode": mode, "eyes": list(eyes_out), "input": str(seq.root), "frames": len(seq),
-            "width": seq.width, "height": seq.height, "position_threshold": float(pos),
-            "normal_threshold": float(nrm), "alpha": float(alpha) if mode != "stereo" else None,
-            "sampling": sampling,
-            "mean_discard_pct": {e: float(np.mean([f[e]["discard_pct"] for f in per_frame])) for e in eyes_out},
-            "per_frame": per_frame,
-        }
-        (staging / "summary.json").write_text(json.dumps(summary, indent=1))
-        for name in written + ["summary.json"]:  # summary.json last: its presence marks a complete output
-            os.replace(staging / name, out / name)
+            with torch.no_grad():
+                per_frame = _process(seq, mode, eyes, float(pos), float(nrm), float(alpha), sampling, device, emit,
+                                     log)
+            eyes_out = ("left",) if mode == "stereo" else eyes
+            summary = {
+                "mode": mode, "eyes": list(eyes_out), "input": str(seq.root), "frames": len(seq),
+                "width": seq.width, "height": seq.height, "position_threshold": float(pos),
+                "normal_threshold": float(nrm), "alpha": float(alpha) if mode != "stereo" else None,
+                "sampling": sampling,
+                "mean_discard_pct": {e: float(np.mean([f[e]["discard_pct"] for f in per_frame])) for e in eyes_out},
+                "per_frame": per_frame,
+            }
+            atomic_write(staging / "summary.json", json.dumps(summary, indent=1))
     except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
         if created:
             shutil.rmtree(out, ignore_errors=True)
         raise
-    shutil.rmtree(staging, ignore_errors=True)
     return summary

@@ -190,8 +190,14 @@ def _read_toml(path: Path, seen=()) -> dict:
             data = tomllib.load(f)
     except FileNotFoundError:
         raise SceneError(f"{path}: scene file not found") from None
+    except IsADirectoryError:
+        raise SceneError(f"{path}: is a directory, expected a .toml scene file") from None
+    except UnicodeDecodeError as e:  # a binary file
+        raise SceneError(f"{path}: not a text (UTF-8) TOML file: {e.reason} at byte {e.start}") from None
     except tomllib.TOMLDecodeError as e:
         raise SceneError(f"{path}: invalid TOML: {e}") from None
+    except OSError as e:
+        raise SceneError(f"{path}: cannot read: {e.strerror or e}") from None
     _validate(data, _SCHEMA, str(path))
     if "extends" in data:
         base_path = (path.parent / data["extends"]).resolve()
@@ -582,4 +588,14 @@ def load_scene(name_or_path: str | os.PathLike) -> Scene:
     scene._mesh_material_offset = mesh_offset
     scene._mesh_material_count = mesh_count
     scene._mesh_dropped = mesh_dropped
+    _check_camera_path(scene, file)
     return scene
+
+
+def _check_camera_path(scene: Scene, file: str) -> None:
+    """Every frame's head pose is a valid look-at (the path is interpolated: a keyframe check is not enough)."""
+    for f in range(scene.num_frames):
+        try:
+            scene.head_pose(f)
+        except ValueError as e:
+            raise SceneError(f"{file}: camera (positions / targets / up) at frame {f}: {e}") from None

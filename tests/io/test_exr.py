@@ -60,3 +60,80 @@ def _write(tmp_path, chans):
     p = tmp_path / "c.exr"
     write_exr(p, chans)
     return p
+
+
+def _forge_data_window(path, width: int, height: int) -> None:
+    """Rewrite the header's dataWindow (box2i: xMin, yMin, xMax, yMax) of a small file to claim a huge image."""
+    data = bytearray(path.read_bytes())
+    key = b"dataWindow\x00box2i\x00" + (16).to_bytes(4, "little")
+    at = data.index(key) + len(key)
+    data[at:at + 16] = np.array([0, 0, width - 1, height - 1], "<i4").tobytes()
+    path.write_bytes(bytes(data))
+
+
+class TestReadExrHardCases:
+    """Files the reliability sweep and the renderer-adapters issue found: forged headers, corrupt pixel data,
+    multi-part files with grouped channel names, half channels."""
+
+    def test_forged_huge_header_is_refused_before_allocating(self, tmp_path):
+        import resource
+
+        p = _write(tmp_path, {"R": np.ones((4, 4), np.float32)})
+        _forge_data_window(p, 40000, 40000)
+        before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        with pytest.raises(ValueError, match=r"c\.exr.*(MAX_SAMPLES|truncated or corrupt)"):
+            read_exr(p)
+        grown_mib = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) / 1024
+        assert grown_mib < 256, f"the reader allocated {grown_mib:.0f} MiB for a forged header"
+
+    def test_header_larger_than_file_can_hold(self, tmp_path):
+        p = _write(tmp_path, {"R": np.ones((4, 4), np.float32)})
+        _forge_data_window(p, 4000, 4000)  # 16 M samples, fewer than MAX_SAMPLES, in a file of a few hundred bytes
+        with pytest.raises(ValueError, match="truncated or corrupt"):
+            read_exr(p)
+
+    def test_corrupt_pixel_data_one_message_no_noise(self, tmp_path, capfd):
+        rng = np.random.default_rng(0)
+        p = _write(tmp_path, {"R": rng.random((64, 64)).astype(np.float32)})
+        data = bytearray(p.read_bytes())
+        data[len(data) // 2:] = rng.integers(0, 256, len(data) - len(data) // 2, dtype=np.uint8).tobytes()
+        p.write_bytes(bytes(data))
+        with pytest.raises(ValueError, match=r"cannot read .*c\.exr as EXR"):
+            read_exr(p)
+        out, err = capfd.readouterr()
+        assert err == "" and out == ""
+
+    def test_multipart_grouped_names_and_half(self, tmp_path):
+        """Blender writes one part per pass with grouped names such as ``ViewLayer.Combined.R`` (read_exr split
+        them per character and crashed)."""
+        import OpenEXR
+
+        z = np.full((3, 5), 1e10, np.float32)
+        parts = [OpenEXR.Part({"name": "ViewLayer.Combined"},
+                              {f"ViewLayer.Combined.{c}": np.full((3, 5), i, np.float16) for i, c in enumerate("RGBA")}),
+                 OpenEXR.Part({"name": "ViewLayer.Depth"}, {"ViewLayer.Depth.Z": z})]
+        p = tmp_path / "blender.exr"
+        OpenEXR.File(parts).write(str(p))
+        ch = read_exr(p)
+        assert sorted(ch) == ["ViewLayer.Combined.A", "ViewLayer.Combined.B", "ViewLayer.Combined.G",
+                              "ViewLayer.Combined.R", "ViewLayer.Depth.Z"]
+        assert all(v.dtype == np.float32 and v.shape == (3, 5) for v in ch.values())
+        assert np.array_equal(ch["ViewLayer.Combined.B"], np.full((3, 5), 2.0, np.float32))
+        assert np.array_equal(ch["ViewLayer.Depth.Z"], z)
+
+    def test_rgb_group_names_kept(self, tmp_path):
+        ch = read_exr(_write(tmp_path, {c: np.full((2, 2), i, np.float32) for i, c in enumerate("RGBA")}))
+        assert sorted(ch) == ["A", "B", "G", "R"] and float(ch["B"][0, 0]) == 2.0
+
+    def test_write_disk_full_leaves_nothing(self, tmp_path, monkeypatch):
+        import errno
+
+        from stereorepro.io import atomic
+
+        def full(path, directory=False):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        monkeypatch.setattr(atomic, "_fsync_path", full)
+        with pytest.raises(OSError, match="No space") as e:
+            write_exr(tmp_path / "f.exr", _result())
+        assert e.value.filename == str(tmp_path / "f.exr") and list(tmp_path.iterdir()) == []

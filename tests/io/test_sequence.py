@@ -204,8 +204,9 @@ class TestReprojectCliExceptions:
         assert "--eye applies to --mode temporal" in err
         assert main(["reproject", "--input", str(work_dir), "--out", str(tmp_path / "o"), "--quiet",
                      "--position-threshold", "0.1", "--normal-threshold", "0.2"]) == 0
-        with pytest.raises(SystemExit):
-            main(["reproject", "--input", str(work_dir), "--out", str(tmp_path / "x"), "--alpha", "-1"])
+        assert main(["reproject", "--input", str(work_dir), "--out", str(tmp_path / "x"), "--alpha", "-1"]) == 2
+        assert capsys.readouterr().err.strip().splitlines() == [
+            "stereorepro reproject: error: argument --alpha: expected a positive number, got '-1'"]
         with pytest.raises(SequenceError, match="not a directory"):
             load_sequence(tmp_path / "nope")
 

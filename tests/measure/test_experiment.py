@@ -66,14 +66,36 @@ class TestExperiment:
         forced = run_experiment(ExperimentConfig(out=str(tmp_path), force=True, **cfg))
         assert forced["cache"]["hits"] == 0
 
-    def test_corrupt_cache_entry_is_recomputed(self, tmp_path):
+    @pytest.mark.parametrize("damage", ["garbage", "zero_bytes", "truncated", "no_meta"])
+    def test_corrupt_cache_entry_is_recomputed(self, tmp_path, damage):
+        """A zero-byte or truncated entry (EOFError, BadZipFile) crashed the next run instead of being recomputed."""
+        import numpy as np
+
         cache = RenderCache(tmp_path)
         key = {"a": 1}
-        cache.get_or_make(key, lambda: ({"x": __import__("numpy").ones(3)}, {"ms": 1.0}))
+        cache.get_or_make(key, lambda: ({"x": np.ones(1000)}, {"ms": 1.0}))
         path = next(tmp_path.glob("*.npz"))
-        path.write_bytes(b"not a zip")
-        data, meta = cache.get_or_make(key, lambda: ({"x": __import__("numpy").zeros(3)}, {"ms": 2.0}))
+        data = path.read_bytes()
+        path.write_bytes({"garbage": b"not a zip", "zero_bytes": b"", "truncated": data[: len(data) // 2]}.get(damage, b""))
+        if damage == "no_meta":
+            np.savez(path, x=np.ones(3))
+        logged = []
+        cache = RenderCache(tmp_path, log=logged.append)
+        data, meta = cache.get_or_make(key, lambda: ({"x": np.zeros(3)}, {"ms": 2.0}))
         assert meta["ms"] == 2.0 and data["x"].sum() == 0
+        assert cache.corrupt == [path.name] and len(logged) == 1 and path.name in logged[0]
+        data, meta = RenderCache(tmp_path).get_or_make(key, lambda: pytest.fail("the rewritten entry is valid"))
+        assert meta["ms"] == 2.0
+
+    def test_cache_sweeps_dead_runs_temporaries(self, tmp_path):
+        import subprocess
+        import sys
+
+        p = subprocess.Popen([sys.executable, "-c", "pass"])
+        p.wait()
+        (tmp_path / f".abc.npz.{p.pid}.0123abcd.tmp").write_bytes(b"half")
+        cache = RenderCache(tmp_path)
+        assert len(cache.swept) == 1 and list(tmp_path.iterdir()) == []
 
     def test_metric_hdr_vs_ldr(self, first_run, tmp_path):
         out, res = first_run
@@ -94,6 +116,16 @@ class TestExperiment:
         assert {"R", "G", "B", "Z", "N.X", "N.Y", "N.Z"} <= set(ch) and ch["R"].shape == (27, 48)
 
     def test_exceptions(self, tmp_path):
+        out = tmp_path / "never"
+        for bad, match in ((dict(ladder_spp=1), "ladder_spp"), (dict(frames=10_000), "frames"),
+                           (dict(alphas=(float("nan"),)), "alphas"), (dict(workers=0), "workers"),
+                           (dict(scene=str(tmp_path / "missing.toml")), "not found")):
+            with pytest.raises(ValueError, match=match):
+                run_experiment(ExperimentConfig(out=str(out), **dict(SMALL, **bad)))
+            assert not out.exists(), f"{bad}: a failed validation created --out"
+        (tmp_path / "file").write_text("x")
+        with pytest.raises(ValueError, match="exists and is not a directory"):
+            run_experiment(ExperimentConfig(out=str(tmp_path / "file"), **SMALL))
         with pytest.raises(ValueError, match="ladder_spp"):
             run_experiment(ExperimentConfig(out=str(tmp_path), **dict(SMALL, ladder_spp=1)))
         with pytest.raises(ValueError, match="frames"):
@@ -102,5 +134,5 @@ class TestExperiment:
     def test_cli_errors(self, tmp_path, capsys):
         assert main(["experiment", "--scene", "no_such_scene", "--out", str(tmp_path)]) == 2
         assert "no_such_scene" in capsys.readouterr().err
-        with pytest.raises(SystemExit):
-            main(["experiment", "--scene", "living_room", "--out", str(tmp_path), "--resolution", "big"])
+        assert main(["experiment", "--scene", "living_room", "--out", str(tmp_path), "--resolution", "big"]) == 2
+        assert len(capsys.readouterr().err.strip().splitlines()) == 1

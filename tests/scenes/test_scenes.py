@@ -97,7 +97,22 @@ class TestLoadScene:
             (base.replace('material = "m"', 'material = "nope"'), "nope"),
             (base + "[rig]\neye_separation = -1.0\n", "eye_separation"),
             ("effects = [\n", "invalid TOML"),
+            (base + "[camera]\nvfov_deg = 60.0\nup = [0.0, 0.0, 0.0]\npositions = [[0.0, 0.0, -3.0]]\n"
+                    "targets = [[0.0, 0.0, 0.0]]\n", r"camera .* at frame 0: .*zero vector"),
+            (base + "[camera]\nvfov_deg = 60.0\npositions = [[1.0, 2.0, 3.0]]\ntargets = [[1.0, 2.0, 3.0]]\n",
+             r"camera .* at frame 0: .*target equals eye"),
+            # the keyframes are fine, but the interpolated path meets its target at frame 1 of 3
+            (base.replace("num_frames = 2", "num_frames = 3")
+             + "[camera]\nvfov_deg = 60.0\npositions = [[0.0, 0.0, -1.0], [0.0, 0.0, 1.0]]\n"
+               "targets = [[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]]\n", "at frame 1: .*target equals eye"),
         ]
+        binary = tmp_path / "binary.toml"
+        binary.write_bytes(bytes(range(256)) * 4)
+        with pytest.raises(SceneError, match=r"binary\.toml: not a text \(UTF-8\) TOML file"):
+            load_scene(binary)
+        with pytest.raises(SceneError, match="is a directory"):
+            (tmp_path / "dir.toml").mkdir()
+            load_scene(tmp_path / "dir.toml")
         for i, (text, msg) in enumerate(cases):
             p = write_scene(tmp_path, text, name=f"bad{i}")
             with pytest.raises(SceneError, match=msg) as e:

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from ... import __version__
-from ...io.atomic import atomic_path
+from ...io.atomic import atomic_path, sweep
 
 __all__ = ["RenderCache", "code_version", "scene_fingerprint"]
 
@@ -72,29 +72,46 @@ def scene_fingerprint(scene) -> str:
 
 
 class RenderCache:
-    """npz files keyed by a hash of what determines a render; atomic writes."""
+    """npz files keyed by a hash of what determines a render; atomic writes.
 
-    def __init__(self, root: Path, force: bool = False):
+    On start the temporaries that killed runs left behind are swept (:func:`~stereorepro.io.atomic.sweep`). An
+    entry that cannot be read back (zero bytes, truncated, corrupt, missing its metadata) is recomputed and
+    rewritten; ``corrupt`` lists those entries' file names and ``log`` (when given) reports each one.
+    """
+
+    def __init__(self, root: Path, force: bool = False, log=None):
         self.root = Path(root)
         self.root.mkdir(parents=True, exist_ok=True)
+        self.swept = sweep(self.root)
         self.force = force
+        self.log = log
         self.hits = 0
         self.misses = 0
+        self.corrupt: list[str] = []
 
     def _path(self, key: dict) -> Path:
         return self.root / (_sha(json.dumps(key, sort_keys=True).encode())[:32] + ".npz")
+
+    @staticmethod
+    def _read(path: Path):
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+        meta = json.loads(str(data.pop("__meta__")))
+        if not isinstance(meta, dict):
+            raise ValueError("metadata is not an object")
+        return data, meta
 
     def get_or_make(self, key: dict, make):
         path = self._path(key)
         if path.exists() and not self.force:
             try:
-                with np.load(path, allow_pickle=False) as z:
-                    data = {k: z[k] for k in z.files}
-                meta = json.loads(str(data.pop("__meta__")))
+                data, meta = self._read(path)
                 self.hits += 1
                 return data, meta
-            except (OSError, ValueError, KeyError):
-                pass  # corrupt or partial file: recompute
+            except Exception as e:  # noqa: BLE001 - any unreadable entry (EOFError, BadZipFile, ...) is recomputed
+                self.corrupt.append(path.name)
+                if self.log:
+                    self.log(f"cache: {path} is unreadable ({type(e).__name__}: {e}); recomputing it")
         data, meta = make()
         with atomic_path(path) as tmp, open(tmp, "wb") as f:
             np.savez(f, __meta__=np.array(json.dumps(meta)), **data)

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from pathlib import Path
 
 from ...scenes import THRESHOLD_ROWS
 
-__all__ = ["REFERENCE_OFFSET", "THRESHOLD_ROWS", "LEFT", "RIGHT", "Scheme", "SCHEMES", "ExperimentConfig", "schemes"]
+__all__ = ["REFERENCE_OFFSET", "THRESHOLD_ROWS", "LEFT", "RIGHT", "Scheme", "SCHEMES", "ExperimentConfig", "schemes", "validate_config"]
 
 #: First sample index of reference renders (ladders use 0..L-1: disjoint streams).
 REFERENCE_OFFSET = 1 << 24
@@ -69,3 +71,34 @@ def schemes(cfg: ExperimentConfig) -> list[Scheme]:
             out.append(Scheme(f"temporal_alpha{a:g}", False, True, RIGHT, alpha=a))
             out.append(Scheme(f"stereo_temporal_alpha{a:g}", True, True, LEFT, alpha=a))
     return out
+
+
+def validate_config(cfg: ExperimentConfig) -> None:
+    """ValueError naming the setting and what it expects (the run checks this before it writes anything)."""
+    def need(ok: bool, what: str) -> None:
+        if not ok:
+            raise ValueError(what)
+
+    def is_int(x) -> bool:
+        return isinstance(x, int) and not isinstance(x, bool)
+
+    need(cfg.metric in ("hdr", "ldr"), f"metric must be 'hdr' or 'ldr', got {cfg.metric!r}")
+    need(is_int(cfg.width) and is_int(cfg.height) and cfg.width >= 1 and cfg.height >= 1,
+         f"resolution must be positive integers, got {cfg.width}x{cfg.height}")
+    need(is_int(cfg.ladder_spp) and cfg.ladder_spp >= 2, f"ladder_spp must be an integer >= 2, got {cfg.ladder_spp}")
+    need(is_int(cfg.reference_spp) and cfg.reference_spp >= cfg.ladder_spp,
+         f"reference_spp must be an integer >= ladder_spp ({cfg.ladder_spp}), got {cfg.reference_spp}")
+    need(cfg.frames is None or (is_int(cfg.frames) and cfg.frames >= 1),
+         f"frames must be an integer >= 1, got {cfg.frames}")
+    need(cfg.workers is None or (is_int(cfg.workers) and cfg.workers >= 1),
+         f"workers must be an integer >= 1, got {cfg.workers}")
+    need(is_int(cfg.seed), f"seed must be an integer, got {cfg.seed!r}")
+    for a in cfg.alphas:
+        need(isinstance(a, (int, float)) and math.isfinite(a) and 0.0 < a <= 1.0,
+             f"alphas must be numbers in (0, 1], got {a!r}")
+    need(cfg.threshold_scale is None or (math.isfinite(cfg.threshold_scale) and cfg.threshold_scale > 0),
+         f"threshold_scale must be a positive number, got {cfg.threshold_scale!r}")
+    for name, value in (("out", cfg.out), ("cache_dir", cfg.cache_dir)):
+        if value is not None:
+            p = Path(value)
+            need(not p.exists() or p.is_dir(), f"{name}: {p} exists and is not a directory")

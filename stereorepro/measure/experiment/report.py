@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ...io.atomic import atomic_path, atomic_write
+from ...io.atomic import atomic_path, atomic_write, staged_outputs
 from ...reproject import reason_to_rgb
 from .config import LEFT
 
@@ -53,6 +53,13 @@ def _tonemap(x: torch.Tensor) -> np.ndarray:
 
 
 def write_outputs(out: Path, results: dict, per_frame, keep, cfg) -> None:
+    """Write the figures, ``tables.md``, ``report.md`` and ``results.json`` into ``out`` as one set
+    (:func:`~stereorepro.io.atomic.staged_outputs`): all of them or none, ``results.json`` last."""
+    with staged_outputs(out, last=["results.json"]) as stage:
+        _write_outputs(stage, results, per_frame, keep, cfg)
+
+
+def _write_outputs(out: Path, results: dict, per_frame, keep, cfg) -> None:
     import matplotlib
 
     matplotlib.use("Agg")

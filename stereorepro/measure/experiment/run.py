@@ -13,9 +13,10 @@ import torch
 from ... import __version__
 from ...accumulate import SpatiotemporalReprojection
 from ...camera import has_surface
+from ...io.atomic import sweep
 from ..metrics import effective_spp_many, ladder_rmse, rmse
 from .cache import RenderCache, code_version, scene_fingerprint
-from .config import LEFT, RIGHT, ExperimentConfig
+from .config import LEFT, RIGHT, ExperimentConfig, validate_config
 from .config import schemes as all_schemes
 from .inputs import render_eye
 from .report import write_frame_exr, write_outputs
@@ -41,23 +42,19 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
     from ...render import PathTracer
     from ...scenes import load_scene, threshold_scale
 
-    if cfg.metric not in ("hdr", "ldr"):
-        raise ValueError(f"metric must be 'hdr' or 'ldr', got {cfg.metric!r}")
-    if cfg.ladder_spp < 2:
-        raise ValueError("ladder_spp must be >= 2")
-    if cfg.reference_spp < cfg.ladder_spp:
-        raise ValueError("reference_spp must be >= ladder_spp")
-    out = Path(cfg.out)
-    out.mkdir(parents=True, exist_ok=True)
+    validate_config(cfg)
     scene = load_scene(cfg.scene)
     frames = scene.num_frames if cfg.frames is None else int(cfg.frames)
     if not 1 <= frames <= scene.num_frames:
         raise ValueError(f"frames must be in 1..{scene.num_frames} for scene {scene.name!r}, got {frames}")
+    out = Path(cfg.out)  # everything is checked: only now is anything created
+    out.mkdir(parents=True, exist_ok=True)
+    sweep(out)
     W, H = cfg.width, cfg.height
     scale = cfg.threshold_scale if cfg.threshold_scale is not None else threshold_scale(H)
     pos_thr, nrm_thr = scene.thresholds(H, scale)
     tracer = PathTracer(scene, seed=cfg.seed, workers=cfg.workers)
-    cache = RenderCache(Path(cfg.cache_dir) if cfg.cache_dir else out / "cache", force=cfg.force)
+    cache = RenderCache(Path(cfg.cache_dir) if cfg.cache_dir else out / "cache", force=cfg.force, log=log)
     code = cfg.renderer_version or code_version()
     base_key = {"scene": scene_fingerprint(scene), "code": code, "seed": cfg.seed, "w": W, "h": H}
     schemes = all_schemes(cfg)
@@ -163,7 +160,8 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
         "table2": {k: table2[k] for k in ("stereo", "temporal", "stereo_temporal")},
         "table2_variants": {k: v for k, v in table2.items() if k not in ("stereo", "temporal", "stereo_temporal")},
         "timing_ms": timing_ms, "cost": cost, "bias": bias, "per_frame": per_frame,
-        "flags": _flag_counts(per_frame), "cache": {"hits": cache.hits, "misses": cache.misses},
+        "flags": _flag_counts(per_frame), "cache": {"hits": cache.hits, "misses": cache.misses,
+                                                     "recomputed_corrupt": cache.corrupt},
         "wall_s": wall, "version": __version__, "code": code,
     }
     write_outputs(out, results, per_frame, keep, cfg)
