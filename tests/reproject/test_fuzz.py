@@ -1,0 +1,416 @@
+"""Fuzz suite of the public reprojection ops (hypothesis, derandomized: CI runs the same examples every time).
+
+Every op on every backend — the torch general path, the torch fast path, the native kernels (float32 on the
+CPU) and, for the exported modules, onnxruntime — on random, often hostile inputs: random and near-degenerate
+cameras, depths with 0 / negative / ±inf / NaN / 1e-12 / 1e30 / FLT_MAX, normals non-unit / zero / NaN, colours
+with NaN / Inf, H or W = 1, B = 0, float16 / bfloat16 / float32 / float64. Properties:
+
+* no exception on valid-shaped inputs;
+* no NaN/Inf in any output colour (temporal: wherever the current sample is finite, see ``temporal_blend``);
+* masks and reason codes in their documented ranges (``valid`` exactly where ``reason == KEPT``; temporal
+  history length in [1, max_history]);
+* every backend gives the same bytes as the torch reference;
+* finite gradients for finite colours.
+
+Example counts per CI run (``make test``) are in :data:`EXAMPLES`; ``STEREOREPRO_FUZZ_SCALE`` multiplies them,
+and the ``slow`` tests run 10× more.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from stereorepro import intrinsics_from_fov
+from stereorepro.reproject import Reason, _native, functional
+from stereorepro.reproject.functional import backward_reproject, stereo_reproject, temporal_blend, temporal_reproject
+
+SCALE = float(os.environ.get("STEREOREPRO_FUZZ_SCALE", "1"))
+
+#: Examples per test in one default run; each example runs every backend that applies to it.
+EXAMPLES = {"stereo": 2000, "backward": 2000, "temporal": 2000, "blend": 2000, "grad_stereo": 300,
+            "grad_temporal": 300, "onnx_stereo": 400, "onnx_temporal": 400}
+
+FLT_MAX = float(np.finfo(np.float32).max)
+SPECIAL_DEPTHS = (0.0, -1.0, math.inf, -math.inf, math.nan, 1e-12, 1e30, FLT_MAX, 1e-20, 1e-38)
+DTYPES = (torch.float32, torch.float32, torch.float16, torch.bfloat16, torch.float64)
+CAMERAS = ("same", "stereo", "stereo", "rotated", "random", "tiny_fx", "huge_fx", "far", "huge_baseline",
+           "behind", "off_centre")
+HAS_NATIVE = _native.available()
+MAX_REASON = max(int(r) for r in Reason)
+
+
+def fuzz_settings(name: str, slow: bool = False):
+    n = max(1, int(EXAMPLES[name] * SCALE * (10 if slow else 1)))
+    return settings(max_examples=n, derandomize=True, database=None, deadline=None, print_blob=True,
+                    suppress_health_check=list(HealthCheck))
+
+
+@dataclass
+class Case:
+    seed: int
+    B: int
+    H: int
+    W: int
+    Hs: int
+    Ws: int
+    dtype: torch.dtype
+    cam_dtype: torch.dtype
+    camera: str
+    special: float  # share of pixels with a special depth
+    normals: str
+    bad_colour: float  # share of pixels with NaN / Inf colour
+    thr_p: float
+    thr_n: float
+    sampling: str
+
+
+@st.composite
+def cases(draw, dtypes=DTYPES) -> Case:
+    H, W = draw(st.integers(1, 6)), draw(st.integers(1, 6))
+    same = draw(st.booleans())
+    return Case(
+        seed=draw(st.integers(0, 2 ** 31 - 1)),
+        B=draw(st.sampled_from((0, 1, 1, 1, 2))),
+        H=H, W=W,
+        Hs=H if same else draw(st.integers(1, 6)), Ws=W if same else draw(st.integers(1, 6)),
+        dtype=draw(st.sampled_from(dtypes)),
+        cam_dtype=draw(st.sampled_from((torch.float32, torch.float64))),
+        camera=draw(st.sampled_from(CAMERAS)),
+        special=draw(st.sampled_from((0.0, 0.0, 0.1, 0.5, 1.0))),
+        normals=draw(st.sampled_from(("unit", "unit", "non_unit", "zero_nan"))),
+        bad_colour=draw(st.sampled_from((0.0, 0.0, 0.2))),
+        thr_p=draw(st.sampled_from((0.0, 1e-3, 0.05, 0.05, 1.0, math.inf)) | st.floats(0.0, 10.0)),
+        thr_n=draw(st.sampled_from((0.0, 0.1, 0.1, 0.5, 2.0, math.inf)) | st.floats(0.0, 3.0)),
+        sampling=draw(st.sampled_from(("bilinear", "bilinear", "nearest"))),
+    )
+
+
+def _rotation(rng, angle: float) -> np.ndarray:
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis) + 1e-30
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * k @ k
+
+
+def make_cameras(c: Case, rng) -> tuple[torch.Tensor, ...]:
+    """(src_K, src_cam_from_world, dst_K, dst_cam_from_world) for the case's camera mode."""
+    def K_for(w, h, fov=60.0, fx=None, cx_shift=0.0):
+        K = intrinsics_from_fov(fov, w, h, dtype=torch.float64)[0]
+        if fx is not None:
+            K[0, 0] = K[1, 1] = fx
+        K[0, 2] += cx_shift
+        return K
+
+    fx = {"tiny_fx": 1e-4, "huge_fx": 1e6}.get(c.camera)
+    shift = rng.uniform(-50, 50) if c.camera == "off_centre" else 0.0
+    sK, dK = K_for(c.Ws, c.Hs, fx=fx, cx_shift=shift), K_for(c.W, c.H, fx=fx)
+    src, dst = np.eye(4), np.eye(4)
+    if c.camera in ("stereo", "tiny_fx", "huge_fx", "off_centre"):
+        dst[0, 3] = rng.uniform(0.0, 0.2)
+    elif c.camera == "rotated":
+        dst[:3, :3] = _rotation(rng, rng.uniform(0, 0.3))
+        dst[:3, 3] = rng.normal(size=3) * 0.1
+    elif c.camera == "random":
+        src[:3, :3] = _rotation(rng, rng.uniform(0, math.pi))
+        src[:3, 3] = rng.normal(size=3)
+        dst[:3, :3] = _rotation(rng, rng.uniform(0, math.pi))
+        dst[:3, 3] = rng.normal(size=3)
+    elif c.camera == "far":  # both cameras far from the world origin
+        src[:3, 3] = 1e4
+        dst[:3, 3] = 1e4
+        dst[0, 3] += 0.06
+    elif c.camera == "huge_baseline":
+        dst[0, 3] = 1e6
+    elif c.camera == "behind":  # the source looks the other way
+        src[:3, :3] = _rotation(rng, math.pi) if rng.uniform() < 0.5 else np.diag([-1.0, 1.0, -1.0])
+    B = c.B
+    cast = lambda a: torch.tensor(np.array(a), dtype=torch.float64).to(c.cam_dtype)  # noqa: E731
+    return (cast(np.broadcast_to(sK.numpy(), (B, 3, 3))), cast(np.broadcast_to(src, (B, 4, 4))),
+            cast(np.broadcast_to(dK.numpy(), (B, 3, 3))), cast(np.broadcast_to(dst, (B, 4, 4))))
+
+
+def make_depth(c: Case, rng, B, H, W, base: float) -> torch.Tensor:
+    d = np.full((B, 1, H, W), base) + rng.normal(scale=0.01, size=(B, 1, H, W)) * (rng.uniform() < 0.5)
+    mask = rng.uniform(size=d.shape) < c.special
+    d[mask] = rng.choice(SPECIAL_DEPTHS, size=int(mask.sum()))
+    return torch.from_numpy(d).to(c.dtype)
+
+
+def make_normal(c: Case, rng, B, H, W) -> torch.Tensor:
+    n = np.zeros((B, 3, H, W))
+    n[:, 2] = -1.0
+    n += rng.normal(scale=0.05, size=n.shape)
+    if c.normals == "unit":
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+    elif c.normals == "non_unit":
+        n *= rng.uniform(0.0, 3.0, size=(B, 1, H, W))
+    else:
+        bad = rng.uniform(size=(B, 1, H, W)) < 0.3
+        n[np.broadcast_to(bad, n.shape)] = 0.0
+        nan = rng.uniform(size=n.shape) < 0.1
+        n[nan] = rng.choice([math.nan, math.inf, -math.inf], size=int(nan.sum()))
+    return torch.from_numpy(n).to(c.dtype)
+
+
+def make_colour(c: Case, rng, B, C, H, W) -> torch.Tensor:
+    x = rng.uniform(0.0, 4.0, size=(B, C, H, W))
+    bad = rng.uniform(size=x.shape) < c.bad_colour
+    x[bad] = rng.choice([math.nan, math.inf, -math.inf, 1e30], size=int(bad.sum()))
+    return torch.from_numpy(x).to(c.dtype)
+
+
+def stereo_inputs(c: Case) -> tuple:
+    rng = np.random.default_rng(c.seed)
+    base = float(rng.uniform(0.5, 5.0))
+    sK, sT, dK, dT = make_cameras(c, rng)
+    return (make_colour(c, rng, c.B, 3, c.Hs, c.Ws), make_depth(c, rng, c.B, c.Hs, c.Ws, base),
+            make_normal(c, rng, c.B, c.Hs, c.Ws), sK, sT, make_depth(c, rng, c.B, c.H, c.W, base),
+            make_normal(c, rng, c.B, c.H, c.W), dK, dT)
+
+
+def temporal_inputs(c: Case) -> tuple:
+    """temporal_reproject's positional inputs (current, depth, normal, K, T, history, history_len, prev_depth,
+    prev_normal, prev_K, prev_T) and (alpha, warmup, max_history)."""
+    rng = np.random.default_rng(c.seed + 1)
+    src_color, sd, sn, sK, sT, dd, dn, dK, dT = stereo_inputs(c)
+    n = rng.uniform(-5.0, 300.0, size=(c.B, 1, c.Hs, c.Ws))
+    odd = rng.uniform(size=n.shape) < 0.2
+    n[odd] = rng.choice([math.nan, math.inf, -math.inf, -1e30, 0.0, -1.0], size=int(odd.sum()))
+    history_len = torch.from_numpy(n).to(c.dtype)
+    current = make_colour(c, rng, c.B, 3, c.H, c.W)
+    alpha = float(rng.choice([0.2, 1.0, 1e-6, rng.uniform()]))
+    max_history = float(rng.choice([1.0, 8.0, 255.0, math.inf]))
+    return ((current, dd, dn, dK, dT, src_color, history_len, sd, sn, sK, sT),
+            (alpha, bool(rng.uniform() < 0.7), max_history))
+
+
+def _bytes_equal(a: torch.Tensor, b: torch.Tensor) -> bool:
+    return a.dtype == b.dtype and a.shape == b.shape and torch.equal(
+        a.contiguous().view(-1).view(torch.uint8), b.contiguous().view(-1).view(torch.uint8))
+
+
+def run_backends(fn, native_ok: bool):
+    """fn(backend) on the torch general path, the torch fast path and (where it runs) the native kernels."""
+    out = {}
+    saved = functional.FAST_PATH
+    try:
+        functional.FAST_PATH = False
+        out["torch"] = fn("torch")
+        functional.FAST_PATH = True
+        out["fast"] = fn("torch")
+    finally:
+        functional.FAST_PATH = saved
+    if native_ok:
+        out["native"] = fn("native")
+    return out
+
+
+def assert_same(outs: dict, what: str) -> None:
+    ref = outs["torch"]
+    for name, got in outs.items():
+        for i, (g, r) in enumerate(zip(got, ref)):
+            assert _bytes_equal(g, r), f"{what}: output {i} of {name} differs from the torch reference"
+
+
+def assert_masks(valid: torch.Tensor, reason: torch.Tensor, dst_depth: torch.Tensor) -> None:
+    assert valid.dtype == torch.bool and reason.dtype == torch.uint8
+    assert int(reason.max()) <= MAX_REASON if reason.numel() else True
+    assert torch.equal(valid, reason == int(Reason.KEPT))
+    has = torch.isfinite(dst_depth.double()) & (dst_depth.double() > 0)
+    assert not bool((valid & ~has).any()), "a destination pixel without a surface was reported valid"
+
+
+def _native_ok(c: Case) -> bool:
+    return HAS_NATIVE and c.dtype == torch.float32
+
+
+@pytest.mark.parametrize("slow", [pytest.param(False), pytest.param(True, marks=pytest.mark.slow)],
+                         ids=["ci", "long"])
+class TestFuzz:
+    """One test per public op; ``long`` runs 10× the examples (``-m slow``)."""
+
+    def test_stereo_reproject(self, slow):
+        @fuzz_settings("stereo", slow)
+        @given(cases())
+        def check(c):
+            args = stereo_inputs(c)
+            with torch.no_grad():
+                outs = run_backends(lambda be: stereo_reproject(*args, c.thr_p, c.thr_n, c.sampling, backend=be),
+                                    _native_ok(c))
+            color, valid, reason = outs["torch"]
+            assert color.shape == (c.B, 3, c.H, c.W) and color.dtype == c.dtype
+            assert bool(torch.isfinite(color).all()), "non-finite output colour"
+            assert_masks(valid, reason, args[5])
+            assert_same(outs, "stereo_reproject")
+        check()
+
+    def test_backward_reproject(self, slow):
+        @fuzz_settings("backward", slow)
+        @given(cases(), st.integers(1, 5), st.booleans())
+        def check(c, C, soft):
+            rng = np.random.default_rng(c.seed + 2)
+            args = list(stereo_inputs(c))
+            args[0] = make_colour(c, rng, c.B, C, c.Hs, c.Ws)
+            with torch.no_grad():
+                outs = run_backends(lambda be: backward_reproject(*args, c.thr_p, c.thr_n, c.sampling, soft=soft,
+                                                                  backend=be),
+                                    _native_ok(c) and not soft)
+            values, valid, reason, conf = outs["torch"]
+            assert values.shape == (c.B, C, c.H, c.W)
+            assert bool(torch.isfinite(values).all()), "non-finite output values"
+            assert bool(((conf >= 0) & (conf <= 1 + 1e-6)).all()), "confidence outside [0, 1]"
+            assert_masks(valid, reason, args[5])
+            assert_same(outs, "backward_reproject")
+        check()
+
+    def test_temporal_reproject(self, slow):
+        @fuzz_settings("temporal", slow)
+        @given(cases(), st.booleans())
+        def check(c, with_reason):
+            args, (alpha, warmup, max_history) = temporal_inputs(c)
+            with torch.no_grad():
+                outs = run_backends(lambda be: temporal_reproject(*args, c.thr_p, c.thr_n, alpha, warmup,
+                                                                  max_history, c.sampling, backend=be,
+                                                                  return_reason=with_reason), _native_ok(c))
+            color, n, valid = outs["torch"][:3]
+            current = args[0]
+            assert color.shape == current.shape and color.dtype == current.dtype
+            finite_in = torch.isfinite(current).all(1, keepdim=True).expand_as(current)
+            assert bool(torch.isfinite(color[finite_in]).all()), "non-finite colour where the sample is finite"
+            assert bool(torch.isfinite(n).all()) and bool(((n >= 1) & (n <= max_history)).all()), \
+                f"history length outside [1, {max_history}]: {n.unique()}"
+            assert not bool((valid & ~(torch.isfinite(args[1].double()) & (args[1].double() > 0))).any())
+            if with_reason:
+                assert_masks(valid, outs["torch"][3], args[1])
+            assert_same(outs, "temporal_reproject")
+        check()
+
+    def test_temporal_blend(self, slow):
+        @fuzz_settings("blend", slow)
+        @given(cases(), st.sampled_from(("bool", "float")))
+        def check(c, kind):
+            rng = np.random.default_rng(c.seed + 3)
+            (current, *_), (alpha, warmup, max_history) = temporal_inputs(c)
+            history = make_colour(c, rng, c.B, 3, c.H, c.W)
+            n = torch.from_numpy(rng.choice([-1e30, -1.0, 0.0, 1.0, 7.5, 300.0, math.nan, math.inf],
+                                            size=(c.B, 1, c.H, c.W))).to(c.dtype)
+            u = torch.from_numpy(rng.uniform(size=(c.B, 1, c.H, c.W)))
+            confidence = u < 0.5 if kind == "bool" else torch.where(u < 0.3, 0.0, u).to(c.dtype)
+            color, n_out = temporal_blend(current, history, n, confidence, alpha, warmup, max_history)
+            finite_in = torch.isfinite(current).all(1, keepdim=True)
+            finite_hist = torch.isfinite(history).all(1, keepdim=True)
+            keep = (confidence > 0) if kind == "float" else confidence
+            ok = finite_in & (finite_hist | ~keep)
+            assert bool(torch.isfinite(color)[ok.expand_as(color)].all())
+            assert bool(((n_out >= 1) & (n_out <= max_history)).all()), n_out.unique()
+        check()
+
+
+@pytest.mark.parametrize("soft", [False, True], ids=["hard", "soft"])
+class TestFuzzGradients:
+    """Finite gradients w.r.t. colour, depths and (soft) thresholds for finite colours, whatever the depths,
+    normals and cameras hold."""
+
+    def test_stereo_gradients(self, soft):
+        @fuzz_settings("grad_stereo")
+        @given(cases(dtypes=(torch.float32, torch.float64)).filter(lambda c: c.B > 0))
+        def check(c):
+            c.bad_colour = 0.0
+            args = [a.clone().requires_grad_(i in (0, 1, 5)) for i, a in enumerate(stereo_inputs(c))]
+            thr_p = torch.tensor(max(c.thr_p, 1e-3) if math.isfinite(c.thr_p) else 0.05, dtype=c.dtype,
+                                 requires_grad=soft)
+            color, _, _ = stereo_reproject(*args, thr_p, c.thr_n, c.sampling, soft=soft, backend="torch")
+            weights = torch.linspace(0.5, 1.5, color.numel(), dtype=color.dtype).view_as(color)
+            grads = torch.autograd.grad((color * weights).sum(), [args[0], args[1], args[5]] + ([thr_p] if soft else []),
+                                        allow_unused=True)
+            for name, g in zip(("src_color", "src_depth", "dst_depth", "position_threshold"), grads):
+                assert g is None or bool(torch.isfinite(g).all()), f"non-finite gradient w.r.t. {name}"
+        check()
+
+    def test_temporal_gradients(self, soft):
+        @fuzz_settings("grad_temporal")
+        @given(cases(dtypes=(torch.float32, torch.float64)).filter(lambda c: c.B > 0))
+        def check(c):
+            c.bad_colour = 0.0
+            args, (alpha, warmup, max_history) = temporal_inputs(c)
+            args = [a.clone() for a in args]
+            args[6] = torch.nan_to_num(args[6], nan=0.0, posinf=300.0, neginf=0.0)
+            for i in (0, 1, 5, 7):
+                args[i].requires_grad_(True)
+            a = torch.tensor(alpha, dtype=c.dtype, requires_grad=soft)
+            color, n, _ = temporal_reproject(*args, max(c.thr_p, 1e-3) if math.isfinite(c.thr_p) else 0.05,
+                                             c.thr_n, a, warmup, max_history, c.sampling, soft=soft,
+                                             backend="torch")
+            grads = torch.autograd.grad(color.sum() + n.sum(), [args[0], args[1], args[5], args[7]]
+                                        + ([a] if soft else []), allow_unused=True)
+            for name, g in zip(("current_color", "depth", "history_color", "prev_depth", "alpha"), grads):
+                assert g is None or bool(torch.isfinite(g).all()), f"non-finite gradient w.r.t. {name}"
+        check()
+
+
+@pytest.mark.onnx
+class TestFuzzOnnx:
+    """The exported modules in onnxruntime on the fuzz inputs (float32: onnxruntime's type), against torch."""
+
+    @staticmethod
+    def _session(module, tmp_path_factory):
+        import onnxruntime as ort
+
+        from stereorepro.io.onnx import export_onnx
+
+        path = tmp_path_factory.mktemp("fuzz_onnx") / f"{type(module).__name__}.onnx"
+        export_onnx(module, path)
+        opts = ort.SessionOptions()
+        opts.log_severity_level = 3
+        opts.intra_op_num_threads = 1
+        return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+
+    def test_stereo_onnxruntime(self, tmp_path_factory):
+        from stereorepro.reproject import StereoReprojection
+
+        thr = (0.05, 0.1)
+        module = StereoReprojection(*thr, backend="torch")
+        sess = self._session(module, tmp_path_factory)
+        names = [i.name for i in sess.get_inputs()]
+
+        @fuzz_settings("onnx_stereo")
+        @given(cases(dtypes=(torch.float32,)).filter(lambda c: c.B > 0 and c.sampling == "bilinear"))
+        def check(c):
+            args = [a.float() for a in stereo_inputs(c)]
+            with torch.no_grad():
+                ref = module(*args)
+            got = sess.run(None, {n: a.numpy() for n, a in zip(names, args)})
+            color = torch.from_numpy(got[0])
+            assert bool(torch.isfinite(color).all())
+            assert torch.equal(torch.from_numpy(got[1]), ref[1]) and torch.equal(torch.from_numpy(got[2]), ref[2])
+            assert torch.allclose(color, ref[0], atol=1e-5, rtol=1e-5)
+        check()
+
+    def test_temporal_onnxruntime(self, tmp_path_factory):
+        from stereorepro.reproject import TemporalReprojection
+
+        module = TemporalReprojection(0.05, 0.1, backend="torch")
+        sess = self._session(module, tmp_path_factory)
+        names = [i.name for i in sess.get_inputs()]
+
+        @fuzz_settings("onnx_temporal")
+        @given(cases(dtypes=(torch.float32,)).filter(lambda c: c.B > 0 and c.sampling == "bilinear"))
+        def check(c):
+            args = [a.float() for a in temporal_inputs(c)[0]]
+            with torch.no_grad():
+                ref = module(*args)
+            got = [torch.from_numpy(g) for g in sess.run(None, {n: a.numpy() for n, a in zip(names, args)})]
+            finite_in = torch.isfinite(args[0]).all(1, keepdim=True).expand_as(args[0])
+            assert bool(torch.isfinite(got[0][finite_in]).all())
+            assert torch.equal(got[2], ref[2])
+            assert torch.allclose(got[0], ref[0], atol=1e-5, rtol=1e-5, equal_nan=True)
+            assert torch.allclose(got[1], ref[1], atol=1e-5, rtol=1e-5)
+        check()
