@@ -13,13 +13,15 @@ with NaN / Inf, H or W = 1, B = 0, float16 / bfloat16 / float32 / float64. Prope
 * finite gradients for finite colours.
 
 Example counts per CI run (``make test``) are in :data:`EXAMPLES`; ``STEREOREPRO_FUZZ_SCALE`` multiplies them,
-and the ``slow`` tests run 10× more.
+and the ``slow`` tests run 10× more. ``STEREOREPRO_FUZZ_COUNTS=FILE`` writes the calls made per op and backend.
 """
 
 from __future__ import annotations
 
+import json
 import math
 import os
+from collections import Counter
 from dataclasses import dataclass
 
 import numpy as np
@@ -44,6 +46,16 @@ DTYPES = (torch.float32, torch.float32, torch.float16, torch.bfloat16, torch.flo
 CAMERAS = ("same", "stereo", "stereo", "rotated", "random", "tiny_fx", "huge_fx", "far", "huge_baseline",
            "behind", "off_centre")
 HAS_NATIVE = _native.available()
+COUNTS: Counter = Counter()  # (op, backend) -> calls
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _write_counts():
+    yield
+    path = os.environ.get("STEREOREPRO_FUZZ_COUNTS")
+    if path:
+        with open(path, "w") as f:
+            json.dump({f"{op} / {be}": n for (op, be), n in sorted(COUNTS.items())}, f, indent=1)
 MAX_REASON = max(int(r) for r in Reason)
 
 
@@ -197,7 +209,7 @@ def _bytes_equal(a: torch.Tensor, b: torch.Tensor) -> bool:
         a.contiguous().view(-1).view(torch.uint8), b.contiguous().view(-1).view(torch.uint8))
 
 
-def run_backends(fn, native_ok: bool):
+def run_backends(fn, native_ok: bool, op: str):
     """fn(backend) on the torch general path, the torch fast path and (where it runs) the native kernels."""
     out = {}
     saved = functional.FAST_PATH
@@ -210,6 +222,8 @@ def run_backends(fn, native_ok: bool):
         functional.FAST_PATH = saved
     if native_ok:
         out["native"] = fn("native")
+    for name in out:
+        COUNTS[(op, name)] += 1
     return out
 
 
@@ -244,7 +258,7 @@ class TestFuzz:
             args = stereo_inputs(c)
             with torch.no_grad():
                 outs = run_backends(lambda be: stereo_reproject(*args, c.thr_p, c.thr_n, c.sampling, backend=be),
-                                    _native_ok(c))
+                                    _native_ok(c), "stereo_reproject")
             color, valid, reason = outs["torch"]
             assert color.shape == (c.B, 3, c.H, c.W) and color.dtype == c.dtype
             assert bool(torch.isfinite(color).all()), "non-finite output colour"
@@ -262,7 +276,7 @@ class TestFuzz:
             with torch.no_grad():
                 outs = run_backends(lambda be: backward_reproject(*args, c.thr_p, c.thr_n, c.sampling, soft=soft,
                                                                   backend=be),
-                                    _native_ok(c) and not soft)
+                                    _native_ok(c) and not soft, "backward_reproject")
             values, valid, reason, conf = outs["torch"]
             assert values.shape == (c.B, C, c.H, c.W)
             assert bool(torch.isfinite(values).all()), "non-finite output values"
@@ -279,7 +293,8 @@ class TestFuzz:
             with torch.no_grad():
                 outs = run_backends(lambda be: temporal_reproject(*args, c.thr_p, c.thr_n, alpha, warmup,
                                                                   max_history, c.sampling, backend=be,
-                                                                  return_reason=with_reason), _native_ok(c))
+                                                                  return_reason=with_reason), _native_ok(c),
+                                "temporal_reproject")
             color, n, valid = outs["torch"][:3]
             current = args[0]
             assert color.shape == current.shape and color.dtype == current.dtype
@@ -305,6 +320,7 @@ class TestFuzz:
             u = torch.from_numpy(rng.uniform(size=(c.B, 1, c.H, c.W)))
             confidence = u < 0.5 if kind == "bool" else torch.where(u < 0.3, 0.0, u).to(c.dtype)
             color, n_out = temporal_blend(current, history, n, confidence, alpha, warmup, max_history)
+            COUNTS[("temporal_blend", "torch")] += 1
             finite_in = torch.isfinite(current).all(1, keepdim=True)
             finite_hist = torch.isfinite(history).all(1, keepdim=True)
             keep = (confidence > 0) if kind == "float" else confidence
@@ -328,6 +344,7 @@ class TestFuzzGradients:
             thr_p = torch.tensor(max(c.thr_p, 1e-3) if math.isfinite(c.thr_p) else 0.05, dtype=c.dtype,
                                  requires_grad=soft)
             color, _, _ = stereo_reproject(*args, thr_p, c.thr_n, c.sampling, soft=soft, backend="torch")
+            COUNTS[("stereo_reproject gradients", "soft" if soft else "hard")] += 1
             weights = torch.linspace(0.5, 1.5, color.numel(), dtype=color.dtype).view_as(color)
             grads = torch.autograd.grad((color * weights).sum(), [args[0], args[1], args[5]] + ([thr_p] if soft else []),
                                         allow_unused=True)
@@ -349,6 +366,7 @@ class TestFuzzGradients:
             color, n, _ = temporal_reproject(*args, max(c.thr_p, 1e-3) if math.isfinite(c.thr_p) else 0.05,
                                              c.thr_n, a, warmup, max_history, c.sampling, soft=soft,
                                              backend="torch")
+            COUNTS[("temporal_reproject gradients", "soft" if soft else "hard")] += 1
             grads = torch.autograd.grad(color.sum() + n.sum(), [args[0], args[1], args[5], args[7]]
                                         + ([a] if soft else []), allow_unused=True)
             for name, g in zip(("current_color", "depth", "history_color", "prev_depth", "alpha"), grads):
@@ -388,6 +406,7 @@ class TestFuzzOnnx:
             with torch.no_grad():
                 ref = module(*args)
             got = sess.run(None, {n: a.numpy() for n, a in zip(names, args)})
+            COUNTS[("StereoReprojection", "onnxruntime")] += 1
             color = torch.from_numpy(got[0])
             assert bool(torch.isfinite(color).all())
             assert torch.equal(torch.from_numpy(got[1]), ref[1]) and torch.equal(torch.from_numpy(got[2]), ref[2])
@@ -408,6 +427,7 @@ class TestFuzzOnnx:
             with torch.no_grad():
                 ref = module(*args)
             got = [torch.from_numpy(g) for g in sess.run(None, {n: a.numpy() for n, a in zip(names, args)})]
+            COUNTS[("TemporalReprojection", "onnxruntime")] += 1
             finite_in = torch.isfinite(args[0]).all(1, keepdim=True).expand_as(args[0])
             assert bool(torch.isfinite(got[0][finite_in]).all())
             assert torch.equal(got[2], ref[2])
