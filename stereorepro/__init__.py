@@ -18,6 +18,7 @@ from .camera import (
     PinholeCamera,
     StereoRig,
     Warp,
+    camera_motion,
     compose_warp,
     has_surface,
     intrinsics_from_fov,
@@ -27,7 +28,7 @@ from .camera import (
     project,
     unproject,
 )
-from .errors import SceneError, SequenceError, ShapeError, StereoreproError, UserError
+from .errors import CameraError, SceneError, SequenceError, ShapeError, StereoreproError, UserError
 from .io.onnx import export_onnx
 from .measure.metrics import (
     EFFECTIVE_SPP_FLAGS,
@@ -64,7 +65,7 @@ _LAZY = {
 
 __all__ = [
     # cameras and conventions
-    "PinholeCamera", "StereoRig", "Warp", "compose_warp", "has_surface", "intrinsics_from_fov", "invert_rigid",
+    "PinholeCamera", "StereoRig", "Warp", "camera_motion", "compose_warp", "has_surface", "intrinsics_from_fov", "invert_rigid",
     "look_at", "pixel_centers", "project", "unproject",
     # reprojection ops and modules
     "Reason", "StereoReprojection", "TemporalReprojection", "backward_reproject", "reason_to_rgb",
@@ -75,7 +76,7 @@ __all__ = [
     "EFFECTIVE_SPP_FLAGS", "EffectiveSppLadder", "effective_spp", "effective_spp_many", "fit_ladder",
     "ladder_rmse", "mse", "rmse", "ssim", "suggest_reference_spp",
     # errors
-    "StereoreproError", "ShapeError", "SceneError", "SequenceError", "UserError",
+    "StereoreproError", "ShapeError", "CameraError", "SceneError", "SequenceError", "UserError",
     # loaded on first use
     *_LAZY,
 ]

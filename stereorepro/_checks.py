@@ -16,7 +16,7 @@ from torch import Tensor
 from .errors import CameraError, ShapeError
 
 __all__ = ["check_shape", "check_floating", "check_device", "check_camera", "check_same_hw", "check_sampling",
-           "check_reprojection_inputs", "check_camera_values", "check_scalar", "check_thresholds", "intrinsics_problem", "rigid_problem",
+           "check_reprojection_inputs", "check_camera_values", "check_motion", "check_scalar", "check_thresholds", "intrinsics_problem", "rigid_problem",
            "tracing", "ShapeError", "CameraError", "SAMPLINGS", "STEREO_NAMES", "TEMPORAL_NAMES"]
 
 #: Tap sampling of the reprojection: 2×2 bilinear taps (the paper's) or the one nearest tap.
@@ -183,6 +183,26 @@ def check_scalar(value, name: str, lo: float = -math.inf, hi: float = math.inf, 
         kind = "a number" if allow_inf else "a finite number"
         span = "" if (lo, hi) == (-math.inf, math.inf) else f" in {'(' if lo_open else '['}{lo:g}, {hi:g}]"
         raise ValueError(f"{name}: expected {kind}{span}, got {v!r}")
+
+
+def check_motion(motion, motion_world, dst_depth: Tensor, name: str = "motion", name_world: str = "motion_world",
+                 tracing: bool | None = None) -> None:
+    """Motion vectors (B, 2, H, W) and world motion (B, 3, H, W) of the destination ``dst_depth`` (B, 1, H, W):
+    floating tensors on its device; ``motion_world`` only with ``motion``."""
+    if _skip(tracing):
+        return
+    if motion is None:
+        if motion_world is not None:
+            raise ValueError(f"{name_world} needs {name} (the screen-space motion) as well")
+        return
+    B, _, H, W = dst_depth.shape
+    check_shape(motion, ["B", "2", "H", "W"], name, {"B": B, "H": H, "W": W}, False)
+    check_floating(motion, name, False)
+    check_device({name: motion, "depth": dst_depth}, name, False)
+    if motion_world is not None:
+        check_shape(motion_world, ["B", "3", "H", "W"], name_world, {"B": B, "H": H, "W": W}, False)
+        check_floating(motion_world, name_world, False)
+        check_device({name_world: motion_world, "depth": dst_depth}, name_world, False)
 
 
 def check_thresholds(position_threshold, normal_threshold, tracing: bool | None = None) -> None:

@@ -60,7 +60,8 @@ class EyeState:
 
 
 def temporal_step(module: TemporalReprojection, state: EyeState | None, color: Tensor, depth: Tensor,
-                  normal: Tensor, K: Tensor, cam_from_world: Tensor) -> tuple[EyeState, Tensor, Tensor]:
+                  normal: Tensor, K: Tensor, cam_from_world: Tensor, motion: Tensor | None = None,
+                  motion_world: Tensor | None = None) -> tuple[EyeState, Tensor, Tensor]:
     """Advance one eye's accumulation by a frame.
 
     Args:
@@ -69,6 +70,8 @@ def temporal_step(module: TemporalReprojection, state: EyeState | None, color: T
         state: the eye's previous frame, or None for the first frame of an accumulation.
         color: (B, 3, H, W) this frame's samples; depth: (B, 1, H, W); normal: (B, 3, H, W); K: (B, 3, 3);
             cam_from_world: (B, 4, 4).
+        motion, motion_world: optional (B, 2, H, W) / (B, 3, H, W) motion to the previous frame (see
+            :func:`~stereorepro.reproject.temporal_reproject`); ignored on the first frame.
 
     Returns:
         state: the new :class:`EyeState` (accumulated colour and sample count with this frame's G-buffer).
@@ -84,7 +87,7 @@ def temporal_step(module: TemporalReprojection, state: EyeState | None, color: T
     out, n, valid, reason = temporal_reproject(
         color, depth, normal, K, cam_from_world, state.color, state.history_len, state.depth, state.normal, state.K,
         state.cam_from_world, m.position_threshold, m.normal_threshold, m.alpha, m.warmup, m.max_history, m.sampling,
-        m.soft, m.temperature, m.backend, return_reason=True)
+        m.soft, m.temperature, m.backend, return_reason=True, motion=motion, motion_world=motion_world)
     return EyeState(out, n, depth, normal, K, cam_from_world), valid, reason
 
 
@@ -138,19 +141,24 @@ class SpatiotemporalReprojection:
         #: (B, 1, H, W) bool: where the left eye's traced pixels kept their own history.
         self.left_valid: Tensor | None = None
 
-    def _accumulate(self, state: EyeState | None, color, depth, normal, K, cam_from_world):
+    def _accumulate(self, state: EyeState | None, color, depth, normal, K, cam_from_world, motion=None,
+                    motion_world=None):
         """Temporal step of one eye: (color, history_len, valid, reason); valid/reason None without history."""
         if not self.temporal or state is None:
             return color, torch.ones_like(depth, dtype=torch.float32), None, None
-        new, valid, reason = temporal_step(self.temporal_module, state, color, depth, normal, K, cam_from_world)
+        new, valid, reason = temporal_step(self.temporal_module, state, color, depth, normal, K, cam_from_world,
+                                           motion, motion_world)
         return new.color, new.history_len, valid, reason
 
-    def right(self, color: Tensor, depth: Tensor, normal: Tensor, K: Tensor, cam_from_world: Tensor) -> Tensor:
+    def right(self, color: Tensor, depth: Tensor, normal: Tensor, K: Tensor, cam_from_world: Tensor,
+              motion: Tensor | None = None, motion_world: Tensor | None = None) -> Tensor:
         """Accumulate this frame's right eye.
 
         Args:
             color: (B, 3, H, W) 1-spp radiance of the right eye.
             depth: (B, 1, H, W); normal: (B, 3, H, W); K: (B, 3, 3); cam_from_world: (B, 4, 4).
+            motion, motion_world: optional motion to the previous frame for the temporal step (moving objects;
+                :func:`~stereorepro.reproject.temporal_reproject`). The stereo step uses the cameras.
 
         Returns:
             (B, 3, H, W) the right eye's output for this frame.
@@ -159,7 +167,8 @@ class SpatiotemporalReprojection:
         check_shape(depth, ["B", "1", "H", "W"], "depth", bind)
         check_shape(normal, ["B", "3", "H", "W"], "normal", bind)
         check_camera(K, cam_from_world, "right", {"B": bind.get("B")} if "B" in bind else None)
-        out, n, valid, reason = self._accumulate(self.right_state, color, depth, normal, K, cam_from_world)
+        out, n, valid, reason = self._accumulate(self.right_state, color, depth, normal, K, cam_from_world, motion,
+                                                 motion_world)
         self.right_valid, self.right_reason = valid, reason
         self.right_state = EyeState(out, n, depth, normal, K, cam_from_world)
         # a new frame: the left eye must run left_trace_mask() again before left()
@@ -168,18 +177,21 @@ class SpatiotemporalReprojection:
         self.stereo_valid = self.stereo_reason = None
         return out
 
-    def left_trace_mask(self, depth: Tensor, normal: Tensor, K: Tensor, cam_from_world: Tensor) -> Tensor:
+    def left_trace_mask(self, depth: Tensor, normal: Tensor, K: Tensor, cam_from_world: Tensor,
+                        motion: Tensor | None = None, motion_world: Tensor | None = None) -> Tensor:
         """Reproject the right eye into the left and return the pixels that must be traced.
 
         Args:
             depth: (B, 1, H, W); normal: (B, 3, H, W); K: (B, 3, 3); cam_from_world: (B, 4, 4) — the left G-buffer.
+            motion, motion_world: optional motion of the left eye to its previous frame, for its temporal step
+                in :meth:`left`.
 
         Returns:
             (B, 1, H, W) bool trace-me mask (all True when ``stereo`` is off).
         """
         if self.right_state is None:
             raise RuntimeError("left_trace_mask() needs right() to be called first for this frame")
-        self._left_gbuffer = (depth, normal, K, cam_from_world)
+        self._left_gbuffer = (depth, normal, K, cam_from_world, motion, motion_world)
         if not self.stereo:
             self.stereo_valid = torch.zeros_like(depth, dtype=torch.bool)
             self.stereo_reason = None
@@ -206,12 +218,13 @@ class SpatiotemporalReprojection:
         """
         if self._left_gbuffer is None:
             raise RuntimeError("left() needs left_trace_mask() to be called first for this frame")
-        depth, normal, K, cam_from_world = self._left_gbuffer
+        depth, normal, K, cam_from_world, motion, motion_world = self._left_gbuffer
         check_shape(traced_color, ["B", "3", "H", "W"], "traced_color",
                     {"B": depth.shape[0], "H": depth.shape[-2], "W": depth.shape[-1]})
         trace = ~self.stereo_valid
         traced = torch.where(trace, traced_color, torch.zeros((), dtype=traced_color.dtype))
-        filled, n, valid, _ = self._accumulate(self.left_state, traced, depth, normal, K, cam_from_world)
+        filled, n, valid, _ = self._accumulate(self.left_state, traced, depth, normal, K, cam_from_world, motion,
+                                               motion_world)
         self.left_valid = None if valid is None else valid & trace
         if self._stereo_out is not None:
             s_color, s_len = self._stereo_out

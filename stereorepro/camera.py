@@ -14,6 +14,9 @@ Conventions
   missed the scene). :func:`has_surface` is the single test used everywhere.
 * **Normals** are unit shading normals in **world** space, (B, 3, H, W); values at pixels without a surface
   are ignored.
+* **Motion vectors** point to the previous frame: ``prev_pixel = pixel + motion`` (pixels, these axes and pixel
+  centres), ``P_prev = P + motion_world`` (world units); NaN where there is no surface (:func:`camera_motion`
+  gives the motion of static geometry).
 * **World positions** derived from depth are never formed in world space inside the reprojection: points are
   compared in the source camera's frame, so precision depends on distance from the camera, not from the
   world origin. Pass camera matrices as float64 when the scene lies far (≥ 1e3 units) from the origin: a
@@ -45,6 +48,7 @@ __all__ = [
     "inverse_intrinsics",
     "Warp",
     "compose_warp",
+    "camera_motion",
     "PinholeCamera",
     "StereoRig",
 ]
@@ -270,6 +274,33 @@ def project(points_cam: Tensor, K: Tensor) -> tuple[Tensor, Tensor]:
     p = (K.to(points_cam.dtype) @ points_cam.reshape(B, 3, H * W)).reshape(B, 3, H, W)
     z = points_cam[:, 2:3]
     return p[:, :2] / z, z
+
+
+def camera_motion(depth: Tensor, K: Tensor, cam_from_world: Tensor, prev_K: Tensor,
+                  prev_cam_from_world: Tensor) -> Tensor:
+    """Screen-space motion vectors of static geometry from the cameras alone: where each pixel's surface point
+    was in the previous camera's image, ``prev_pixel = pixel + motion`` (the convention of
+    :attr:`stereorepro.render.RenderResult.motion`), computed in float64.
+
+    Args:
+        depth: (B, 1, H, W) camera-z depth of this frame.
+        K, cam_from_world: (B, 3, 3), (B, 4, 4) this frame's camera; prev_K, prev_cam_from_world: the previous.
+
+    Returns:
+        motion: (B, 2, H, W) in the dtype of ``depth``; NaN where there is no surface or where the point is not in
+        front of the previous camera.
+    """
+    check_shape(depth, ["B", "1", "H", "W"], "depth")
+    d = depth.double()
+    ok = has_surface(d)
+    p_cam = unproject(torch.where(ok, d, torch.ones((), dtype=d.dtype, device=d.device)), K.double())
+    prev_from_cam = prev_cam_from_world.double() @ invert_rigid(cam_from_world.double())
+    B, _, H, W = d.shape
+    q = (prev_from_cam[:, :3, :3] @ p_cam.reshape(B, 3, H * W) + prev_from_cam[:, :3, 3:]).reshape(B, 3, H, W)
+    uv, z = project(q, prev_K.double())
+    motion = uv - pixel_centers(H, W, d.device, d.dtype)
+    keep = ok & (z > 0)
+    return torch.where(keep, motion, torch.full((), float("nan"), dtype=d.dtype, device=d.device)).to(depth.dtype)
 
 
 @dataclass(frozen=True)

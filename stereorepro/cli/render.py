@@ -11,7 +11,7 @@ from ._args import nonnegative_int, parse_resolution, positive_int
 def _cmd_scenes(args) -> int:
     from ..scenes import SceneError, list_scenes, load_scene
 
-    for name in list_scenes(include_external=args.all):
+    for name in list_scenes(include_external=args.all, beyond_paper=True):
         try:
             s = load_scene(name)
             effects = ",".join(sorted(s.effects)) or "diffuse"

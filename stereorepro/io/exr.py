@@ -1,8 +1,10 @@
 """EXR frames: the project's frame format, its channel names (defined here, once) and their reading and writing.
 
 Channels (all 32-bit float, ZIP-compressed, lossless): radiance ``R, G, B``; depth ``Z`` (camera z, ``+inf``
-where there is no surface); shading normal ``N.X, N.Y, N.Z``; world position ``P.X, P.Y, P.Z``. Optional extra
-channels may be added (e.g. ``albedo.R``). The same layout is read by ``stereorepro reproject``
+where there is no surface); shading normal ``N.X, N.Y, N.Z``; world position ``P.X, P.Y, P.Z``; optionally the
+motion to the previous frame, ``M.X, M.Y`` (pixels, ``prev_pixel = pixel + motion``) and ``MW.X, MW.Y, MW.Z``
+(world units, ``P_prev = P + motion_world``), NaN where there is no surface. Other extra channels may be added
+(e.g. ``albedo.R``). The same layout is read by ``stereorepro reproject``
 (:mod:`stereorepro.io.frames`). The radiance group is the image a reprojection calls its ``color``.
 """
 
@@ -24,7 +26,7 @@ __all__ = ["write_exr", "read_exr", "exr_to_tensors", "result_channels", "CHANNE
 
 #: Channel names of each group of the frame format (a RenderResult's field name → its EXR channels).
 CHANNELS = {"radiance": ("R", "G", "B"), "depth": ("Z",), "normal": ("N.X", "N.Y", "N.Z"),
-            "position": ("P.X", "P.Y", "P.Z")}
+            "position": ("P.X", "P.Y", "P.Z"), "motion": ("M.X", "M.Y"), "motion_world": ("MW.X", "MW.Y", "MW.Z")}
 _GROUPS = CHANNELS
 
 
@@ -195,8 +197,8 @@ def read_exr(path: str | os.PathLike) -> dict[str, np.ndarray]:
 
 
 def exr_to_tensors(channels: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
-    """Group channels into (1, C, H, W) float32 tensors: ``radiance``, ``depth``, ``normal``, ``position`` (those
-    present with all their channels)."""
+    """Group channels into (1, C, H, W) float32 tensors: ``radiance``, ``depth``, ``normal``, ``position``,
+    ``motion``, ``motion_world`` (those present with all their channels)."""
     out = {}
     for field, names in _GROUPS.items():
         if all(n in channels for n in names):

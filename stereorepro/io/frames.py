@@ -239,7 +239,8 @@ def read_frame(seq: FrameSequence, frame: int, eye: str, device=None) -> dict[st
 
     Returns:
         dict with ``color`` (1, 3, H, W), ``depth`` (1, 1, H, W), ``normal`` (1, 3, H, W) float32 and ``K``
-        (1, 3, 3), ``cam_from_world`` (1, 4, 4) float64, on ``device``.
+        (1, 3, 3), ``cam_from_world`` (1, 4, 4) float64, on ``device``; ``motion`` (1, 2, H, W) and
+        ``motion_world`` (1, 3, H, W) when the file has those channels (``M.*``, ``MW.*``; else absent).
     """
     from .exr import read_exr
 
@@ -256,8 +257,13 @@ def read_frame(seq: FrameSequence, frame: int, eye: str, device=None) -> dict[st
         return torch.from_numpy(np.stack([ch[c] for c in names])[None].astype(np.float32)).to(device)
 
     cam = seq.cameras[frame][eye]
-    return {"color": stack(CHANNELS["radiance"]), "depth": stack(CHANNELS["depth"]), "normal": stack(CHANNELS["normal"]),
-            "K": cam.K.to(device), "cam_from_world": cam.cam_from_world.to(device)}
+    out = {"color": stack(CHANNELS["radiance"]), "depth": stack(CHANNELS["depth"]), "normal": stack(CHANNELS["normal"]),
+           "K": cam.K.to(device), "cam_from_world": cam.cam_from_world.to(device)}
+    for key in ("motion", "motion_world"):
+        names = CHANNELS[key]
+        if all(c in ch and ch[c].shape == (seq.height, seq.width) for c in names):
+            out[key] = stack(names)
+    return out
 
 
 
@@ -270,7 +276,8 @@ def export_sequence(scene, frames, width: int, height: int, out_dir, spp: int = 
     """Write an input directory for ``stereorepro reproject`` from our path tracer.
 
     Frame ``i`` of the directory is scene frame ``frames[i]``; both eyes are traced at ``spp`` (RNG eye keys 0 =
-    left, 1 = right) and written with all the tracer's channels (``R,G,B, Z, N.*, P.*``). ``cameras.json`` gets
+    left, 1 = right) and written with all the tracer's channels (``R,G,B, Z, N.*, P.*``; for scenes with moving
+    objects, from the second frame on, also the motion to the previous exported frame, ``M.*`` and ``MW.*``). ``cameras.json`` gets
     the scene's thresholds at that height (:meth:`~stereorepro.scenes.Scene.thresholds`: the position threshold
     scaled by ``max(1, 180 / height)``; scene files are tuned for ~180 rows) and a ``meta`` record. The files appear
     together once all are written (:func:`~stereorepro.io.atomic.staged_outputs`), ``cameras.json`` last; on any
@@ -307,8 +314,11 @@ def export_sequence(scene, frames, width: int, height: int, out_dir, spp: int = 
             for i, f in enumerate(frame_ids):
                 left, right = scene.stereo_cameras(f, width, height)
                 rec = {}
+                moving = "moving_objects" in scene.effects  # static scenes: the cameras give the motion exactly
+                prev = scene.stereo_cameras(frame_ids[i - 1], width, height) if i and moving else None
                 for eye, cam, key in (("left", left, 0), ("right", right, 1)):
-                    res = tracer.render(cam, f, spp, eye=key)
+                    res = tracer.render(cam, f, spp, eye=key, prev_camera=None if prev is None else prev[key],
+                                        prev_frame=frame_ids[i - 1] if prev is not None else None)
                     write_exr(stage / f"{i:04d}_{eye}.exr", res)
                     rec[eye] = {"K": _json_matrix(cam.K), "cam_from_world": _json_matrix(cam.cam_from_world)}
                 records.append(rec)

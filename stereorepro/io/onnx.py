@@ -61,6 +61,11 @@ def example_inputs(module: nn.Module, batch: int = 1, height: int = 24, width: i
         "prev_depth": s["depth"], "prev_normal": s["normal"], "prev_K": src.K.to(dtype),
         "prev_cam_from_world": src.cam_from_world.to(dtype),
     }
+    if "motion" in module.input_names:  # static geometry: the motion of the cameras, no world motion
+        from ..camera import camera_motion
+
+        by_name["motion"] = camera_motion(gd["depth"], dst.K, dst.cam_from_world, src.K, src.cam_from_world).to(dtype)
+        by_name["motion_world"] = torch.zeros_like(f["normal"])
     return tuple(by_name[n] for n in module.input_names)
 
 

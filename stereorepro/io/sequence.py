@@ -13,6 +13,10 @@ Modes (``--mode``)
   the "traced" samples (accumulated with the left eye's own history). Outputs for both eyes; for the left eye
   ``valid``/``reason`` are the stereo test's.
 
+Motion: where a frame's EXR has the motion channels ``M.X, M.Y`` (and ``MW.X, MW.Y, MW.Z``; see
+:mod:`stereorepro.io.exr`), the temporal steps read the history through them (moving objects keep their history);
+the stereo step always uses the cameras. ``summary.json`` says per frame and eye whether motion was used.
+
 Outputs (``--out DIR``): ``{frame:04d}_{eye}_reprojected.exr`` with channels ``R, G, B``, ``valid`` (0/1),
 ``reason`` (:class:`~stereorepro.Reason` codes as floats; ``Reason.NO_HISTORY`` on the first frame of an accumulation)
 and, for temporal and both, ``history_len``; and ``summary.json`` (per-frame discard percentage and counts per
@@ -62,6 +66,11 @@ def _channels(color: Tensor, valid: Tensor, reason: Tensor, history_len: Tensor 
     return out
 
 
+def _motion(frame: dict) -> tuple:
+    """(motion, motion_world) of a frame read by read_frame, (None, None) without motion channels."""
+    return frame.get("motion"), frame.get("motion_world")
+
+
 def _process(seq: FrameSequence, mode: str, eyes: tuple[str, ...], pos: float, nrm: float, alpha: float,
              sampling: str, device, emit, log) -> list[dict]:
     """Run the mode over the sequence; ``emit(frame, eye, channels)`` receives every output frame."""
@@ -83,28 +92,29 @@ def _process(seq: FrameSequence, mode: str, eyes: tuple[str, ...], pos: float, n
             for eye in eyes:
                 cur = read_frame(seq, i, eye, device)
                 states[eye], valid, reason = temporal_step(module, states[eye], cur["color"], cur["depth"],
-                                                           cur["normal"], cur["K"], cur["cam_from_world"])
+                                                           cur["normal"], cur["K"], cur["cam_from_world"],
+                                                           *_motion(cur))
                 emit(i, eye, _channels(states[eye].color, valid, reason, states[eye].history_len))
-                rec[eye] = _stats(valid, reason)
+                rec[eye] = dict(_stats(valid, reason), motion="motion" in cur)
             per_frame.append(rec)
             log(f"frame {i:4d}: " + ", ".join(f"{e} {rec[e]['discard_pct']:5.1f} %" for e in eyes) + " discarded")
     else:
         driver = SpatiotemporalReprojection(pos, nrm, alpha, sampling=sampling)
         for i in range(len(seq)):
             L, R = read_frame(seq, i, "left", device), read_frame(seq, i, "right", device)
-            out_r = driver.right(R["color"], R["depth"], R["normal"], R["K"], R["cam_from_world"])
+            out_r = driver.right(R["color"], R["depth"], R["normal"], R["K"], R["cam_from_world"], *_motion(R))
             if driver.right_valid is None:  # first frame: no history
                 valid_r = torch.zeros_like(R["depth"], dtype=torch.bool)
                 reason_r = torch.full_like(R["depth"], NO_HISTORY, dtype=torch.uint8)
             else:
                 valid_r, reason_r = driver.right_valid, driver.right_reason
-            driver.left_trace_mask(L["depth"], L["normal"], L["K"], L["cam_from_world"])
+            driver.left_trace_mask(L["depth"], L["normal"], L["K"], L["cam_from_world"], *_motion(L))
             out_l = driver.left(L["color"])  # the left EXR's own colour stands in for the traced discards
             emit(i, "right", _channels(out_r, valid_r, reason_r, driver.right_state.history_len))
             emit(i, "left", _channels(out_l, driver.stereo_valid, driver.stereo_reason,
                                       driver.left_state.history_len))
-            per_frame.append({"frame": i, "right": _stats(valid_r, reason_r),
-                              "left": _stats(driver.stereo_valid, driver.stereo_reason)})
+            per_frame.append({"frame": i, "right": dict(_stats(valid_r, reason_r), motion="motion" in R),
+                              "left": dict(_stats(driver.stereo_valid, driver.stereo_reason), motion="motion" in L)})
             log(f"frame {i:4d}: right {per_frame[-1]['right']['discard_pct']:5.1f} %, "
                 f"left (stereo) {per_frame[-1]['left']['discard_pct']:5.1f} % discarded")
     return per_frame

@@ -134,6 +134,14 @@ class RenderResult:
         ray_counts: rays traced per kind: ``primary``, ``secondary``, ``shadow``, ``gbuffer``.
         spp: samples per pixel of ``radiance``.
         time_s: wall time of the call in seconds.
+        motion: (1, 2, H, W) screen-space motion to the previous frame in pixels, ``prev_pixel = pixel + motion``
+            (OpenCV axes, pixel centres at +0.5): where the surface point seen at the pixel centre was in the
+            previous camera's image. NaN where there is no surface, or where the point was not in front of the
+            previous camera. ``None`` unless ``prev_camera`` was given.
+        motion_world: (1, 3, H, W) world-space motion of that surface point, ``P_prev = P + motion_world`` (0 on
+            static geometry); NaN where there is no surface. ``None`` unless ``prev_camera`` was given.
+        object_id: (1, 1, H, W) int32 index of the moving object seen at the pixel (-1: static geometry or no
+            surface); ``None`` unless the scene declares ``moving_objects``.
     """
 
     radiance: Tensor
@@ -145,6 +153,12 @@ class RenderResult:
     ray_counts: dict = field(default_factory=dict)
     spp: int = 0
     time_s: float = 0.0
+    motion: Tensor | None = None
+    motion_world: Tensor | None = None
+    object_id: Tensor | None = None
+
+
+_GBUFFER_FIELDS = ("depth", "normal", "position", "albedo", "material_id", "motion", "motion_world", "object_id")
 
 
 def ray_epsilon(vertices: np.ndarray) -> float:
@@ -191,6 +205,25 @@ class _Frame:
     limit: float | None = None  # firefly clamp C (None: off)
     shader: object = None       # _core.TracerShader of the frame's lights (native backend)
     M32: np.ndarray | None = None  # (9,) float32 dir_from_pix, as _camera_dirs rounds it
+    geom: "_Geometry" = None    # the frame's triangles (moving objects placed)
+
+
+@dataclass(frozen=True)
+class _Geometry:
+    """The triangles of one frame: positions, unit face normals and their BVH (one per tracer for static scenes,
+    one per frame with moving objects)."""
+
+    frame: int | None  # None: static (valid for every frame)
+    vertices: np.ndarray  # (V, 3) float32
+    face_normal: np.ndarray  # (F, 3) float32
+    bvh: TriangleBVH
+
+
+def _face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    tri = vertices[faces].astype(np.float64)
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    ln = np.linalg.norm(fn, axis=1, keepdims=True)
+    return (fn / np.where(ln > 0, ln, 1.0)).astype(np.float32)
 
 
 class PathTracer:
@@ -243,16 +276,26 @@ class PathTracer:
         self.stats = {"bvh_builds": 0, "light_prepare": 0}
         self.glossy = "glossy" in scene.effects
         self.moving_light = "moving_light" in scene.effects
+        self.moving_objects = "moving_objects" in scene.effects
 
         geo = scene.geometry()
         mats = scene.material_table()
-        self.vertices = np.ascontiguousarray(geo.vertices, np.float32)
-        self.faces = np.ascontiguousarray(geo.faces, np.int32)
+        vertices = np.ascontiguousarray(geo.vertices, np.float32)
+        faces = np.ascontiguousarray(geo.faces, np.int32)
+        #: (F,) int32 index of the moving object of each face, -1 for static faces.
+        self.face_object = scene.face_objects() if self.moving_objects else np.full(len(faces), -1, np.int32)
+        if self.moving_objects:  # moving faces get vertices of their own, so that moving them moves nothing else
+            moving = np.flatnonzero(self.face_object >= 0)
+            idx = faces[moving].reshape(-1)
+            faces = faces.copy()
+            faces[moving] = (len(vertices) + np.arange(len(idx), dtype=np.int32)).reshape(-1, 3)
+            vertices = np.concatenate([vertices, vertices[idx]])
+            self._vertex_object = np.full(len(vertices), -1, np.int32)
+            self._vertex_object[faces[moving].reshape(-1)] = np.repeat(self.face_object[moving], 3)
+        self.vertices = vertices  # at rest (frame-independent for static scenes)
+        self.faces = faces
         self.face_material = np.ascontiguousarray(geo.material_ids, np.int32)
-        tri = self.vertices[self.faces].astype(np.float64)
-        fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        ln = np.linalg.norm(fn, axis=1, keepdims=True)
-        self.face_normal = (fn / np.where(ln > 0, ln, 1.0)).astype(np.float32)
+        self.face_normal = _face_normals(self.vertices, self.faces)
         self.kd = np.asarray(mats["albedo"], np.float32).reshape(-1, 3)
         self.emission = np.asarray(mats["emission"], np.float32).reshape(-1, 3)
         self.mat_emissive = luminance(self.emission) > 0
@@ -263,15 +306,49 @@ class PathTracer:
             self.p_spec = np.where(ld + ls > 0, ls / np.maximum(ld + ls, 1e-12), 0).astype(np.float32)
         self.eps = np.float32(ray_epsilon(self.vertices))
 
-        self._bvh = TriangleBVH(self.vertices, self.faces)
-        self.stats["bvh_builds"] += 1
+        self._bvh = None if self.moving_objects else TriangleBVH(self.vertices, self.faces)  # built per frame if moving
+        self.stats["bvh_builds"] += 0 if self.moving_objects else 1
+        self._geom_cache: _Geometry | None = None  # the last frame's geometry (moving objects)
         self._emitters = EmitterTable(self.vertices, self.faces, self.emission[self.face_material])
         self._materials = mats
         self._lights_cache: tuple | None = None
         self._lock = threading.Lock()
         self._stage_times: dict | None = None  # set to {} to accumulate per-stage seconds (profiling)
-        self._triangle_distances: TriangleDistances | None = None  # built on first use by _limit
+        self._triangle_distances: tuple | None = None  # (frame, TriangleDistances), built on first use by _limit
+        self._limit_frame = 0
         self._ws_free: list[dict] = []  # scratch arrays of the native path, one set per concurrent worker
+
+    # ------------------------------------------------------------------ geometry
+    def geometry(self, frame: int) -> "_Geometry":
+        """The triangles of ``frame``: the tracer's one BVH for static scenes; with ``moving_objects`` the moving
+        faces placed by :meth:`~stereorepro.scenes.Scene.object_transforms` and a BVH built for that frame
+        (embreex has no instancing and no vertex updates; the last frame's geometry is kept)."""
+        if not self.moving_objects:
+            return _Geometry(None, self.vertices, self.face_normal, self._bvh)
+        frame = int(frame)
+        with self._lock:
+            cached = self._geom_cache
+            if cached is not None and cached.frame == frame:
+                return cached
+        v = self.object_vertices(frame)
+        geom = _Geometry(frame, v, _face_normals(v, self.faces), TriangleBVH(v, self.faces))
+        with self._lock:
+            self.stats["bvh_builds"] += 1
+            self._geom_cache = geom
+        return geom
+
+    def object_vertices(self, frame: float) -> np.ndarray:
+        """(V, 3) float32 vertex positions at ``frame`` (moving objects placed; the rest as they are)."""
+        if not self.moving_objects:
+            return self.vertices
+        T = self.scene.object_transforms(frame)
+        v = self.vertices.astype(np.float64)
+        obj = self._vertex_object
+        out = v.copy()
+        for o in range(len(T)):
+            sel = obj == o
+            out[sel] = v[sel] @ T[o, :3, :3].T + T[o, :3, 3]
+        return out.astype(np.float32)
 
     # ------------------------------------------------------------------ lights
     def lights(self, frame: int) -> LightSet:
@@ -286,19 +363,20 @@ class PathTracer:
         return self._prepare_lights_full(frame)[:2]
 
     def _prepare_lights_full(self, frame: int) -> tuple[LightSet, float | None, object]:
-        key = int(frame) if self.moving_light else None
+        key = int(frame) if (self.moving_light or self.moving_objects) else None
         cache = self._lights_cache
         if cache is not None and cache[0] == key:
             return cache[1], cache[2], cache[3]
         pos, inten = self.scene.point_lights(0 if key is None else key)
         ls = LightSet(self._emitters, pos, inten)
+        self._limit_frame = int(frame)
         limit = self._limit(pos, inten)
-        shader = self._make_shader(ls) if self.backend == "native" else None
+        shader = self._make_shader(ls, self.geometry(frame)) if self.backend == "native" else None
         self.stats["light_prepare"] += 1
         self._lights_cache = (key, ls, limit, shader)
         return ls, limit, shader
 
-    def _make_shader(self, ls: LightSet):
+    def _make_shader(self, ls: LightSet, geom: "_Geometry"):
         """The native stages' tables (scene materials + this light set), as contiguous arrays."""
         nm = len(self.kd)
         f32 = np.float32
@@ -308,7 +386,7 @@ class PathTracer:
             ks, ex, ps = np.zeros((nm, 3), f32), np.zeros(nm, f32), np.zeros(nm, f32)
         c = np.ascontiguousarray
         return _core.TracerShader(
-            c(self.face_normal, f32), c(self.face_material, np.int32), c(self.kd, f32), c(ks, f32), c(ex, f32),
+            c(geom.face_normal, f32), c(self.face_material, np.int32), c(self.kd, f32), c(ks, f32), c(ex, f32),
             c(ps, f32), c(self.emission, f32), c(self.mat_emissive, bool), float(self.eps), bool(self.glossy),
             bool(ls.empty), c(ls.cdf, np.float64), c(ls.prob, np.float64), c(ls._table, f32), int(ls.num_area),
             c(ls.point_pos, f32), c(ls.point_int, f32), c(ls.pdf_area_face, f32))
@@ -327,9 +405,11 @@ class PathTracer:
         elif dmin is not None:
             dist = np.full(len(pos), float(dmin))
         else:  # distance of each light to the nearest surface of each material (L, M)
-            if self._triangle_distances is None:  # per-face data once per tracer (moving lights ask every frame)
-                self._triangle_distances = TriangleDistances(self.vertices, self.faces)
-            dist = self._triangle_distances.grouped(pos, self.face_material, len(self.kd))
+            geom = self.geometry(self._limit_frame)
+            if self._triangle_distances is None or self._triangle_distances[0] != geom.frame:
+                # per-face data once per tracer (moving lights ask every frame), per frame for moving objects
+                self._triangle_distances = (geom.frame, TriangleDistances(geom.vertices, self.faces))
+            dist = self._triangle_distances[1].grouped(pos, self.face_material, len(self.kd))
         m = self._materials
         c = radiance_bound(m["emission"], m["albedo"], m["specular"] if self.glossy else np.zeros_like(m["albedo"]),
                            m["exponent"], inten, dist)
@@ -338,7 +418,8 @@ class PathTracer:
     # ------------------------------------------------------------------ public API
     def render(self, camera: PinholeCamera, frame: int, spp: int, sample_offset: int = 0,
                pixel_mask: Tensor | None = None, eye: int = 0, gbuffers: bool = True,
-               progress: bool = False) -> RenderResult:
+               progress: bool = False, prev_camera: PinholeCamera | None = None,
+               prev_frame: int | None = None) -> RenderResult:
         """Render radiance (and G-buffers) of one camera.
 
         Args:
@@ -351,6 +432,9 @@ class PathTracer:
             eye: RNG key field (0 = left, 1 = right).
             gbuffers: also compute the G-buffers (from separate centre rays; radiance is unchanged).
             progress: show a tqdm progress bar.
+            prev_camera: the same eye's camera at the previous frame: the G-buffers then include ``motion`` and
+                ``motion_world`` (see :class:`RenderResult`).
+            prev_frame: the frame ``motion`` refers to (default ``max(frame - 1, 0)``).
 
         Returns:
             :class:`RenderResult` with (1, C, H, W) tensors.
@@ -423,20 +507,66 @@ class PathTracer:
         if not one:
             rad[:, pixels] = (acc / int(spp)).astype(np.float32).T
         radiance = torch.from_numpy(rad.reshape(1, 3, H, W))
-        g = self._gbuffer(fr, pixels, H, W, counts) if gbuffers else {}
-        return RenderResult(radiance=radiance, depth=g.get("depth"), normal=g.get("normal"),
-                            position=g.get("position"), albedo=g.get("albedo"),
-                            material_id=g.get("material_id"), ray_counts=counts, spp=int(spp),
-                            time_s=time.perf_counter() - t0)
+        g = self._gbuffer_full(fr, frame, pixels, H, W, counts, prev_camera, prev_frame) if gbuffers else {}
+        return RenderResult(radiance=radiance, ray_counts=counts, spp=int(spp), time_s=time.perf_counter() - t0,
+                            **{k: g.get(k) for k in _GBUFFER_FIELDS})
 
-    def gbuffer(self, camera: PinholeCamera, frame: int, pixel_mask: Tensor | None = None) -> RenderResult:
+    def gbuffer(self, camera: PinholeCamera, frame: int, pixel_mask: Tensor | None = None,
+                prev_camera: PinholeCamera | None = None, prev_frame: int | None = None) -> RenderResult:
         """G-buffers only (radiance zeros, ``spp = 0``, only ``gbuffer`` rays); same values as :meth:`render`."""
         t0 = time.perf_counter()
         fr, pixels, H, W = self._setup(camera, frame, pixel_mask, 0, need_lights=False)
         counts = {"primary": 0, "secondary": 0, "shadow": 0, "gbuffer": 0}
-        g = self._gbuffer(fr, pixels, H, W, counts)
+        g = self._gbuffer_full(fr, frame, pixels, H, W, counts, prev_camera, prev_frame)
         return RenderResult(radiance=torch.zeros(1, 3, H, W), ray_counts=counts, spp=0,
-                            time_s=time.perf_counter() - t0, **g)
+                            time_s=time.perf_counter() - t0, **{k: g.get(k) for k in _GBUFFER_FIELDS})
+
+    def _gbuffer_full(self, fr, frame, pixels, H, W, counts, prev_camera, prev_frame) -> dict:
+        """The G-buffer stage, then (with ``prev_camera``) the motion stage and (moving objects) object ids."""
+        if prev_camera is not None:
+            if not isinstance(prev_camera, PinholeCamera) or prev_camera.batch_size != 1:
+                raise TypeError("render: prev_camera must be a PinholeCamera with batch size 1")
+            prev_frame = max(int(frame) - 1, 0) if prev_frame is None else int(prev_frame)
+            if not (0 <= prev_frame < int(self.scene.num_frames)):
+                raise ValueError(f"render: prev_frame must be in [0, {self.scene.num_frames}), got {prev_frame}")
+        g = self._gbuffer(fr, pixels, H, W, counts)
+        prim = g.pop("_prim")
+        if prev_camera is not None:
+            g["motion"], g["motion_world"] = self._motion(g["position"], prim, frame, prev_camera, prev_frame, H, W)
+        if self.moving_objects:
+            obj = np.where(prim >= 0, self.face_object[np.maximum(prim, 0)], -1).astype(np.int32)
+            g["object_id"] = torch.from_numpy(obj.reshape(1, 1, H, W))
+        return g
+
+    def _motion(self, position: Tensor, prim: np.ndarray, frame: int, prev_camera: PinholeCamera, prev_frame: int,
+                H: int, W: int) -> tuple[Tensor, Tensor]:
+        """The motion stage: ``motion`` (1, 2, H, W) and ``motion_world`` (1, 3, H, W) (see :class:`RenderResult`),
+        from the G-buffer's positions and hit triangles, in float64."""
+        hit = prim >= 0
+        P = position[0].reshape(3, -1).T.double().numpy()  # (HW, 3)
+        mw = np.zeros_like(P)
+        if self.moving_objects:
+            T_cur, T_prev = self.scene.object_transforms(frame), self.scene.object_transforms(prev_frame)
+            obj = np.where(hit, self.face_object[np.maximum(prim, 0)], -1)
+            for o in range(len(T_cur)):
+                sel = obj == o
+                if sel.any():
+                    D = T_prev[o] @ np.linalg.inv(T_cur[o])  # world at frame -> world at prev_frame
+                    mw[sel] = P[sel] @ D[:3, :3].T + D[:3, 3] - P[sel]
+        P_prev = P + mw
+        T = prev_camera.cam_from_world[0].detach().double().numpy()
+        K = prev_camera.K[0].detach().double().numpy()
+        q = P_prev @ T[:3, :3].T + T[:3, 3]
+        front = hit & (q[:, 2] > 0)
+        z = np.where(front, q[:, 2], 1.0)
+        u = (K[0, 0] * q[:, 0] + K[0, 1] * q[:, 1]) / z + K[0, 2]
+        v = K[1, 1] * q[:, 1] / z + K[1, 2]
+        idx = np.arange(H * W)
+        motion = np.stack([u - (idx % W + 0.5), v - (idx // W + 0.5)])
+        motion[:, ~front] = np.nan
+        mw[~hit] = np.nan
+        return (torch.from_numpy(motion.astype(np.float32).reshape(1, 2, H, W)),
+                torch.from_numpy(np.ascontiguousarray(mw.T).astype(np.float32).reshape(1, 3, H, W)))
 
     # ------------------------------------------------------------------ internals
     def _setup(self, camera, frame, pixel_mask, eye, need_lights=True):
@@ -462,7 +592,7 @@ class PathTracer:
         M = wfc[:3, :3] @ np.linalg.inv(K)
         lights, limit, shader = self._prepare_lights_full(frame) if need_lights else (None, None, None)
         fr = _Frame(stream_key(self.seed, int(frame), int(eye)), W, wfc[:3, 3].astype(np.float32), M, lights, limit,
-                    shader, np.ascontiguousarray(M.astype(np.float32).reshape(9)))
+                    shader, np.ascontiguousarray(M.astype(np.float32).reshape(9)), self.geometry(frame))
         return fr, pixels, H, W
 
     def _ranges(self, n):
@@ -488,9 +618,9 @@ class PathTracer:
             d[:, r] = M[r, 0] * px + M[r, 1] * py + M[r, 2]
         return d
 
-    def _surface(self, prim, d):
+    def _surface(self, fr: _Frame, prim, d):
         """Material ids (N,) and shading normals (N, 3) of hits ``prim`` (N,) facing against directions ``d``."""
-        fn = self.face_normal[prim]
+        fn = fr.geom.face_normal[prim]
         sign = np.where(_dot(fn, d) > 0, np.float32(-1), np.float32(1))
         return self.face_material[prim], fn * sign[:, None]
 
@@ -502,6 +632,7 @@ class PathTracer:
         position = np.zeros((H * W, 3), np.float32)
         albedo = np.zeros((H * W, 3), np.float32)
         matid = np.full(H * W, -1, np.int32)
+        prim_img = np.full(H * W, -1, np.int32)
 
         def work(lo_hi):
             lo, hi = lo_hi
@@ -510,15 +641,16 @@ class PathTracer:
             py = (pix // W).astype(np.float32) + np.float32(0.5)
             d = self._camera_dirs(fr, px, py)
             o = np.broadcast_to(fr.center, d.shape)
-            t, prim = self._bvh.intersect(o, d)
+            t, prim = fr.geom.bvh.intersect(o, d)
             hit = prim >= 0
             p, tp, dp = pix[hit], t[hit], d[hit]
-            mat, n = self._surface(prim[hit], dp)
+            mat, n = self._surface(fr, prim[hit], dp)
             depth[p] = tp
             normal[p] = n
             position[p] = fr.center + tp[:, None] * dp
             albedo[p] = self.kd[mat]
             matid[p] = mat
+            prim_img[p] = prim[hit]
             return len(pix)
 
         for c in self._run(work, [(a, b) for a, b in self._ranges(len(pixels))]):
@@ -528,7 +660,7 @@ class PathTracer:
             return torch.from_numpy(np.ascontiguousarray(x.reshape(H * W, C).T).reshape(1, C, H, W))
 
         return {"depth": img(depth, 1), "normal": img(normal, 3), "position": img(position, 3),
-                "albedo": img(albedo, 3), "material_id": img(matid, 1)}
+                "albedo": img(albedo, 3), "material_id": img(matid, 1), "_prim": prim_img}
 
     def _gbuffer_native(self, fr: _Frame, pixels, H, W, counts) -> dict:
         """:meth:`_gbuffer` with the ray set-up and the writes in ``_core`` (same values; planar outputs, no
@@ -537,8 +669,9 @@ class PathTracer:
         depth = np.full(HW, np.inf, np.float32)
         planes = {k: np.zeros((3, HW), np.float32) for k in ("normal", "position", "albedo")}
         matid = np.full(HW, -1, np.int32)
+        prim_img = np.full(HW, -1, np.int32)
         pixels = np.ascontiguousarray(pixels, np.int64)
-        fn, fm, kd = (np.ascontiguousarray(x) for x in (self.face_normal, self.face_material, self.kd))
+        fn, fm, kd = (np.ascontiguousarray(x) for x in (fr.geom.face_normal, self.face_material, self.kd))
 
         def work(lo_hi):
             lo, hi = lo_hi
@@ -546,10 +679,11 @@ class PathTracer:
             o = np.empty((len(pix), 3), np.float32)
             d = np.empty((len(pix), 3), np.float32)
             _core.tracer_gbuffer_rays(W, pix, fr.M32, fr.center, o, d)
-            t, prim = self._bvh.intersect(o, d)
+            t, prim = fr.geom.bvh.intersect(o, d)
             _core.tracer_gbuffer_write(pix, d, np.ascontiguousarray(t, np.float32), np.ascontiguousarray(prim, np.int32),
                                        fr.center, fn, fm, kd, depth, planes["normal"], planes["position"],
                                        planes["albedo"], matid)
+            prim_img[pix] = prim
             return len(pix)
 
         for c in self._run(work, self._ranges(len(pixels))):
@@ -557,6 +691,7 @@ class PathTracer:
         out = {k: torch.from_numpy(v.reshape(1, 3, H, W)) for k, v in planes.items()}
         out["depth"] = torch.from_numpy(depth.reshape(1, 1, H, W))
         out["material_id"] = torch.from_numpy(matid.reshape(1, 1, H, W))
+        out["_prim"] = prim_img
         return out
 
     # The stages of one wavefront batch ------------------------------------------------------------
@@ -611,7 +746,7 @@ class PathTracer:
         o = np.broadcast_to(fr.center, d.shape)
         t0 = _tick(tm, "generate", t0)
         # --- intersect
-        t, prim = self._bvh.intersect(o, d)
+        t, prim = fr.geom.bvh.intersect(o, d)
         counts["primary"] += N
         t0 = _tick(tm, "intersect_primary", t0)
         i1 = np.flatnonzero(prim >= 0)
@@ -619,7 +754,7 @@ class PathTracer:
             return L
         d1, k1, prim1 = d[i1], keys[i1], prim[i1]
         P1 = fr.center + t[i1, None] * d1
-        mat1, n1v = self._surface(prim1, d1)
+        mat1, n1v = self._surface(fr, prim1, d1)
         wo1 = -d1
         # --- emission seen directly (never clamped)
         em1 = self.mat_emissive[mat1]
@@ -645,7 +780,7 @@ class PathTracer:
             o2 = P1[live] + n1v[live] * self.eps
             d2 = wi2[live]
             t0 = _tick(tm, "shade_x1", t0)
-            t2, prim2 = self._bvh.intersect(o2, d2)
+            t2, prim2 = fr.geom.bvh.intersect(o2, d2)
             counts["secondary"] += len(live)
             t0 = _tick(tm, "intersect_bounce", t0)
             h = np.flatnonzero(prim2 >= 0)
@@ -654,13 +789,13 @@ class PathTracer:
                 thr = weight[j2]
                 d2h, t2h, p2 = d2[h], t2[h], prim2[h]
                 P2 = o2[h] + t2h[:, None] * d2h
-                mat2, n2 = self._surface(p2, d2h)
+                mat2, n2 = self._surface(fr, p2, d2h)
                 em2 = self.mat_emissive[mat2]
                 E2 = np.zeros((len(h), 3), np.float32)
                 R2 = np.zeros((len(h), 3), np.float32)
                 if em2.any() and have_lights:
                     e = np.flatnonzero(em2)
-                    cos_l = np.abs(_dot(self.face_normal[p2[e]], d2h[e]))
+                    cos_l = np.abs(_dot(fr.geom.face_normal[p2[e]], d2h[e]))
                     pdf_l = fr.lights.pdf_area_face[p2[e]] * t2h[e] * t2h[e] / np.maximum(cos_l, np.float32(1e-12))
                     pb = pdf_b[j2[e]]
                     w = np.where(pb > 0, pb / (pb + pdf_l), np.float32(0)).astype(np.float32)
@@ -680,7 +815,7 @@ class PathTracer:
             sd = np.concatenate([x[2] for x in shadow])
             st = np.concatenate([x[3] for x in shadow])
             t0 = _tick(tm, "shade_x2", t0)
-            vis = ~self._bvh.occluded(so, sd, st)
+            vis = ~fr.geom.bvh.occluded(so, sd, st)
             counts["shadow"] += len(so)
             t0 = _tick(tm, "intersect_shadow", t0)
             n_first = len(shadow[0][0])
@@ -726,7 +861,7 @@ class PathTracer:
         keys, o, d = ws["keys"][:N], ws["o"][:N], ws["d"][:N]
         _core.tracer_generate(fr.key, fr.width, pix, samp, fr.M32, fr.center, keys, o, d)
         t0 = _tick(tm, "generate", t0)
-        t, prim = self._bvh.intersect(o, d)
+        t, prim = fr.geom.bvh.intersect(o, d)
         counts["primary"] += N
         t0 = _tick(tm, "intersect_primary", t0)
         t = np.ascontiguousarray(t, f32)
@@ -743,7 +878,7 @@ class PathTracer:
         E2, hit2 = ws["E2"][:N], ws["hit2"][:N]
         if nb:
             bo, bd = b_o[:nb], b_d[:nb]
-            t2, prim2 = self._bvh.intersect(bo, bd)
+            t2, prim2 = fr.geom.bvh.intersect(bo, bd)
             counts["secondary"] += nb
             t0 = _tick(tm, "intersect_bounce", t0)
             ns += sh.shade2(keys, bo, bd, b_path[:nb], np.ascontiguousarray(t2, f32),
@@ -754,7 +889,7 @@ class PathTracer:
             E2.fill(0)
             hit2.fill(0)
         if ns:
-            occ = np.ascontiguousarray(self._bvh.occluded(sh_o[:ns], sh_d[:ns], sh_t[:ns]), bool)
+            occ = np.ascontiguousarray(fr.geom.bvh.occluded(sh_o[:ns], sh_d[:ns], sh_t[:ns]), bool)
             counts["shadow"] += ns
             t0 = _tick(tm, "intersect_shadow", t0)
         else:

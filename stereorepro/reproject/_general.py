@@ -139,13 +139,18 @@ def raw_reader(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, b: int
 
 def warp_pixels(read_taps, C: int, Hs: int, Ws: int, warp, dst_depth: Tensor, dst_normal: Tensor, u_c: Tensor,
                  v_c: Tensor, position_threshold, normal_threshold, sampling: str, soft: bool, temperature: float,
-                 out_dtype: torch.dtype) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+                 out_dtype: torch.dtype, motion: Tensor | None = None, motion_world: Tensor | None = None,
+                 src_rotation: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """The general path (differentiable, traceable): reproject destination pixels; see :func:`backward_reproject`.
 
     Args:
         read_taps: index (B, T, *S) into the source pixels -> (B, C+5, T·prod(S)) :func:`source_features` rows.
         dst_depth: (B, 1, *S), dst_normal: (B, 3, *S) with S = (h, W) rows or (1, K) a list of pixels.
         u_c, v_c: their pixel centres, broadcastable to (1, 1, *S) (see :func:`pixel_centres`).
+        motion: (B, 2, *S) or None: source position = pixel centre + motion instead of the camera warp's.
+        motion_world: (B, 3, *S) or None (zeros): the destination point moved to the source instant; the
+            position test compares the source tap with it. Needs ``src_rotation`` (B, 3, 3), the rotation part of
+            the source ``cam_from_world``.
 
     Returns:
         values (B, C, *S), valid, reason, confidence (B, 1, *S).
@@ -173,6 +178,8 @@ def warp_pixels(read_taps, C: int, Hs: int, Ws: int, warp, dst_depth: Tensor, ds
     u = wx / wz
     v = wy / wz
     q = (m[:, :, 0] * u_c + m[:, :, 1] * v_c + m[:, :, 2]) * z_dst + t  # Bx3xHxW
+    if motion is not None:  # the source position from the motion vectors, the source point moved with the object
+        u, v, q, front = _motion_source(motion, motion_world, src_rotation, u_c, v_c, q)
     qz = q[:, 2:3]
     front = front & torch.isfinite(u) & torch.isfinite(v)
     # Keep coordinates finite and in a small range: anything clamped is out of frame anyway.
@@ -260,9 +267,32 @@ def warp_pixels(read_taps, C: int, Hs: int, Ws: int, warp, dst_depth: Tensor, ds
     return values.to(out_dtype), valid, reason, den
 
 
+def _motion_source(motion: Tensor, motion_world: Tensor | None, src_rotation: Tensor, u_c: Tensor, v_c: Tensor,
+                   q: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Source coordinates (u, v) = pixel centre + motion, and the expected source-camera point
+    ``q + R_src · motion_world``. Non-finite motion (or world motion) sends the pixel out of the frame
+    (``OUT_OF_FRAME``); ``front`` is the moved point's ``z > 0``."""
+    wdt = q.dtype
+    mo = motion.to(wdt)
+    ok = torch.isfinite(mo).all(1, keepdim=True)
+    zero = torch.zeros((), dtype=wdt, device=q.device)
+    if motion_world is not None:
+        mw = motion_world.to(wdt)
+        ok = ok & torch.isfinite(mw).all(1, keepdim=True)
+        mw = torch.where(ok, mw, zero)
+        R = src_rotation.to(wdt).reshape(q.shape[0], 3, 3, *([1] * (q.dim() - 2)))
+        q = q + (R[:, :, 0] * mw[:, 0:1] + R[:, :, 1] * mw[:, 1:2] + R[:, :, 2] * mw[:, 2:3])
+    far = torch.full((), -8.0, dtype=wdt, device=q.device)  # out of frame (clamped to -4 later)
+    u = torch.where(ok, u_c + torch.where(ok, mo[:, 0:1], zero), far)
+    v = torch.where(ok, v_c + torch.where(ok, mo[:, 1:2], zero), far)
+    return u, v, q, q[:, 2:3] > 0
+
+
 def general_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, dst_depth: Tensor,
                       dst_normal: Tensor, warp: Warp, position_threshold, normal_threshold, sampling: str, soft: bool,
-                      temperature: float, inference: bool) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+                      temperature: float, inference: bool, motion: Tensor | None = None,
+                      motion_world: Tensor | None = None,
+                      src_rotation: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """:func:`~stereorepro.reproject.backward_reproject` on the general path, with the cameras composed.
 
     In inference (``inference``: no autograd graph, nothing traces) on large images, destination rows are
@@ -278,8 +308,14 @@ def general_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor,
                 position_threshold=position_threshold, normal_threshold=normal_threshold, sampling=sampling,
                 soft=soft, temperature=temperature, out_dtype=src_values.dtype)
     rows = max(1, BLOCK_PIXELS // max(1, B * W)) if inference else None
+    args["src_rotation"] = src_rotation
+
+    def mo(x, r0=None, r1=None):
+        return None if x is None or r0 is None else x[:, :, r0:r1]
+
     if rows is None or rows >= H:
-        return warp_pixels(dst_depth=dst_depth, dst_normal=dst_normal, **pixel_centres(0, H, W, wdt, dev), **args)
+        return warp_pixels(dst_depth=dst_depth, dst_normal=dst_normal, **pixel_centres(0, H, W, wdt, dev),
+                           motion=motion, motion_world=motion_world, **args)
     values = torch.empty(B, C, H, W, dtype=src_values.dtype, device=dev)
     valid = torch.empty(B, 1, H, W, dtype=torch.bool, device=dev)
     reason = torch.empty(B, 1, H, W, dtype=torch.uint8, device=dev)
@@ -287,7 +323,8 @@ def general_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor,
     for r0 in range(0, H, rows):
         r1 = min(H, r0 + rows)
         out = warp_pixels(dst_depth=dst_depth[:, :, r0:r1], dst_normal=dst_normal[:, :, r0:r1],
-                          **pixel_centres(r0, r1, W, wdt, dev), **args)
+                          **pixel_centres(r0, r1, W, wdt, dev), motion=mo(motion, r0, r1),
+                          motion_world=mo(motion_world, r0, r1), **args)
         for buf, o in zip((values, valid, reason, den), out):
             buf[:, :, r0:r1] = o
     return values, valid, reason, den

@@ -41,8 +41,8 @@ import torch
 from torch import Tensor
 
 from .. import _backend
-from .._checks import (STEREO_NAMES, TEMPORAL_NAMES, check_floating, check_reprojection_inputs, check_sampling,
-                       check_scalar, check_shape, check_thresholds, tracing)
+from .._checks import (STEREO_NAMES, TEMPORAL_NAMES, check_floating, check_motion, check_reprojection_inputs,
+                       check_sampling, check_scalar, check_shape, check_thresholds, tracing)
 from ..camera import compose_warp
 from . import _fast, _general, _native
 from ._general import as_scalar, compute_dtype, inference_only, squared_thresholds
@@ -57,13 +57,15 @@ BACKENDS = ("auto", "torch", "native")
 FAST_PATH = True
 
 
-def native_unsupported(images: Iterable[Tensor], others: Iterable = (), soft: bool = False) -> str | None:
+def native_unsupported(images: Iterable[Tensor], others: Iterable = (), soft: bool = False,
+                       motion: bool = False) -> str | None:
     """Why the native kernels cannot run these inputs, or None when they can.
 
     Args:
         images: image tensors (colours, depths, normals, history length): must be float32.
         others: other inputs (cameras, thresholds, alpha): only device and autograd are checked.
         soft: soft accept tests (torch only).
+        motion: motion vectors given (torch only).
     """
     images = list(images)
     tensors = images + [x for x in others if isinstance(x, Tensor)]
@@ -73,6 +75,8 @@ def native_unsupported(images: Iterable[Tensor], others: Iterable = (), soft: bo
         return "tracing / ONNX export / torch.compile need the torch path"
     if soft:
         return "soft=True (differentiable thresholds) is implemented in torch only"
+    if motion:
+        return "motion vectors (motion=...) are implemented in torch only"
     devices = {str(t.device) for t in tensors if t.device.type != "cpu"}
     if devices:
         return f"the native kernels run on the CPU only, got tensors on {sorted(devices)}"
@@ -84,7 +88,8 @@ def native_unsupported(images: Iterable[Tensor], others: Iterable = (), soft: bo
     return None
 
 
-def select_backend(backend: str, images: Iterable[Tensor], others: Iterable = (), soft: bool = False) -> str:
+def select_backend(backend: str, images: Iterable[Tensor], others: Iterable = (), soft: bool = False,
+                   motion: bool = False) -> str:
     """Resolve ``backend`` (``"auto"`` | ``"torch"`` | ``"native"``) to ``"torch"`` or ``"native"``.
 
     * ``STEREOREPRO_BACKEND`` overrides ``backend`` when set (:mod:`stereorepro._backend`: the rule the tracer
@@ -95,7 +100,7 @@ def select_backend(backend: str, images: Iterable[Tensor], others: Iterable = ()
     * ``"native"`` runs native and raises RuntimeError saying why when it is not possible;
     * tracing, ONNX export and ``torch.compile`` always use torch, whatever was asked.
     """
-    chosen = _backend.resolve(backend, BACKENDS, lambda: native_unsupported(images, others, soft),
+    chosen = _backend.resolve(backend, BACKENDS, lambda: native_unsupported(images, others, soft, motion),
                               reference_only=tracing())
     return "native" if chosen == "native" else "torch"
 
@@ -117,6 +122,8 @@ def backward_reproject(
     temperature: float = 0.1,
     check: bool = True,
     backend: str = "auto",
+    motion: Tensor | None = None,
+    motion_world: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Backward-warp ``src_values`` into the destination view with per-tap discard tests.
 
@@ -141,6 +148,14 @@ def backward_reproject(
             renormalised by ``max(accepted weight, SOFT_DEN_FLOOR)`` so that gradients stay bounded.
         check: validate shapes/dtypes (public boundary).
         backend: ``"auto"`` | ``"torch"`` | ``"native"``: see :func:`select_backend`.
+        motion: optional (B, 2, H, W) motion vectors in pixels, ``src_pixel = dst_pixel + motion`` (a renderer's
+            screen-space motion to the source frame): the taps are read there instead of where the cameras put
+            the destination point. Non-finite motion sends the pixel out of the frame (``OUT_OF_FRAME``). Torch
+            only: ``backend="auto"`` then runs torch's general path.
+        motion_world: optional (B, 3, H, W) world-space motion of the destination point to the source instant
+            (``P_src = P_dst + motion_world``; with ``motion``): the position test compares the source tap with
+            the moved point, so a moving object is kept and a disocclusion is still rejected. Default zeros
+            (static geometry).
 
     Returns:
         values: (B, C, H, W) warped values (0 where nothing was accepted), dtype of ``src_values``.
@@ -158,24 +173,32 @@ def backward_reproject(
         check_reprojection_inputs(src_values, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal,
                                   dst_K, dst_cam_from_world, dict(STEREO_NAMES, src_values="src_values"))
         check_thresholds(position_threshold, normal_threshold)
+        check_motion(motion, motion_world, dst_depth, "motion", "motion_world")
     if _is_empty(dst_depth):
         return _empty_outputs(src_values, dst_depth, confidence=True)
     if select_backend(backend, (src_values, src_depth, src_normal, dst_depth, dst_normal),
                       (src_K, src_cam_from_world, dst_K, dst_cam_from_world, position_threshold, normal_threshold),
-                      soft) == "native":
+                      soft, motion is not None) == "native":
         return _native_backward(src_values, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal,
                                 dst_K, dst_cam_from_world, position_threshold, normal_threshold, sampling)
     return _torch_backward(src_values, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal, dst_K,
-                           dst_cam_from_world, position_threshold, normal_threshold, sampling, soft, temperature)
+                           dst_cam_from_world, position_threshold, normal_threshold, sampling, soft, temperature,
+                           motion, motion_world)
 
 
 def _torch_backward(src_values, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal, dst_K,
-                    dst_cam_from_world, position_threshold, normal_threshold, sampling, soft, temperature):
+                    dst_cam_from_world, position_threshold, normal_threshold, sampling, soft, temperature,
+                    motion=None, motion_world=None):
     """The torch backend of :func:`backward_reproject` (arguments checked): the fast path where it applies."""
     wdt = compute_dtype(src_values, src_depth, src_normal, dst_depth, dst_normal)
     warp = compose_warp(src_K, src_cam_from_world, dst_K, dst_cam_from_world, wdt)
     inference = inference_only((src_values, src_depth, src_normal, dst_depth, dst_normal, src_K, dst_K,
-                                src_cam_from_world, dst_cam_from_world, position_threshold, normal_threshold))
+                                src_cam_from_world, dst_cam_from_world, position_threshold, normal_threshold,
+                                motion, motion_world))
+    if motion is not None:  # motion vectors: the general path (the fast path and native warp with cameras only)
+        return _general.general_reproject(src_values, src_depth, src_normal, dst_depth, dst_normal, warp,
+                                          position_threshold, normal_threshold, sampling, soft, temperature,
+                                          inference, motion, motion_world, src_cam_from_world[:, :3, :3])
     if inference and not soft and FAST_PATH:  # the usual inference case: same results, less memory traffic
         thr2 = squared_thresholds(position_threshold, normal_threshold, wdt, dst_depth.device)
         if bool(torch.isfinite(thr2).all()):
@@ -380,6 +403,8 @@ def temporal_reproject(
     temperature: float = 0.1,
     backend: str = "auto",
     return_reason: bool = False,
+    motion: Tensor | None = None,
+    motion_world: Tensor | None = None,
 ) -> tuple[Tensor, ...]:
     """Temporal accumulation: warp the previous frame's history into this frame and blend (paper §4.1).
 
@@ -394,6 +419,12 @@ def temporal_reproject(
         alpha, warmup, max_history: see :func:`temporal_blend`.
         backend: ``"auto"`` | ``"torch"`` | ``"native"`` (see :func:`select_backend`).
         return_reason: also return the discard reasons of the history.
+        motion: optional (B, 2, H, W) screen-space motion to the previous frame in pixels (``prev_pixel = pixel +
+            motion``, e.g. :attr:`~stereorepro.render.RenderResult.motion`): the history is read there instead of
+            where the cameras alone put it, so objects that move independently of the camera keep their history.
+        motion_world: optional (B, 3, H, W) world-space motion of the surface to the previous frame (``P_prev = P
+            + motion_world``): the position test compares the history with the moved point (zeros if omitted:
+            static geometry). See :func:`backward_reproject`; with motion the op runs on torch's general path.
 
     Returns:
         color: (B, 3, H, W) accumulated colour.
@@ -417,13 +448,14 @@ def temporal_reproject(
     if not tracing():
         check_thresholds(position_threshold, normal_threshold)
         _check_blend_scalars(alpha, max_history)
+        check_motion(motion, motion_world, depth, "motion", "motion_world")
     if _is_empty(depth):
         color, valid, reason = _empty_outputs(current_color, depth)
         n = torch.zeros(depth.shape, dtype=compute_dtype(history_color, history_len), device=depth.device)
         return (color, n, valid, reason) if return_reason else (color, n, valid)
     images = (current_color, depth, normal, history_color, history_len, prev_depth, prev_normal)
     others = (K, cam_from_world, prev_K, prev_cam_from_world, position_threshold, normal_threshold, alpha)
-    native = select_backend(backend, images, others, soft) == "native"
+    native = select_backend(backend, images, others, soft, motion is not None) == "native"
     if native and not return_reason:
         return _native_temporal(current_color, depth, normal, K, cam_from_world, history_color, history_len,
                                 prev_depth, prev_normal, prev_K, prev_cam_from_world, position_threshold,
@@ -436,7 +468,7 @@ def temporal_reproject(
         warped, valid, reason, _ = _native_backward(*args, want_confidence=False)
         confidence = valid
     else:
-        warped, valid, reason, den = _torch_backward(*args, soft, temperature)
+        warped, valid, reason, den = _torch_backward(*args, soft, temperature, motion, motion_world)
         confidence = den if soft else valid
     color, n = temporal_blend(current_color, warped[:, :3], warped[:, 3:4], confidence, alpha, warmup, max_history)
     return (color, n, valid, reason) if return_reason else (color, n, valid)

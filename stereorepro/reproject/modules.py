@@ -89,12 +89,16 @@ class TemporalReprojection(_ReprojectionBase):
         alpha: minimum weight of the current frame (paper: 0.2); learnable when ``soft``.
         warmup: running mean until the weight reaches ``alpha`` (BMFR); ``False`` = fixed EMA.
         max_history: cap of the accumulated sample count.
+        motion_vectors: the forward takes two more inputs, ``motion`` (B,2,H,W) and ``motion_world`` (B,3,H,W),
+            the renderer's motion to the previous frame (moving objects; see :func:`temporal_reproject`); they are
+            then part of ``input_names`` and of the exported ONNX graph. Without it they may still be passed by
+            keyword.
 
     Forward:
         ``forward(current_color, depth, normal, K, cam_from_world, history_color, history_len, prev_depth,
-        prev_normal, prev_K, prev_cam_from_world) -> (color, history_len, valid)`` with shapes
-        (B,3,H,W), (B,1,H,W), (B,3,H,W), (B,3,3), (B,4,4), (B,3,H,W), (B,1,H,W), (B,1,H,W), (B,3,H,W),
-        (B,3,3), (B,4,4) → (B,3,H,W), (B,1,H,W) float, (B,1,H,W) bool.
+        prev_normal, prev_K, prev_cam_from_world[, motion, motion_world]) -> (color, history_len, valid)`` with
+        shapes (B,3,H,W), (B,1,H,W), (B,3,H,W), (B,3,3), (B,4,4), (B,3,H,W), (B,1,H,W), (B,1,H,W), (B,3,H,W),
+        (B,3,3), (B,4,4)[, (B,2,H,W), (B,3,H,W)] → (B,3,H,W), (B,1,H,W) float, (B,1,H,W) bool.
     """
 
     input_names = ["current_color", "depth", "normal", "K", "cam_from_world", "history_color", "history_len",
@@ -103,8 +107,11 @@ class TemporalReprojection(_ReprojectionBase):
 
     def __init__(self, position_threshold: float, normal_threshold: float, alpha: float = 0.2,
                  warmup: bool = True, max_history: float = 255.0, sampling: str = "bilinear", soft: bool = False,
-                 temperature: float = 0.1, backend: str = "auto"):
+                 temperature: float = 0.1, backend: str = "auto", motion_vectors: bool = False):
         super().__init__(position_threshold, normal_threshold, sampling, soft, temperature, backend)
+        self.motion_vectors = bool(motion_vectors)
+        if self.motion_vectors:
+            self.input_names = type(self).input_names + ["motion", "motion_world"]
         if not (0.0 < float(alpha) <= 1.0):
             raise ValueError(f"alpha must be in (0, 1], got {alpha}")
         if not max_history >= 1:
@@ -117,12 +124,17 @@ class TemporalReprojection(_ReprojectionBase):
             self.register_buffer("alpha", torch.as_tensor(float(alpha), dtype=torch.float32))
 
     def extra_repr(self) -> str:
-        return super().extra_repr() + f", alpha={float(self.alpha):g}, warmup={self.warmup}, max_history={self.max_history:g}"
+        return (super().extra_repr() + f", alpha={float(self.alpha):g}, warmup={self.warmup}, "
+                f"max_history={self.max_history:g}" + (", motion_vectors=True" if self.motion_vectors else ""))
 
     def forward(self, current_color: Tensor, depth: Tensor, normal: Tensor, K: Tensor, cam_from_world: Tensor,
                 history_color: Tensor, history_len: Tensor, prev_depth: Tensor, prev_normal: Tensor,
-                prev_K: Tensor, prev_cam_from_world: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+                prev_K: Tensor, prev_cam_from_world: Tensor, motion: Tensor | None = None,
+                motion_world: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+        if self.motion_vectors and motion is None and not torch.jit.is_tracing():
+            raise TypeError("TemporalReprojection(motion_vectors=True).forward needs `motion` (and motion_world)")
         return temporal_reproject(current_color, depth, normal, K, cam_from_world, history_color, history_len,
                                   prev_depth, prev_normal, prev_K, prev_cam_from_world, self.position_threshold,
                                   self.normal_threshold, self.alpha, self.warmup, self.max_history, self.sampling,
-                                  self.soft, self.temperature, self.backend)
+                                  self.soft, self.temperature, self.backend, motion=motion,
+                                  motion_world=motion_world)

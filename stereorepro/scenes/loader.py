@@ -52,14 +52,17 @@ import numpy as np
 import torch
 
 from ..camera import PinholeCamera, StereoRig, intrinsics_from_fov, look_at
+from .animation import parse_animations
 from ..errors import SceneError
 
 __all__ = ["Scene", "SceneError", "SceneGeometry", "list_scenes", "load_scene", "scenes_dir",
            "shared_scenes_dir", "KNOWN_EFFECTS", "THRESHOLD_ROWS", "threshold_scale"]
 
-KNOWN_EFFECTS = frozenset({"glossy", "moving_light"})
+KNOWN_EFFECTS = frozenset({"glossy", "moving_light", "moving_objects"})
 BUILTIN_SCENES = ("atrium", "atrium_glossy", "atrium_moving_light", "living_room", "living_room_glossy",
                   "living_room_moving_light", "classroom")
+#: Built-in scenes beyond the paper's seven (effects the paper does not have).
+BEYOND_PAPER_SCENES = ("living_room_moving_objects",)
 EXTERNAL_SCENES = ("shared_sponza", "shared_living_room", "shared_classroom")
 SHARED_ENV = "STEREOREPRO_SHARED_SCENES"
 #: Image rows for which scene files set their position thresholds (2–3 pixel footprints at a typical depth).
@@ -103,10 +106,12 @@ def shared_scenes_dir() -> Path:
     return Path(__file__).resolve().parent.parent.parent.parent / "shared" / "scenes"
 
 
-def list_scenes(include_external: bool = False) -> list[str]:
+def list_scenes(include_external: bool = False, beyond_paper: bool = False) -> list[str]:
     """Names of the built-in scenes (the paper's seven variants); with ``include_external`` also the scenes that
-    need the shared meshes (``shared_*``)."""
-    return list(BUILTIN_SCENES) + (list(EXTERNAL_SCENES) if include_external else [])
+    need the shared meshes (``shared_*``); with ``beyond_paper`` also the built-in scenes of effects the paper
+    does not have (``living_room_moving_objects``)."""
+    return (list(BUILTIN_SCENES) + (list(BEYOND_PAPER_SCENES) if beyond_paper else [])
+            + (list(EXTERNAL_SCENES) if include_external else []))
 
 
 _VEC3 = "vec3"
@@ -123,9 +128,13 @@ _SCHEMA = {
     "rig": ("table", {"eye_separation": "float", "convergence_distance": "float"}),
     "reprojection": ("table", {"position_threshold": "float", "normal_threshold": "float"}),
     "render": ("table", {"radiance_clamp": "float", "point_light_min_distance": "float"}),
+    "animations": ("tablelist", {"materials": "strlist", "pivot": _VEC3, "frames": "intlist",
+                                 "translate": "vec3list", "rotate": "vec4list", "scale": "floatlist"}),
 }
 _DESCR = {"str": "a string", "int": "an integer", "float": "a number", "strlist": "a list of strings",
           _VEC3: "a list of 3 numbers", "vec3list": "a non-empty list of [x, y, z] lists",
+          "intlist": "a non-empty list of integers", "floatlist": "a non-empty list of numbers",
+          "vec4list": "a non-empty list of [axis_x, axis_y, axis_z, angle_deg] lists",
           "table": "a table", "tablelist": "an array of tables ([[...]])", "tablemap": "a table of tables"}
 
 
@@ -146,6 +155,13 @@ def _type_ok(kind: str, v) -> bool:
         return isinstance(v, list) and len(v) == 3 and all(_num(a) for a in v)
     if kind == "vec3list":
         return isinstance(v, list) and len(v) > 0 and all(_type_ok(_VEC3, p) for p in v)
+    if kind == "vec4list":
+        return isinstance(v, list) and len(v) > 0 and all(isinstance(p, list) and len(p) == 4
+                                                           and all(_num(a) for a in p) for p in v)
+    if kind == "intlist":
+        return isinstance(v, list) and len(v) > 0 and all(_type_ok("int", a) for a in v)
+    if kind == "floatlist":
+        return isinstance(v, list) and len(v) > 0 and all(_num(a) for a in v)
     raise AssertionError(kind)
 
 
@@ -291,6 +307,8 @@ class Scene:
     _lights: list = field(default_factory=list, repr=False)
     _geometry: SceneGeometry | None = field(default=None, repr=False)
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+    _animations: list = field(default_factory=list, repr=False)
+    _pivots: np.ndarray | None = field(default=None, repr=False)
 
     def thresholds(self, height: int, scale: float | None = None) -> tuple[float, float]:
         """(position, normal) thresholds for images of ``height`` rows: the position threshold times ``scale``,
@@ -341,8 +359,42 @@ class Scene:
                 "exponent": np.array([m.exponent for m in ms], np.float32).reshape(-1),
                 "emission": np.array([m.emission for m in ms], np.float32).reshape(-1, 3)}
 
+    def face_objects(self) -> np.ndarray:
+        """(F,) int32: for each face of :meth:`geometry`, the index of the animation that moves it (its object),
+        or -1 for static faces (all of them unless the scene declares ``moving_objects``)."""
+        geo = self.geometry()
+        out = np.full(len(geo.faces), -1, np.int32)
+        names = [m.name for m in self._materials]
+        for o, anim in enumerate(self._animations):
+            ids = [names.index(n) for n in anim.materials]
+            out[np.isin(geo.material_ids, ids)] = o
+        return out
+
+    def object_transforms(self, frame: float) -> np.ndarray:
+        """(O, 4, 4) float64 ``world_from_rest`` of each moving object at ``frame`` (O = 0 for static scenes);
+        see :mod:`stereorepro.scenes.animation`."""
+        if not self._animations:
+            return np.zeros((0, 4, 4))
+        pivots = self._object_pivots()
+        return np.stack([a.world_from_rest(float(frame), pivots[o]) for o, a in enumerate(self._animations)])
+
+    def _object_pivots(self) -> np.ndarray:
+        """(O, 3): each object's bounding-box centre at rest (the default pivot), computed once."""
+        if self._pivots is None:
+            geo, objs = self.geometry(), self.face_objects()
+            piv = np.zeros((len(self._animations), 3))
+            for o in range(len(self._animations)):
+                v = geo.vertices[geo.faces[objs == o].reshape(-1)].astype(np.float64)
+                if len(v) == 0:
+                    raise SceneError(f"{self.source}: animations[{o}]: no faces have materials "
+                                     f"{list(self._animations[o].materials)}")
+                piv[o] = 0.5 * (v.min(0) + v.max(0))
+            self._pivots = piv
+        return self._pivots
+
     def geometry(self) -> SceneGeometry:
-        """The scene's triangles (loaded or generated once, then cached)."""
+        """The scene's triangles at rest (loaded or generated once, then cached); moving objects are placed per
+        frame by :meth:`object_transforms`."""
         with self._lock:
             if self._geometry is None:
                 self._geometry = _build_geometry(self)
@@ -486,10 +538,11 @@ def load_scene(name_or_path: str | os.PathLike) -> Scene:
     s = str(name_or_path)
     if s.endswith(".toml") or os.sep in s or "/" in s:
         path = Path(s)
-    elif s in BUILTIN_SCENES or s in EXTERNAL_SCENES:
+    elif s in BUILTIN_SCENES or s in BEYOND_PAPER_SCENES or s in EXTERNAL_SCENES:
         path = scenes_dir() / f"{s}.toml"
     else:
-        raise SceneError(f"unknown scene {s!r}: expected one of {', '.join(list_scenes(True))} or a .toml path")
+        raise SceneError(f"unknown scene {s!r}: expected one of {', '.join(list_scenes(True, True))} or a .toml "
+                         "path")
     path = path.resolve()
     data = _read_toml(path)
     file = str(path)
@@ -588,6 +641,7 @@ def load_scene(name_or_path: str | os.PathLike) -> Scene:
     scene._mesh_material_offset = mesh_offset
     scene._mesh_material_count = mesh_count
     scene._mesh_dropped = mesh_dropped
+    scene._animations = parse_animations(data, file, materials, num_frames)
     _check_camera_path(scene, file)
     return scene
 

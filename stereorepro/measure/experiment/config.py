@@ -8,7 +8,8 @@ from pathlib import Path
 
 from ...scenes import THRESHOLD_ROWS
 
-__all__ = ["REFERENCE_OFFSET", "THRESHOLD_ROWS", "LEFT", "RIGHT", "Scheme", "SCHEMES", "ExperimentConfig", "schemes", "validate_config"]
+__all__ = ["REFERENCE_OFFSET", "THRESHOLD_ROWS", "LEFT", "RIGHT", "Scheme", "SCHEMES", "MOTION_SCHEMES",
+           "ExperimentConfig", "schemes", "validate_config"]
 
 #: First sample index of reference renders (ladders use 0..L-1: disjoint streams).
 REFERENCE_OFFSET = 1 << 24
@@ -24,6 +25,7 @@ class Scheme:
     sampling: str = "bilinear"
     alpha: float = 0.2
     paper: bool = False  # one of the paper's three Table 2 columns
+    motion: bool = False  # temporal steps through the tracer's motion vectors (scenes with moving objects)
 
 
 SCHEMES = (
@@ -63,9 +65,17 @@ class ExperimentConfig:
     metric: str = "ldr"
 
 
-def schemes(cfg: ExperimentConfig) -> list[Scheme]:
-    """The paper's schemes and the variants, with an alpha variant for each extra ``cfg.alphas`` weight."""
-    out = list(SCHEMES)
+#: Variants of scenes with moving objects: the temporal steps read the history through the motion vectors.
+MOTION_SCHEMES = (
+    Scheme("temporal_mv", False, True, RIGHT, motion=True),
+    Scheme("stereo_temporal_mv", True, True, LEFT, motion=True),
+)
+
+
+def schemes(cfg: ExperimentConfig, moving_objects: bool = False) -> list[Scheme]:
+    """The paper's schemes and the variants, with an alpha variant for each extra ``cfg.alphas`` weight, and the
+    motion-vector variants when the scene has moving objects."""
+    out = list(SCHEMES) + (list(MOTION_SCHEMES) if moving_objects else [])
     for a in cfg.alphas:
         if abs(a - 0.2) > 1e-12:
             out.append(Scheme(f"temporal_alpha{a:g}", False, True, RIGHT, alpha=a))

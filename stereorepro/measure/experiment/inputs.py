@@ -26,18 +26,28 @@ class EyeData:
     ms_per_spp: float  # mean wall time of one 1-spp full-frame render
     ms_reference: float
     camera: object = None
+    motion: torch.Tensor | None = None  # (1, 2, H, W) to the previous frame (moving objects, frame > 0)
+    motion_world: torch.Tensor | None = None  # (1, 3, H, W)
+    object_id: torch.Tensor | None = None  # (1, 1, H, W) int32, -1 static (moving objects)
 
 
-def render_eye(tracer, cache: RenderCache, base_key: dict, camera, frame: int, eye: int, cfg: ExperimentConfig
-                ) -> EyeData:
+def render_eye(tracer, cache: RenderCache, base_key: dict, camera, frame: int, eye: int, cfg: ExperimentConfig,
+               prev_camera=None) -> EyeData:
+    """One eye's inputs; with ``prev_camera`` (scenes with moving objects, frame > 0) the G-buffer includes the
+    motion to the previous frame and the moving objects' ids (cached under their own key)."""
     key = dict(base_key, frame=frame, eye=eye)
+    motion = prev_camera is not None or getattr(tracer, "moving_objects", False)
 
     def gbuf():
-        r = tracer.gbuffer(camera, frame)
-        return ({"depth": r.depth.numpy(), "normal": r.normal.numpy()},
-                {"ms": r.time_s * 1e3, "rays": r.ray_counts})
+        r = tracer.gbuffer(camera, frame, prev_camera=prev_camera)
+        out = {"depth": r.depth.numpy(), "normal": r.normal.numpy()}
+        for name in ("motion", "motion_world", "object_id"):
+            if getattr(r, name) is not None:
+                out[name] = getattr(r, name).numpy()
+        return out, {"ms": r.time_s * 1e3, "rays": r.ray_counts}
 
-    g, gmeta = cache.get_or_make(dict(key, kind="gbuffer"), gbuf)
+    g, gmeta = cache.get_or_make(dict(key, kind="gbuffer_motion" if motion else "gbuffer",
+                                      **({"prev": prev_camera is not None} if motion else {})), gbuf)
     rungs, times = [], []
     total = None
     for s in range(cfg.ladder_spp):
@@ -57,6 +67,7 @@ def render_eye(tracer, cache: RenderCache, base_key: dict, camera, frame: int, e
         return {"radiance": r.radiance.numpy()}, {"ms": r.time_s * 1e3, "rays": r.ray_counts}
 
     rd, rmeta = cache.get_or_make(dict(key, kind="spp", spp=cfg.reference_spp, offset=REFERENCE_OFFSET), ref)
+    opt = {k: torch.from_numpy(g[k]) for k in ("motion", "motion_world", "object_id") if k in g}
     return EyeData(torch.from_numpy(g["depth"]), torch.from_numpy(g["normal"]), camera.K.float(),
                    camera.cam_from_world.double(), rungs, torch.from_numpy(rd["radiance"]), gmeta["ms"],
-                   float(np.mean(times)), rmeta["ms"], camera)
+                   float(np.mean(times)), rmeta["ms"], camera, **opt)

@@ -35,6 +35,25 @@ def tables_markdown(results: dict) -> str:
     for k in ("stereo", "temporal", "stereo_temporal"):
         cells += [_fmt(t2[k]["avg"]), _fmt(t2[k]["min"]), _fmt(t2[k]["max"])]
     lines.append(f"| {results['scene']} | " + " | ".join(cells) + " |")
+    if "moving_objects" in results:
+        lines += ["", moving_markdown(results)]
+    return "\n".join(lines) + "\n"
+
+
+def moving_markdown(results: dict) -> str:
+    """Moving objects: temporal discards on the moving objects' pixels and on the static rest, and effective spp,
+    with camera-only warping (the paper's) and with motion vectors."""
+    mo, t2, var = results["moving_objects"], results["table2"], results["table2_variants"]
+    lines = [f"**Moving objects** — {_fmt(mo['moving_pixels_pct']['avg'], 1)} % of the right eye's pixels show "
+             "moving objects (avg); temporal discards (%, avg over frames) and effective spp (avg)", "",
+             "| warping | discards on moving objects | discards on static background | temporal spp | "
+             "stereo+temporal spp |", "|---|---:|---:|---:|---:|"]
+    for label, k, st in (("cameras only (paper)", "temporal", "stereo_temporal"),
+                         ("motion vectors", "temporal_mv", "stereo_temporal_mv")):
+        spp_t = (t2 if k in t2 else var)[k]["avg"]
+        spp_st = (t2 if st in t2 else var)[st]["avg"]
+        lines.append(f"| {label} | {_fmt(mo[k]['moving']['avg'], 1)} | {_fmt(mo[k]['static']['avg'], 1)} | "
+                     f"{_fmt(spp_t)} | {_fmt(spp_st)} |")
     return "\n".join(lines) + "\n"
 
 
@@ -74,8 +93,12 @@ def _write_outputs(out: Path, results: dict, per_frame, keep, cfg) -> None:
 
     # Figure 1: discard reasons
     if "fig1_stereo" in keep:
-        fig, axes = plt.subplots(1, 2, figsize=(10, 3.2))
-        for ax, key, title in ((axes[0], "fig1_stereo", "(a) Stereo"), (axes[1], "fig1_temporal", "(b) Temporal")):
+        panels = [("fig1_stereo", "(a) Stereo"), ("fig1_temporal", "(b) Temporal")]
+        if "fig1_temporal_mv" in keep:  # moving objects: the temporal discards with motion vectors beside
+            panels = [("fig1_stereo", "(a) Stereo"), ("fig1_temporal", "(b) Temporal, cameras only"),
+                      ("fig1_temporal_mv", "(c) Temporal, motion vectors")]
+        fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 3.2))
+        for ax, (key, title) in zip(axes, panels):
             if key in keep:
                 ax.imshow(reason_to_rgb(keep[key])[0].permute(1, 2, 0).numpy())
             ax.set_title(title)

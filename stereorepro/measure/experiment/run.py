@@ -57,7 +57,8 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
     cache = RenderCache(Path(cfg.cache_dir) if cfg.cache_dir else out / "cache", force=cfg.force, log=log)
     code = cfg.renderer_version or code_version()
     base_key = {"scene": scene_fingerprint(scene), "code": code, "seed": cfg.seed, "w": W, "h": H}
-    schemes = all_schemes(cfg)
+    moving = "moving_objects" in scene.effects
+    schemes = all_schemes(cfg, moving)
     drivers = {s.name: SpatiotemporalReprojection(pos_thr, nrm_thr, alpha=s.alpha, sampling=s.sampling,
                                                   stereo=s.stereo, temporal=s.temporal) for s in schemes}
     # The same schemes fed with the noise-free references: their error is the resampling bias alone (bilinear blur
@@ -73,8 +74,9 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
     bar = tqdm(range(frames), desc=f"{scene.name} {W}x{H}", unit="frame", disable=not cfg.progress)
     for f in bar:
         left_cam, right_cam = scene.stereo_cameras(f, W, H)
-        eyes = {LEFT: render_eye(tracer, cache, base_key, left_cam, f, LEFT, cfg),
-                RIGHT: render_eye(tracer, cache, base_key, right_cam, f, RIGHT, cfg)}
+        prev = scene.stereo_cameras(f - 1, W, H) if moving and f > 0 else (None, None)
+        eyes = {LEFT: render_eye(tracer, cache, base_key, left_cam, f, LEFT, cfg, prev[LEFT]),
+                RIGHT: render_eye(tracer, cache, base_key, right_cam, f, RIGHT, cfg, prev[RIGHT])}
         L, R = eyes[LEFT], eyes[RIGHT]
         timing["trace_1spp_ms"] += [L.ms_per_spp, R.ms_per_spp]
         timing["gbuffer_ms"] += [L.ms_gbuffer, R.ms_gbuffer]
@@ -82,6 +84,9 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
         surface = {e: has_surface(d.depth) for e, d in eyes.items()}
         row = {"frame": f, "discard_pct": {}, "rmse": {}, "effective_spp": {}, "flags": {},
                "ladder_rmse": {}, "no_surface_pct": {}, "rmse_noise_free": {}}
+        if moving:
+            row.update(discard_pct_moving={}, discard_pct_static={}, moving_pct=100.0 * float(
+                ((R.object_id >= 0) & surface[RIGHT]).float().mean()))
         ladder_spp = list(range(1, cfg.ladder_spp + 1))
         ladder_err = {}
         for e, d in eyes.items():
@@ -92,10 +97,12 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
             row["no_surface_pct"]["left" if e == LEFT else "right"] = 100.0 * float((~surface[e]).float().mean())
         for s in schemes:
             drv = drivers[s.name]
+            mv_r = (R.motion, R.motion_world) if s.motion else (None, None)
+            mv_l = (L.motion, L.motion_world) if s.motion else (None, None)
             t0 = time.perf_counter()
-            right_out = drv.right(R.ladder[0], R.depth, R.normal, R.K, R.cam_from_world)
+            right_out = drv.right(R.ladder[0], R.depth, R.normal, R.K, R.cam_from_world, *mv_r)
             t1 = time.perf_counter()
-            mask = drv.left_trace_mask(L.depth, L.normal, L.K, L.cam_from_world)
+            mask = drv.left_trace_mask(L.depth, L.normal, L.K, L.cam_from_world, *mv_l)
             left_out = drv.left(L.ladder[0])  # the left 1-spp samples; only masked pixels are read
             t2 = time.perf_counter()
             # per-eye accounting: a stereo scheme's left eye pays for its own steps, the right eye for its own
@@ -108,8 +115,8 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
             row["rmse"][s.name] = err
             if s.name in clean:
                 c = clean[s.name]
-                c_right = c.right(R.reference, R.depth, R.normal, R.K, R.cam_from_world)
-                c.left_trace_mask(L.depth, L.normal, L.K, L.cam_from_world)
+                c_right = c.right(R.reference, R.depth, R.normal, R.K, R.cam_from_world, *mv_r)
+                c.left_trace_mask(L.depth, L.normal, L.K, L.cam_from_world, *mv_l)
                 c_left = c.left(L.reference)
                 row["rmse_noise_free"][s.name] = float(rmse(_metric_image(c_left if s.eye == LEFT else c_right,
                                                                           cfg.metric),
@@ -127,12 +134,17 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
                     timing["trace_left_discards_ms"].append(r.time_s * 1e3)
                     row["masked_trace_matches"] = bool(torch.equal(torch.where(mask, r.radiance, 0.0),
                                                                    torch.where(mask, L.ladder[0], 0.0)))
-            if s.name == "temporal" and drv.right_valid is not None:
+            if s.name in ("temporal", "temporal_mv") and drv.right_valid is not None:
                 surf = surface[RIGHT]
-                row["discard_pct"]["temporal"] = 100.0 * float((~drv.right_valid & surf).sum()
-                                                               / surf.sum().clamp_min(1))
+                row["discard_pct"][s.name] = 100.0 * float((~drv.right_valid & surf).sum()
+                                                           / surf.sum().clamp_min(1))
+                if moving:  # discards on the moving objects' pixels and on the static rest
+                    mov = (R.object_id >= 0) & surf
+                    for part, sel in (("discard_pct_moving", mov), ("discard_pct_static", surf & ~mov)):
+                        row[part][s.name] = (100.0 * float((~drv.right_valid & sel).sum() / sel.sum())
+                                             if bool(sel.any()) else None)
                 if f == fig1_frame:
-                    keep["fig1_temporal"] = drv.right_reason.clone()
+                    keep["fig1_" + s.name] = drv.right_reason.clone()
             if s.name == "stereo_temporal" and f == frames - 1:
                 keep["fig4"] = {"method": left_out.clone(), "one": L.ladder[0].clone(), "ref": L.reference.clone(),
                                 "top": L.ladder[-1].clone(), "spp": row["effective_spp"][s.name]}
@@ -144,6 +156,11 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
 
     table1 = {"stereo": _stats([r["discard_pct"].get("stereo") for r in per_frame]),
               "temporal": _stats([r["discard_pct"].get("temporal") for r in per_frame])}
+    moving_table = None
+    if moving:  # temporal discards on moving-object pixels vs the static background, camera-only vs motion vectors
+        moving_table = {"moving_pixels_pct": _stats([r["moving_pct"] for r in per_frame]),
+                        **{k: {part: _stats([r[f"discard_pct_{part}"].get(k) for r in per_frame])
+                               for part in ("moving", "static")} for k in ("temporal", "temporal_mv")}}
     table2 = {s.name: _stats([r["effective_spp"][s.name] for r in per_frame]) for s in schemes}
     timing_ms = {k: float(np.median(v)) if v else None for k, v in timing.items()}
     cost = _cost_table(schemes, table2, timing_ms, cfg)
@@ -157,6 +174,7 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
         "thresholds": {"position": pos_thr, "normal": nrm_thr, "position_scene": float(scene.position_threshold),
                        "scale": scale},
         "table1": table1,
+        **({"moving_objects": moving_table} if moving else {}),
         "table2": {k: table2[k] for k in ("stereo", "temporal", "stereo_temporal")},
         "table2_variants": {k: v for k, v in table2.items() if k not in ("stereo", "temporal", "stereo_temporal")},
         "timing_ms": timing_ms, "cost": cost, "bias": bias, "per_frame": per_frame,
