@@ -1,0 +1,199 @@
+"""Temporal reprojection driven by motion vectors (moving objects): the op, its module, ONNX, and the hard cases."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from base import BaseTester
+from stereorepro import SpatiotemporalReprojection, TemporalReprojection, camera_motion, intrinsics_from_fov
+from stereorepro.errors import ShapeError
+from stereorepro.io.onnx import example_inputs
+from stereorepro.reproject import Reason
+from stereorepro.reproject.functional import backward_reproject, temporal_reproject
+
+H, W = 16, 24
+SHIFT = 3  # pixels the object moved to the right between the frames
+THR = (0.05, 0.25)
+
+
+def moving_object(dtype=torch.float64):
+    """Two frames of one static camera: a background plane at z = 4 and an object patch at z = 2 that moved
+    SHIFT pixels right. Returns (current args of temporal_reproject, motion, motion_world, masks)."""
+    K = intrinsics_from_fov(60.0, W, H, dtype=dtype)
+    T = torch.eye(4, dtype=dtype)[None]
+    fx = float(K[0, 0, 0])
+    g = torch.Generator().manual_seed(0)
+    rows, cols = slice(4, 11), slice(6, 13)
+    prev_depth = torch.full((1, 1, H, W), 4.0, dtype=dtype)
+    prev_depth[..., rows, cols] = 2.0
+    depth = torch.full((1, 1, H, W), 4.0, dtype=dtype)
+    depth[..., rows, slice(6 + SHIFT, 13 + SHIFT)] = 2.0
+    normal = torch.zeros(1, 3, H, W, dtype=dtype)
+    normal[:, 2] = -1.0
+    history = torch.rand(1, 3, H, W, generator=g, dtype=dtype)
+    current = torch.rand(1, 3, H, W, generator=g, dtype=dtype)
+    obj = depth == 2.0
+    motion = torch.zeros(1, 2, H, W, dtype=dtype)
+    motion[:, 0:1][obj] = -SHIFT
+    motion_world = torch.zeros(1, 3, H, W, dtype=dtype)
+    motion_world[:, 0:1][obj] = -SHIFT * 2.0 / fx  # the object's world motion at z = 2
+    disoccluded = torch.zeros_like(obj)
+    disoccluded[..., rows, slice(6, 6 + SHIFT)] = True
+    args = (current, depth, normal, K, T, history, torch.full_like(depth, 4.0), prev_depth, normal, K, T)
+    return args, motion, motion_world, obj, disoccluded
+
+
+class TestMotionReproject(BaseTester):
+    def test_smoke(self):
+        args, motion, mw, obj, dis = moving_object()
+        c, n, valid, reason = temporal_reproject(*args, *THR, motion=motion, motion_world=mw, return_reason=True)
+        assert c.shape == (1, 3, H, W) and n.shape == valid.shape == reason.shape == (1, 1, H, W)
+
+    def test_moving_object_keeps_its_history(self):
+        args, motion, mw, obj, dis = moving_object()
+        _, _, cam_valid, cam_reason = temporal_reproject(*args, *THR, return_reason=True)
+        moved_in = obj & (args[7] != 2.0)  # object pixels where the previous frame shows the background
+        assert not bool(cam_valid[moved_in].any()) and bool((cam_reason[moved_in] == Reason.POSITION).all())
+        warped, valid, reason, _ = backward_reproject(args[5], args[7], args[8], args[9], args[10], args[1], args[2],
+                                                      args[3], args[4], *THR, motion=motion, motion_world=mw)
+        assert bool(valid[obj].all())
+        expected = torch.roll(args[5], SHIFT, dims=-1)  # the history, moved with the object
+        assert torch.equal(warped[obj.expand_as(warped)], expected[obj.expand_as(expected)])
+        c, n, valid_t, _ = temporal_reproject(*args, *THR, motion=motion, motion_world=mw, return_reason=True)
+        assert torch.equal(valid_t, valid) and bool((n[obj] == 5).all())
+
+    def test_disocclusion_still_rejected(self):
+        args, motion, mw, obj, dis = moving_object()
+        _, _, valid, reason = temporal_reproject(*args, *THR, motion=motion, motion_world=mw, return_reason=True)
+        assert not bool(valid[dis].any()) and bool((reason[dis] == Reason.POSITION).all())
+        background = ~obj & ~dis
+        assert bool(valid[background].all())
+
+    def test_without_world_motion_the_object_fails_the_position_test(self):
+        args, motion, mw, obj, dis = moving_object()
+        _, _, valid, reason = temporal_reproject(*args, *THR, motion=motion, return_reason=True)
+        assert not bool(valid[obj].any()) and bool((reason[obj] == Reason.POSITION).all())
+
+    @pytest.mark.parametrize("dtype, colour_tol", [(torch.float64, 1e-9), (torch.float32, 2e-4)])
+    def test_static_scene_equals_camera_warp(self, dtype, colour_tol):
+        """On static geometry, motion vectors from the cameras give the camera warp's masks exactly; the colour
+        within 1e-9 in float64, within one ulp of the pixel coordinate times the contrast in float32 (u is
+        formed as pixel + motion instead of by the projection: not bit-exact)."""
+        m = TemporalReprojection(*THR, backend="torch")
+        x = example_inputs(m, height=36, width=48, dtype=dtype)
+        depth, K, T, pK, pT = x[1], x[3], x[4], x[9], x[10]
+        motion = camera_motion(depth, K, T, pK, pT)
+        ref = temporal_reproject(*x, *THR, return_reason=True)
+        got = temporal_reproject(*x, *THR, motion=motion, motion_world=torch.zeros_like(x[2]), return_reason=True)
+        assert torch.equal(got[2], ref[2]) and torch.equal(got[3], ref[3]) and bool(ref[2].float().mean() > 0.3)
+        assert float((got[0] - ref[0]).abs().max()) <= colour_tol
+        assert float((got[1] - ref[1]).abs().max()) <= 1e-5
+
+    def test_exceptions(self):
+        args, motion, mw, obj, dis = moving_object()
+        with pytest.raises(ValueError, match="motion_world needs motion"):
+            temporal_reproject(*args, *THR, motion_world=mw)
+        with pytest.raises(ShapeError, match="motion"):
+            temporal_reproject(*args, *THR, motion=motion[:, :1])
+        with pytest.raises(ShapeError, match="motion_world"):
+            temporal_reproject(*args, *THR, motion=motion, motion_world=mw[..., :-1])
+        with pytest.raises(TypeError, match="floating"):
+            temporal_reproject(*args, *THR, motion=motion.long())
+        f32 = [a.float() for a in args]
+        with pytest.raises(RuntimeError, match="motion vectors"):
+            with torch.no_grad():
+                temporal_reproject(*f32, *THR, motion=motion.float(), backend="native")
+        with pytest.raises(TypeError, match="needs `motion`"):
+            TemporalReprojection(*THR, motion_vectors=True)(*args)
+
+    @pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf, 1e30, -1e30])
+    def test_hard_cases_nonfinite_and_huge_motion(self, bad):
+        args, motion, mw, obj, dis = moving_object()
+        m = motion.clone()
+        m[..., 5, :] = bad
+        c, n, valid, reason = temporal_reproject(*args, *THR, motion=m, motion_world=mw, return_reason=True)
+        assert bool(torch.isfinite(c).all()) and bool(torch.isfinite(n).all())
+        assert not bool(valid[..., 5, :].any()) and bool((reason[..., 5, :] == Reason.OUT_OF_FRAME).all())
+        w = mw.clone()
+        w[..., 6, :] = bad if not math.isfinite(bad) else w[..., 6, :]
+        c, _, valid, reason = temporal_reproject(*args, *THR, motion=motion, motion_world=w, return_reason=True)
+        if not math.isfinite(bad):
+            assert bool((reason[..., 6, :] == Reason.OUT_OF_FRAME).all())
+        assert bool(torch.isfinite(c).all())
+
+    def test_hard_cases_out_of_frame_and_behind_a_surface(self):
+        args, motion, mw, obj, dis = moving_object()
+        m = motion.clone()
+        m[:, 0, :, :4] = -10.0  # the left columns point out of the previous frame
+        _, _, valid, reason = temporal_reproject(*args, *THR, motion=m, motion_world=mw, return_reason=True)
+        assert bool((reason[..., :4] == Reason.OUT_OF_FRAME).all())
+        # background pixels whose motion points onto the object: behind that surface, rejected by position
+        m = motion.clone()
+        m[:, 0, 2, 20] = 0.0
+        m[:, 0:2, 12, 20] = torch.tensor([-12.0, -5.0], dtype=m.dtype).view(1, 2)  # onto the object at (7, 8)
+        _, _, valid, reason = temporal_reproject(*args, *THR, motion=m, motion_world=mw, return_reason=True)
+        assert not bool(valid[0, 0, 12, 20]) and int(reason[0, 0, 12, 20]) == Reason.POSITION
+        # and the motion pointing behind the previous camera is not projected
+        w = mw.clone()
+        w[:, 2, 2, 2] = -10.0
+        _, _, valid, reason = temporal_reproject(*args, *THR, motion=motion, motion_world=w, return_reason=True)
+        assert int(reason[0, 0, 2, 2]) == Reason.BEHIND_CAMERA
+
+    def test_gradcheck(self):
+        args, motion, mw, obj, dis = moving_object(torch.float64)
+        small = [a[..., :8, 4:14].contiguous() if a.dim() == 4 else a for a in args]
+        m = (motion[..., :8, 4:14] + 0.3).contiguous().requires_grad_(True)  # fractional: away from tap edges
+        hist = small[5].clone().requires_grad_(True)
+        zero = torch.zeros_like(mw[..., :8, 4:14])
+        K = intrinsics_from_fov(60.0, 10, 8, dtype=torch.float64)
+        small[3] = small[9] = K
+
+        def f(h, mo):
+            a = list(small)
+            a[5] = h
+            return temporal_reproject(*a, 1e3, 2.0, motion=mo, motion_world=zero)[0]
+
+        assert torch.autograd.gradcheck(f, (hist, m), eps=1e-6, atol=1e-5)
+
+    def test_module_equals_function(self):
+        args, motion, mw, obj, dis = moving_object()
+        mod = TemporalReprojection(*THR, motion_vectors=True)
+        assert mod.input_names[-2:] == ["motion", "motion_world"]
+        ref = temporal_reproject(*args, mod.position_threshold, mod.normal_threshold, mod.alpha, motion=motion,
+                                 motion_world=mw)
+        for g, r in zip(mod(*args, motion, mw), ref):
+            assert torch.equal(g, r)
+
+    def test_driver_and_temporal_step(self):
+        args, motion, mw, obj, dis = moving_object(torch.float32)
+        st = SpatiotemporalReprojection(*THR, stereo=False)
+        cur, depth, normal, K, T, hist, n, pdepth, pnormal, pK, pT = args
+        st.right(hist, pdepth, pnormal, pK, pT)
+        out = st.right(cur, depth, normal, K, T, motion, mw)
+        ref = temporal_reproject(cur, depth, normal, K, T, hist, torch.ones_like(n), pdepth, pnormal, pK, pT, *THR,
+                                 motion=motion, motion_world=mw)[0]
+        assert torch.equal(out, ref) and bool(st.right_valid[obj].all())
+
+    @pytest.mark.onnx
+    def test_onnx_parity(self, tmp_path):
+        import onnxruntime as ort
+
+        from stereorepro import export_onnx
+        from stereorepro.io.onnx import onnx_input_dims
+
+        mod = TemporalReprojection(*THR, motion_vectors=True, backend="torch")
+        p = export_onnx(mod, tmp_path / "t.onnx")
+        dims = onnx_input_dims(p)
+        assert dims["motion"] == ["B", 2, "H", "W"] and dims["motion_world"] == ["B", 3, "H", "W"]
+        sess = ort.InferenceSession(str(p), providers=["CPUExecutionProvider"])
+        args, motion, mw, obj, dis = moving_object(torch.float32)
+        inputs = list(args) + [motion, mw]
+        got = sess.run(None, {n: a.numpy() for n, a in zip(mod.input_names, inputs)})
+        with torch.no_grad():
+            ref = mod(*inputs)
+        assert torch.equal(torch.from_numpy(got[2]), ref[2]) and bool(ref[2][obj].all())
+        assert float((torch.from_numpy(got[0]) - ref[0]).abs().max()) <= 1e-5
+        assert float((torch.from_numpy(got[1]) - ref[1]).abs().max()) <= 1e-5
