@@ -8,7 +8,6 @@ import os
 import platform
 import statistics
 import subprocess
-import tempfile
 import time
 from pathlib import Path
 
@@ -76,11 +75,9 @@ def time_interleaved(fns: dict, repeats: int = 7, warmup: int = 2) -> dict:
 
 
 def write_atomic(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        f.write(text)
-    os.replace(tmp, path)
+    from stereorepro.io.atomic import atomic_write  # the package's one atomic write
+
+    atomic_write(path, text)
 
 
 def save(name: str, record: dict, table_md: str) -> tuple[Path, Path]:

@@ -259,3 +259,38 @@ class TestExportSequence:
         assert main(["export-sequence", "--scene", "atrium", "--frames", "7", "--stride", "10",
                      "--out", str(tmp_path / "a")]) == 2
         assert "exceed" in capsys.readouterr().err
+
+
+class TestMotionChannels:
+    """Frames with motion channels (``M.*``, ``MW.*``): our tracer writes them for scenes with moving objects and
+    ``reproject`` reads them for its temporal steps."""
+
+    @pytest.fixture(scope="class")
+    def moving_dir(self, tmp_path_factory):
+        return export_sequence("living_room_moving_objects", [20, 21, 22, 23], 64, 36,
+                               tmp_path_factory.mktemp("mseq"), spp=1, seed=1)
+
+    def test_export_writes_motion_from_the_second_frame(self, moving_dir, seq_dir):
+        assert "M.X" not in read_exr(moving_dir / "0000_left.exr")
+        ch = read_exr(moving_dir / "0001_right.exr")
+        assert {"M.X", "M.Y", "MW.X", "MW.Y", "MW.Z"} <= set(ch)
+        assert "M.X" not in read_exr(seq_dir / "0001_left.exr")  # static scenes: the cameras say it all
+        seq = load_sequence(moving_dir)
+        fr = read_frame(seq, 1, "right")
+        assert fr["motion"].shape == (1, 2, 36, 64) and fr["motion_world"].shape == (1, 3, 36, 64)
+        assert float(fr["motion_world"].nan_to_num().abs().max()) > 0
+
+    @pytest.mark.parametrize("mode", ["temporal", "both"])
+    def test_reproject_uses_motion(self, moving_dir, tmp_path, mode):
+        with_mv = reproject_sequence(moving_dir, tmp_path / "mv", mode, eye="right")
+        stripped = tmp_path / "in"
+        shutil.copytree(moving_dir, stripped)
+        for p in stripped.glob("*.exr"):
+            write_exr(p, {k: v for k, v in read_exr(p).items() if not k.startswith("M")})
+        without = reproject_sequence(stripped, tmp_path / "cam", mode, eye="right")
+        assert [f["right"]["motion"] for f in with_mv["per_frame"]] == [False, True, True, True]
+        assert not any(f["right"]["motion"] for f in without["per_frame"])
+        later = slice(1, None)
+        d_mv = np.mean([f["right"]["discard_pct"] for f in with_mv["per_frame"][later]])
+        d_cam = np.mean([f["right"]["discard_pct"] for f in without["per_frame"][later]])
+        assert d_mv < 0.85 * d_cam, (d_mv, d_cam)  # the moving objects keep their history

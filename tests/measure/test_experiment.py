@@ -136,3 +136,38 @@ class TestExperiment:
         assert "no_such_scene" in capsys.readouterr().err
         assert main(["experiment", "--scene", "living_room", "--out", str(tmp_path), "--resolution", "big"]) == 2
         assert len(capsys.readouterr().err.strip().splitlines()) == 1
+
+
+class TestExperimentMovingObjects:
+    """``experiment --scene living_room_moving_objects``: the motion-vector variants and the discards on the
+    moving objects' pixels against the static background."""
+
+    @pytest.fixture(scope="class")
+    def run(self, tmp_path_factory):
+        out = tmp_path_factory.mktemp("exp_mo")
+        cfg = dict(SMALL, scene="living_room_moving_objects", frames=4, width=96, height=54)
+        return out, run_experiment(ExperimentConfig(out=str(out), **cfg), log=lambda *a: None)
+
+    def test_variants_and_table(self, run):
+        out, res = run
+        assert {"temporal_mv", "stereo_temporal_mv"} <= set(res["table2_variants"])
+        mo = res["moving_objects"]
+        assert mo["moving_pixels_pct"]["avg"] > 3
+        cam, mv = mo["temporal"], mo["temporal_mv"]
+        assert mv["moving"]["avg"] < 0.5 * cam["moving"]["avg"], (mv, cam)
+        assert mv["static"]["avg"] == pytest.approx(cam["static"]["avg"], abs=0.5)  # same warp off the objects
+        assert "Moving objects" in (out / "tables.md").read_text()
+
+    def test_static_scene_has_no_motion_variants(self, first_run):
+        _, res = first_run
+        assert "moving_objects" not in res and "temporal_mv" not in res["table2_variants"]
+
+    def test_figure_1_has_the_motion_panel(self, run, first_run):
+        import matplotlib.image as mpimg
+
+        def aspect(path):
+            h, w = mpimg.imread(path).shape[:2]
+            return w / h
+
+        # three panels (stereo, temporal with cameras, temporal with motion vectors) instead of two
+        assert aspect(run[0] / "fig1_discards.png") > 1.3 * aspect(first_run[0] / "fig1_discards.png")

@@ -37,7 +37,8 @@ from stereorepro.reproject.functional import backward_reproject, stereo_reprojec
 SCALE = float(os.environ.get("STEREOREPRO_FUZZ_SCALE", "1"))
 
 #: Examples per test in one default run; each example runs every backend that applies to it.
-EXAMPLES = {"stereo": 2000, "backward": 2000, "temporal": 2000, "blend": 2000, "grad_stereo": 300,
+EXAMPLES = {"stereo": 2000, "backward": 2000, "temporal": 2000, "blend": 2000, "temporal_motion": 600,
+            "grad_stereo": 300,
             "grad_temporal": 300, "onnx_stereo": 400, "onnx_temporal": 400}
 
 FLT_MAX = float(np.finfo(np.float32).max)
@@ -306,6 +307,33 @@ class TestFuzz:
             if with_reason:
                 assert_masks(valid, outs["torch"][3], args[1])
             assert_same(outs, "temporal_reproject")
+        check()
+
+    def test_temporal_reproject_motion(self, slow):
+        """With motion vectors (torch's general path on every backend setting): random, huge and non-finite
+        motion and world motion."""
+        @fuzz_settings("temporal_motion", slow)
+        @given(cases())
+        def check(c):
+            args, (alpha, warmup, max_history) = temporal_inputs(c)
+            rng = np.random.default_rng(c.seed + 4)
+            mo = rng.normal(scale=float(rng.choice([0.5, 3.0, 50.0])), size=(c.B, 2, c.H, c.W))
+            mw = rng.normal(scale=0.05, size=(c.B, 3, c.H, c.W)) * (rng.uniform() < 0.5)
+            for a in (mo, mw):
+                odd = rng.uniform(size=a.shape) < 0.1
+                a[odd] = rng.choice([math.nan, math.inf, -math.inf, 1e30], size=int(odd.sum()))
+            motion, motion_world = torch.from_numpy(mo).to(c.dtype), torch.from_numpy(mw).to(c.dtype)
+            with torch.no_grad():
+                outs = run_backends(lambda be: temporal_reproject(*args, c.thr_p, c.thr_n, alpha, warmup, max_history,
+                                                                  c.sampling, backend="auto", return_reason=True,
+                                                                  motion=motion, motion_world=motion_world),
+                                    False, "temporal_reproject with motion")
+            color, n, valid, reason = outs["torch"]
+            finite_in = torch.isfinite(args[0]).all(1, keepdim=True).expand_as(args[0])
+            assert bool(torch.isfinite(color[finite_in]).all())
+            assert bool(((n >= 1) & (n <= max_history)).all())
+            assert_masks(valid, reason, args[1])
+            assert_same(outs, "temporal_reproject with motion")
         check()
 
     def test_temporal_blend(self, slow):
