@@ -31,6 +31,7 @@ bench: $(STAMP)
 	$(PY) bench/reproject.py
 	$(PY) bench/tracer.py
 	$(PY) bench/stereo_cost.py
+	$(PY) bench/moving_objects.py
 
 clean:
 	rm -rf build $(VENV) .pytest_cache
