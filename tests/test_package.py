@@ -215,3 +215,12 @@ def test_doctests(module):
 
     result = doctest.testmod(importlib.import_module(module), optionflags=doctest.ELLIPSIS)
     assert result.attempted > 0 and result.failed == 0, result
+
+
+def test_test_module_basenames_are_unique():
+    """pytest imports test modules by basename (no __init__.py): two test_x.py in different folders collide."""
+    from collections import Counter
+    from pathlib import Path
+
+    names = Counter(p.name for p in Path(__file__).resolve().parent.rglob("test_*.py"))
+    assert not [n for n, c in names.items() if c > 1]
