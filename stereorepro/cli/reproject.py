@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import sys
 
 import torch
 
@@ -21,11 +22,12 @@ def _cmd_reproject(args) -> int:
     try:
         summary = reproject_sequence(args.input, args.out, args.mode, args.eye or "right", args.position_threshold,
                                      args.normal_threshold, args.alpha, args.sampling, device,
-                                     log=None if args.quiet else print)
+                                     log=None if args.quiet else print,
+                                     warn=lambda m: print(f"stereorepro reproject: warning: {m}", file=sys.stderr))
     except SequenceError as e:
         raise UserError(str(e)) from None
     if not args.quiet:
-        mean = ", ".join(f"{e} {v:.1f} %" for e, v in summary["mean_discard_pct"].items())
+        mean = ", ".join(f"{e} {v:.1f} %" for e, v in summary["mean_discard_pct"].items() if v is not None)
         print(f"{args.out}: {summary['frames']} frame(s), {args.mode}; mean discarded: {mean}")
     return 0
 

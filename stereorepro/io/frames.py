@@ -234,13 +234,34 @@ def load_sequence(input_dir, eyes: tuple[str, ...] = EYES) -> FrameSequence:
     return FrameSequence(root, tuple(cams), size[0], size[1], thr["position_threshold"], thr["normal_threshold"])
 
 
+#: Normals whose length differs from 1 by more than this (beyond float16 rounding) are renormalised on reading.
+NORMAL_LENGTH_TOLERANCE = 2e-3
+
+
+def _unit_normals(normal: Tensor, depth: Tensor) -> tuple[Tensor, dict]:
+    """The policy for normals read from files: a finite, non-zero normal whose length is off by more than
+    :data:`NORMAL_LENGTH_TOLERANCE` is renormalised (renderers average normals over a pixel's samples); a zero or
+    non-finite one is left as it is (it fails the normal test). Returns the normals and counts over the surface
+    pixels: ``surface``, ``renormalised``, ``invalid``."""
+    length = normal.double().norm(dim=1, keepdim=True)
+    surf = torch.isfinite(depth) & (depth > 0)
+    ok = torch.isfinite(length) & (length > 0)
+    fix = ok & ((length - 1.0).abs() > NORMAL_LENGTH_TOLERANCE)
+    if bool(fix.any()):
+        normal = torch.where(fix, (normal.double() / torch.where(ok, length, 1.0)).to(normal.dtype), normal)
+    return normal, {"surface": int(surf.sum()), "renormalised": int((fix & surf).sum()),
+                    "invalid": int((~ok & surf).sum())}
+
+
 def read_frame(seq: FrameSequence, frame: int, eye: str, device=None) -> dict[str, Tensor]:
     """Read one eye of one frame.
 
     Returns:
         dict with ``color`` (1, 3, H, W), ``depth`` (1, 1, H, W), ``normal`` (1, 3, H, W) float32 and ``K``
         (1, 3, 3), ``cam_from_world`` (1, 4, 4) float64, on ``device``; ``motion`` (1, 2, H, W) and
-        ``motion_world`` (1, 3, H, W) when the file has those channels (``M.*``, ``MW.*``; else absent).
+        ``motion_world`` (1, 3, H, W) when the file has those channels (``M.*``, ``MW.*``; else absent);
+        ``normal_stats``: the normal policy's counts (see :func:`_unit_normals`: non-unit normals are
+        renormalised).
     """
     from .exr import read_exr
 
@@ -257,7 +278,9 @@ def read_frame(seq: FrameSequence, frame: int, eye: str, device=None) -> dict[st
         return torch.from_numpy(np.stack([ch[c] for c in names])[None].astype(np.float32)).to(device)
 
     cam = seq.cameras[frame][eye]
-    out = {"color": stack(CHANNELS["radiance"]), "depth": stack(CHANNELS["depth"]), "normal": stack(CHANNELS["normal"]),
+    depth = stack(CHANNELS["depth"])
+    normal, normal_stats = _unit_normals(stack(CHANNELS["normal"]), depth)
+    out = {"color": stack(CHANNELS["radiance"]), "depth": depth, "normal": normal, "normal_stats": normal_stats,
            "K": cam.K.to(device), "cam_from_world": cam.cam_from_world.to(device)}
     for key in ("motion", "motion_world"):
         names = CHANNELS[key]

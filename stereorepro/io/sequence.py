@@ -39,6 +39,7 @@ from ..accumulate import SpatiotemporalReprojection, temporal_step
 from ..errors import SequenceError
 from ..reproject import Reason, StereoReprojection, TemporalReprojection
 from .atomic import atomic_write, staged_outputs, sweep
+from .diagnose import diagnose_conventions
 from .exr import write_exr
 from .frames import EYES, FrameSequence, load_sequence, read_frame
 
@@ -49,12 +50,16 @@ MODES = ("stereo", "temporal", "both")
 NO_HISTORY = int(Reason.NO_HISTORY)
 
 
-def _stats(valid: Tensor, reason: Tensor) -> dict:
+def _stats(valid: Tensor, reason: Tensor, frame: dict | None = None) -> dict:
     codes = reason.flatten().to(torch.int64).bincount(minlength=256).tolist()
     names = {int(r): r.name for r in Reason}
     names[NO_HISTORY] = "NO_HISTORY"
-    return {"discard_pct": 100.0 * (1.0 - float(valid.float().mean())),
-            "reasons": {names.get(c, str(c)): n for c, n in enumerate(codes) if n and c != 0}}
+    out = {"discard_pct": 100.0 * (1.0 - float(valid.float().mean())),
+           "reasons": {names.get(c, str(c)): n for c, n in enumerate(codes) if n and c != 0},
+           "no_history": bool((reason == NO_HISTORY).all())}
+    if frame is not None:
+        out["normals"] = frame["normal_stats"]
+    return out
 
 
 def _channels(color: Tensor, valid: Tensor, reason: Tensor, history_len: Tensor | None) -> dict:
@@ -82,7 +87,7 @@ def _process(seq: FrameSequence, mode: str, eyes: tuple[str, ...], pos: float, n
             color, valid, reason = module(R["color"], R["depth"], R["normal"], R["K"], R["cam_from_world"],
                                           L["depth"], L["normal"], L["K"], L["cam_from_world"])
             emit(i, "left", _channels(color, valid, reason, None))
-            per_frame.append({"frame": i, "left": _stats(valid, reason)})
+            per_frame.append({"frame": i, "left": _stats(valid, reason, L)})
             log(f"frame {i:4d}: left {per_frame[-1]['left']['discard_pct']:5.1f} % discarded")
     elif mode == "temporal":
         module = TemporalReprojection(pos, nrm, alpha, sampling=sampling).to(device)
@@ -95,7 +100,7 @@ def _process(seq: FrameSequence, mode: str, eyes: tuple[str, ...], pos: float, n
                                                            cur["normal"], cur["K"], cur["cam_from_world"],
                                                            *_motion(cur))
                 emit(i, eye, _channels(states[eye].color, valid, reason, states[eye].history_len))
-                rec[eye] = dict(_stats(valid, reason), motion="motion" in cur)
+                rec[eye] = dict(_stats(valid, reason, cur), motion="motion" in cur)
             per_frame.append(rec)
             log(f"frame {i:4d}: " + ", ".join(f"{e} {rec[e]['discard_pct']:5.1f} %" for e in eyes) + " discarded")
     else:
@@ -113,8 +118,9 @@ def _process(seq: FrameSequence, mode: str, eyes: tuple[str, ...], pos: float, n
             emit(i, "right", _channels(out_r, valid_r, reason_r, driver.right_state.history_len))
             emit(i, "left", _channels(out_l, driver.stereo_valid, driver.stereo_reason,
                                       driver.left_state.history_len))
-            per_frame.append({"frame": i, "right": dict(_stats(valid_r, reason_r), motion="motion" in R),
-                              "left": dict(_stats(driver.stereo_valid, driver.stereo_reason), motion="motion" in L)})
+            per_frame.append({"frame": i, "right": dict(_stats(valid_r, reason_r, R), motion="motion" in R),
+                              "left": dict(_stats(driver.stereo_valid, driver.stereo_reason, L),
+                                           motion="motion" in L)})
             log(f"frame {i:4d}: right {per_frame[-1]['right']['discard_pct']:5.1f} %, "
                 f"left (stereo) {per_frame[-1]['left']['discard_pct']:5.1f} % discarded")
     return per_frame
@@ -131,7 +137,7 @@ def _check_output_dir(out: Path, input_root: Path) -> None:
 
 def reproject_sequence(input_dir, out_dir, mode: str = "both", eye: str = "right",
                        position_threshold: float | None = None, normal_threshold: float | None = None,
-                       alpha: float = 0.2, sampling: str = "bilinear", device="cpu", log=None) -> dict:
+                       alpha: float = 0.2, sampling: str = "bilinear", device="cpu", log=None, warn=None) -> dict:
     """Reproject a directory of frames (see the module docstring for the format and the modes).
 
     Args:
@@ -144,9 +150,13 @@ def reproject_sequence(input_dir, out_dir, mode: str = "both", eye: str = "right
         sampling: ``"bilinear"`` | ``"nearest"``.
         device: torch device for the reprojection (EXRs are read on the CPU).
         log: ``print``-like callable for progress, or ``None``.
+        warn: callable receiving each warning's message (likely convention mistakes, invalid normals), or None.
 
     Returns:
-        the summary written to ``summary.json``.
+        the summary written to ``summary.json``. Its ``mean_discard_pct`` averages the frames that have a history
+        (``NO_HISTORY`` frames, the first of an accumulation, are listed in ``no_history_frames``); ``warnings``
+        lists the likely convention mistakes (:func:`stereorepro.io.diagnose.diagnose_conventions`) and frames
+        whose normals are zero or not finite on more than 1 % of the surface pixels.
 
     Raises:
         SequenceError: the input is malformed or an option is invalid; nothing was written.
@@ -173,6 +183,8 @@ def reproject_sequence(input_dir, out_dir, mode: str = "both", eye: str = "right
     if device.type == "cuda" and not torch.cuda.is_available():
         raise SequenceError("device cuda asked for but torch.cuda.is_available() is False")
     log = log or (lambda *a, **k: None)
+    warn = warn or (lambda *a, **k: None)
+    warnings = diagnose_conventions(seq, mode, eyes, float(pos), float(nrm), sampling, device)
 
     out = Path(out_dir)
     _check_output_dir(out, seq.root)
@@ -191,12 +203,25 @@ def reproject_sequence(input_dir, out_dir, mode: str = "both", eye: str = "right
                 per_frame = _process(seq, mode, eyes, float(pos), float(nrm), float(alpha), sampling, device, emit,
                                      log)
             eyes_out = ("left",) if mode == "stereo" else eyes
+            for f in per_frame:
+                for e in eyes_out:
+                    ns = f[e]["normals"]
+                    if ns["surface"] and ns["invalid"] > 0.01 * ns["surface"]:
+                        warnings.append({"test": "normals", "frame": f["frame"], "eye": e, "message":
+                                         f"frame {f['frame']} {e}: normals are zero or not finite on "
+                                         f"{100.0 * ns['invalid'] / ns['surface']:.1f} % of the surface pixels "
+                                         "(those pixels fail the normal test)"})
+            for w in warnings:
+                warn(w["message"])
+            with_history = {e: [f[e]["discard_pct"] for f in per_frame if not f[e]["no_history"]] for e in eyes_out}
             summary = {
                 "mode": mode, "eyes": list(eyes_out), "input": str(seq.root), "frames": len(seq),
                 "width": seq.width, "height": seq.height, "position_threshold": float(pos),
                 "normal_threshold": float(nrm), "alpha": float(alpha) if mode != "stereo" else None,
                 "sampling": sampling,
-                "mean_discard_pct": {e: float(np.mean([f[e]["discard_pct"] for f in per_frame])) for e in eyes_out},
+                "mean_discard_pct": {e: float(np.mean(v)) if v else None for e, v in with_history.items()},
+                "no_history_frames": {e: [f["frame"] for f in per_frame if f[e]["no_history"]] for e in eyes_out},
+                "warnings": warnings,
                 "per_frame": per_frame,
             }
             atomic_write(staging / "summary.json", json.dumps(summary, indent=1))

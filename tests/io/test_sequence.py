@@ -204,6 +204,8 @@ class TestReprojectCliExceptions:
         assert "--eye applies to --mode temporal" in err
         assert main(["reproject", "--input", str(work_dir), "--out", str(tmp_path / "o"), "--quiet",
                      "--position-threshold", "0.1", "--normal-threshold", "0.2"]) == 0
+        # 0.1 is too tight for 18 rows (the scene's 0.05 scaled to this height is 0.28): warned, not silent
+        assert "and the thresholds" in capsys.readouterr().err
         assert main(["reproject", "--input", str(work_dir), "--out", str(tmp_path / "x"), "--alpha", "-1"]) == 2
         assert capsys.readouterr().err.strip().splitlines() == [
             "stereorepro reproject: error: argument --alpha: expected a positive number, got '-1'"]
