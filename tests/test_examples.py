@@ -40,6 +40,13 @@ class TestExamples:
         assert saved["onnxruntime_imported_torch"] is False  # the deployment process ran without torch
 
     # ~25 s of CPU on an idle 2-core machine: part of CI's fast suite (the issue asks every example to run in CI)
+    def test_mitsuba_stereo(self, tmp_path):
+        pytest.importorskip("mitsuba")
+        res = load_example("mitsuba_stereo").main(["--smoke", "--out", str(tmp_path)])
+        assert res["exit_code"] == 0 and res["warnings"] == []
+        assert json.loads((tmp_path / "mitsuba_stereo.json").read_text()) == res
+        assert (tmp_path / "reprojected" / "0001_left_reprojected.exr").is_file()
+
     def test_denoiser_preprocess(self, tmp_path):
         load_example("denoiser_preprocess").main(["--smoke", "--out", str(tmp_path)])
         res = json.loads((tmp_path / "denoiser_preprocess.json").read_text())

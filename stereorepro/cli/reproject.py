@@ -8,7 +8,7 @@ import sys
 import torch
 
 from ..errors import SceneError, SequenceError, UserError
-from ..io.frames import export_sequence
+from ..io.frames import SOURCES, export_sequence
 from ..io.sequence import MODES, reproject_sequence
 from ._args import nonnegative_int, parse_resolution, positive_float, positive_int
 
@@ -23,7 +23,8 @@ def _cmd_reproject(args) -> int:
         summary = reproject_sequence(args.input, args.out, args.mode, args.eye or "right", args.position_threshold,
                                      args.normal_threshold, args.alpha, args.sampling, device,
                                      log=None if args.quiet else print,
-                                     warn=lambda m: print(f"stereorepro reproject: warning: {m}", file=sys.stderr))
+                                     warn=lambda m: print(f"stereorepro reproject: warning: {m}", file=sys.stderr),
+                                     source=args.source)
     except SequenceError as e:
         raise UserError(str(e)) from None
     if not args.quiet:
@@ -67,6 +68,9 @@ def register(subparsers) -> None:
                    help="max |N_src - N_dst| of unit normals (default: cameras.json reprojection.normal_threshold)")
     p.add_argument("--alpha", type=positive_float, default=0.2, help="minimum EMA weight of a new frame (paper: 0.2)")
     p.add_argument("--sampling", choices=("bilinear", "nearest"), default="bilinear")
+    p.add_argument("--from", dest="source", choices=SOURCES, default="stereorepro",
+                   help="the renderer that wrote the EXRs: stereorepro (our channels) or mitsuba (films of the aov "
+                        "integrator with aovs='dd:depth,nn:sh_normal,pp:position'); cameras.json is ours (OpenCV)")
     p.add_argument("--device", choices=("cpu", "cuda", "auto"), default="cpu")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_reproject)

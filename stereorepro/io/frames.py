@@ -79,6 +79,7 @@ class FrameSequence:
     width: int
     position_threshold: float | None = None
     normal_threshold: float | None = None
+    source: str = "stereorepro"  #: the renderer whose EXRs these are (:data:`SOURCES`)
 
     def __len__(self) -> int:
         return len(self.cameras)
@@ -194,17 +195,34 @@ def _exr_header(path: Path) -> tuple[list[str], int, int]:
     return names, sizes[0][0], sizes[0][1]
 
 
-def load_sequence(input_dir, eyes: tuple[str, ...] = EYES) -> FrameSequence:
+#: Renderers whose frame files the reader converts: ours (this module's format) and Mitsuba 3's films written
+#: with the ``aov`` integrator (:mod:`stereorepro.io.mitsuba`). ``cameras.json`` is ours (OpenCV) for all.
+SOURCES = ("stereorepro", "mitsuba")
+
+
+def _required_channels(source: str) -> tuple[str, ...]:
+    if source == "mitsuba":
+        from .mitsuba import MITSUBA_CHANNELS
+
+        return MITSUBA_CHANNELS
+    return REQUIRED_CHANNELS
+
+
+def load_sequence(input_dir, eyes: tuple[str, ...] = EYES, source: str = "stereorepro") -> FrameSequence:
     """Validate an input directory without reading pixels: ``cameras.json`` (shapes, rigidity, keys), the frame
     files present against the frames listed, and every needed EXR's channels and size (from its header).
 
     Args:
         input_dir: the directory.
         eyes: the eyes whose cameras and files are needed.
+        source: the renderer that wrote the EXRs (:data:`SOURCES`); converted to our conventions on reading.
 
     Raises:
         SequenceError: naming the file, and the frame and key for ``cameras.json``.
     """
+    if source not in SOURCES:
+        raise SequenceError(f"source must be one of {SOURCES}, got {source!r}")
+    required = _required_channels(source)
     root = Path(input_dir)
     if not root.is_dir():
         raise SequenceError(f"{root}: not a directory")
@@ -222,16 +240,17 @@ def load_sequence(input_dir, eyes: tuple[str, ...] = EYES) -> FrameSequence:
             if not p.is_file():
                 raise SequenceError(f"{p}: missing (cameras.json lists {n} frame(s); frame {i} needs {eye} eye)")
             names, H, W = _exr_header(p)
-            missing = [c for c in REQUIRED_CHANNELS if c not in names]
+            missing = [c for c in required if c not in names]
             if missing:
-                raise SequenceError(f"{p}: missing channel(s) {', '.join(missing)} (required: "
-                                    f"{', '.join(REQUIRED_CHANNELS)}; found: {', '.join(sorted(names))})")
+                raise SequenceError(f"{p}: missing channel(s) {', '.join(missing)} (required for --from {source}: "
+                                    f"{', '.join(required)}; found: {', '.join(sorted(names))})")
             if size is None:
                 size, first = (H, W), p
             elif (H, W) != size:
                 raise SequenceError(f"{p}: size {W}x{H} differs from {first.name}: {size[1]}x{size[0]} "
                                     "(all frames and eyes must have one size)")
-    return FrameSequence(root, tuple(cams), size[0], size[1], thr["position_threshold"], thr["normal_threshold"])
+    return FrameSequence(root, tuple(cams), size[0], size[1], thr["position_threshold"], thr["normal_threshold"],
+                         source)
 
 
 #: Normals whose length differs from 1 by more than this (beyond float16 rounding) are renormalised on reading.
@@ -270,7 +289,7 @@ def read_frame(seq: FrameSequence, frame: int, eye: str, device=None) -> dict[st
         ch = read_exr(p)
     except (FileNotFoundError, ValueError) as e:
         raise SequenceError(str(e)) from None
-    for c in REQUIRED_CHANNELS:  # the header was checked; a file changed since is still named
+    for c in _required_channels(seq.source):  # the header was checked; a file changed since is still named
         if c not in ch or ch[c].shape != (seq.height, seq.width):
             raise SequenceError(f"{p}: channel {c} missing or not {seq.width}x{seq.height}")
 
@@ -278,9 +297,16 @@ def read_frame(seq: FrameSequence, frame: int, eye: str, device=None) -> dict[st
         return torch.from_numpy(np.stack([ch[c] for c in names])[None].astype(np.float32)).to(device)
 
     cam = seq.cameras[frame][eye]
-    depth = stack(CHANNELS["depth"])
-    normal, normal_stats = _unit_normals(stack(CHANNELS["normal"]), depth)
-    out = {"color": stack(CHANNELS["radiance"]), "depth": depth, "normal": normal, "normal_stats": normal_stats,
+    if seq.source == "mitsuba":  # converted at the edge, here, once
+        from ..camera import PinholeCamera
+        from .mitsuba import frame_from_channels
+
+        conv = frame_from_channels(ch, PinholeCamera(cam.K, cam.cam_from_world, seq.height, seq.width), str(p))
+        color, depth, normal = (conv[k].to(device) for k in ("color", "depth", "normal"))
+    else:
+        color, depth, normal = stack(CHANNELS["radiance"]), stack(CHANNELS["depth"]), stack(CHANNELS["normal"])
+    normal, normal_stats = _unit_normals(normal, depth)
+    out = {"color": color, "depth": depth, "normal": normal, "normal_stats": normal_stats,
            "K": cam.K.to(device), "cam_from_world": cam.cam_from_world.to(device)}
     for key in ("motion", "motion_world"):
         names = CHANNELS[key]

@@ -137,7 +137,8 @@ def _check_output_dir(out: Path, input_root: Path) -> None:
 
 def reproject_sequence(input_dir, out_dir, mode: str = "both", eye: str = "right",
                        position_threshold: float | None = None, normal_threshold: float | None = None,
-                       alpha: float = 0.2, sampling: str = "bilinear", device="cpu", log=None, warn=None) -> dict:
+                       alpha: float = 0.2, sampling: str = "bilinear", device="cpu", log=None, warn=None,
+                       source: str = "stereorepro") -> dict:
     """Reproject a directory of frames (see the module docstring for the format and the modes).
 
     Args:
@@ -151,6 +152,8 @@ def reproject_sequence(input_dir, out_dir, mode: str = "both", eye: str = "right
         device: torch device for the reprojection (EXRs are read on the CPU).
         log: ``print``-like callable for progress, or ``None``.
         warn: callable receiving each warning's message (likely convention mistakes, invalid normals), or None.
+        source: the renderer that wrote the EXRs: ``"stereorepro"`` (our format) or ``"mitsuba"`` (films of the
+            ``aov`` integrator, :mod:`stereorepro.io.mitsuba`); see :func:`~stereorepro.io.frames.load_sequence`.
 
     Returns:
         the summary written to ``summary.json``. Its ``mean_discard_pct`` averages the frames that have a history
@@ -170,7 +173,7 @@ def reproject_sequence(input_dir, out_dir, mode: str = "both", eye: str = "right
     if not (0.0 < float(alpha) <= 1.0):
         raise SequenceError(f"alpha must be in (0, 1], got {alpha}")
     eyes = (EYES if eye == "both" else (eye,)) if mode == "temporal" else EYES
-    seq = load_sequence(input_dir, eyes)
+    seq = load_sequence(input_dir, eyes, source)
     pos = position_threshold if position_threshold is not None else seq.position_threshold
     nrm = normal_threshold if normal_threshold is not None else seq.normal_threshold
     for name, v in (("position_threshold", pos), ("normal_threshold", nrm)):
@@ -218,7 +221,7 @@ def reproject_sequence(input_dir, out_dir, mode: str = "both", eye: str = "right
                 "mode": mode, "eyes": list(eyes_out), "input": str(seq.root), "frames": len(seq),
                 "width": seq.width, "height": seq.height, "position_threshold": float(pos),
                 "normal_threshold": float(nrm), "alpha": float(alpha) if mode != "stereo" else None,
-                "sampling": sampling,
+                "sampling": sampling, "source": source,
                 "mean_discard_pct": {e: float(np.mean(v)) if v else None for e, v in with_history.items()},
                 "no_history_frames": {e: [f["frame"] for f in per_frame if f[e]["no_history"]] for e in eyes_out},
                 "warnings": warnings,
