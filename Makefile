@@ -4,6 +4,10 @@ PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
+# Blender as a module (bpy, for the tests against real Cycles renders) in its own environment: bpy 5.0.1 needs
+# numpy < 2 and Python 3.11; where it cannot be installed the Blender tests are skipped.
+BLENDER_VENV  := $(VENV)/blender
+BLENDER_STAMP := $(BLENDER_VENV)/.installed
 TORCH_VERSION ?= 2.13.0
 PYTEST_ARGS ?=
 
@@ -18,13 +22,18 @@ $(STAMP): pyproject.toml cpp_ext/CMakeLists.txt $(wildcard cpp_ext/src/*.cpp)
 
 venv: $(STAMP)
 
+$(BLENDER_STAMP): | $(STAMP)
+	test -x $(BLENDER_VENV)/bin/python || $(PYTHON) -m venv $(BLENDER_VENV)
+	$(BLENDER_VENV)/bin/pip install -q "bpy==5.0.1" || echo "bpy is not installable here: the Blender tests will be skipped"
+	touch $(BLENDER_STAMP)
+
 demo: $(STAMP)
 	$(PY) -m stereorepro demo
 
-test: $(STAMP)
+test: $(STAMP) $(BLENDER_STAMP)
 	$(PY) -m pytest -q -m "not slow" $(PYTEST_ARGS)
 
-test-all: $(STAMP)
+test-all: $(STAMP) $(BLENDER_STAMP)
 	$(PY) -m pytest -q $(PYTEST_ARGS)
 
 bench: $(STAMP)

@@ -69,8 +69,10 @@ def register(subparsers) -> None:
     p.add_argument("--alpha", type=positive_float, default=0.2, help="minimum EMA weight of a new frame (paper: 0.2)")
     p.add_argument("--sampling", choices=("bilinear", "nearest"), default="bilinear")
     p.add_argument("--from", dest="source", choices=SOURCES, default="stereorepro",
-                   help="the renderer that wrote the EXRs: stereorepro (our channels) or mitsuba (films of the aov "
-                        "integrator with aovs='dd:depth,nn:sh_normal,pp:position'); cameras.json is ours (OpenCV)")
+                   help="the renderer that wrote the EXRs: stereorepro (our channels), mitsuba (films of the aov "
+                        "integrator with aovs='dd:depth,nn:sh_normal,pp:position') or blender (its multilayer "
+                        "{frame:04d}_L/_R.exr; cameras.json from stereorepro.io.blender.write_cameras); "
+                        "cameras.json is ours (OpenCV)")
     p.add_argument("--device", choices=("cpu", "cuda", "auto"), default="cpu")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_reproject)

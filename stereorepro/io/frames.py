@@ -80,11 +80,16 @@ class FrameSequence:
     position_threshold: float | None = None
     normal_threshold: float | None = None
     source: str = "stereorepro"  #: the renderer whose EXRs these are (:data:`SOURCES`)
+    frame_numbers: tuple | None = None  #: Blender's file frame numbers (``meta.frame_numbers``)
 
     def __len__(self) -> int:
         return len(self.cameras)
 
     def path(self, frame: int, eye: str) -> Path:
+        if self.source == "blender":
+            from .blender import file_name
+
+            return self.root / file_name(self.frame_numbers[frame], eye)
         return self.root / f"{frame:04d}_{eye}.exr"
 
 
@@ -195,9 +200,10 @@ def _exr_header(path: Path) -> tuple[list[str], int, int]:
     return names, sizes[0][0], sizes[0][1]
 
 
-#: Renderers whose frame files the reader converts: ours (this module's format) and Mitsuba 3's films written
-#: with the ``aov`` integrator (:mod:`stereorepro.io.mitsuba`). ``cameras.json`` is ours (OpenCV) for all.
-SOURCES = ("stereorepro", "mitsuba")
+#: Renderers whose frame files the reader converts: ours (this module's format), Mitsuba 3's films written with
+#: the ``aov`` integrator (:mod:`stereorepro.io.mitsuba`) and Blender's multilayer EXRs named as its stereo output
+#: names them (:mod:`stereorepro.io.blender`). ``cameras.json`` is ours (OpenCV) for all.
+SOURCES = ("stereorepro", "mitsuba", "blender")
 
 
 def _required_channels(source: str) -> tuple[str, ...]:
@@ -205,7 +211,27 @@ def _required_channels(source: str) -> tuple[str, ...]:
         from .mitsuba import MITSUBA_CHANNELS
 
         return MITSUBA_CHANNELS
+    if source == "blender":  # the view layer's name prefixes them: checked by suffix
+        from .blender import BLENDER_CHANNELS
+
+        return BLENDER_CHANNELS
     return REQUIRED_CHANNELS
+
+
+def _has(names, channel: str, source: str) -> bool:
+    return any(n.endswith("." + channel) for n in names) if source == "blender" else channel in names
+
+
+def _frame_numbers(path: Path, n: int) -> tuple:
+    """Blender's file frame numbers from ``cameras.json`` ``meta.frame_numbers`` (default 1 .. n, Blender's
+    default frame_start = 1)."""
+    meta = json.loads(path.read_text(encoding="utf-8")).get("meta", {})
+    nums = meta.get("frame_numbers") if isinstance(meta, dict) else None
+    if nums is None:
+        return tuple(range(1, n + 1))
+    if not (isinstance(nums, list) and len(nums) == n and all(isinstance(x, int) and x >= 0 for x in nums)):
+        raise SequenceError(f"{path}: meta.frame_numbers must list {n} frame numbers >= 0, got {json.dumps(nums)[:80]}")
+    return tuple(nums)
 
 
 def load_sequence(input_dir, eyes: tuple[str, ...] = EYES, source: str = "stereorepro") -> FrameSequence:
@@ -228,7 +254,9 @@ def load_sequence(input_dir, eyes: tuple[str, ...] = EYES, source: str = "stereo
         raise SequenceError(f"{root}: not a directory")
     cams, thr = _parse_cameras(root / "cameras.json", tuple(eyes))
     n = len(cams)
-    beyond = sorted(p.name for p in root.iterdir() if (m := _FILE_RE.match(p.name)) and int(m.group(1)) >= n)
+    numbers = _frame_numbers(root / "cameras.json", n) if source == "blender" else None
+    probe = FrameSequence(root, tuple(cams), 0, 0, source=source, frame_numbers=numbers)
+    beyond = [] if source == "blender" else sorted(p.name for p in root.iterdir() if (m := _FILE_RE.match(p.name)) and int(m.group(1)) >= n)
     if beyond:
         raise SequenceError(f"{root / 'cameras.json'}: lists {n} frame(s) but {root} has frame files beyond them: "
                             f"{', '.join(beyond[:4])}{' ...' if len(beyond) > 4 else ''}")
@@ -236,11 +264,11 @@ def load_sequence(input_dir, eyes: tuple[str, ...] = EYES, source: str = "stereo
     first = None
     for i in range(n):
         for eye in eyes:
-            p = root / f"{i:04d}_{eye}.exr"
+            p = probe.path(i, eye)
             if not p.is_file():
                 raise SequenceError(f"{p}: missing (cameras.json lists {n} frame(s); frame {i} needs {eye} eye)")
             names, H, W = _exr_header(p)
-            missing = [c for c in required if c not in names]
+            missing = [c for c in required if not _has(names, c, source)]
             if missing:
                 raise SequenceError(f"{p}: missing channel(s) {', '.join(missing)} (required for --from {source}: "
                                     f"{', '.join(required)}; found: {', '.join(sorted(names))})")
@@ -250,7 +278,7 @@ def load_sequence(input_dir, eyes: tuple[str, ...] = EYES, source: str = "stereo
                 raise SequenceError(f"{p}: size {W}x{H} differs from {first.name}: {size[1]}x{size[0]} "
                                     "(all frames and eyes must have one size)")
     return FrameSequence(root, tuple(cams), size[0], size[1], thr["position_threshold"], thr["normal_threshold"],
-                         source)
+                         source, numbers)
 
 
 #: Normals whose length differs from 1 by more than this (beyond float16 rounding) are renormalised on reading.
@@ -290,7 +318,8 @@ def read_frame(seq: FrameSequence, frame: int, eye: str, device=None) -> dict[st
     except (FileNotFoundError, ValueError) as e:
         raise SequenceError(str(e)) from None
     for c in _required_channels(seq.source):  # the header was checked; a file changed since is still named
-        if c not in ch or ch[c].shape != (seq.height, seq.width):
+        got = [k for k in ch if k == c or (seq.source == "blender" and k.endswith("." + c))]
+        if not got or ch[got[0]].shape != (seq.height, seq.width):
             raise SequenceError(f"{p}: channel {c} missing or not {seq.width}x{seq.height}")
 
     def stack(names):
@@ -303,15 +332,24 @@ def read_frame(seq: FrameSequence, frame: int, eye: str, device=None) -> dict[st
 
         conv = frame_from_channels(ch, PinholeCamera(cam.K, cam.cam_from_world, seq.height, seq.width), str(p))
         color, depth, normal = (conv[k].to(device) for k in ("color", "depth", "normal"))
+    elif seq.source == "blender":
+        from .blender import frame_from_channels as blender_frame
+
+        conv = blender_frame(ch, str(p))
+        color, depth, normal = (conv[k].to(device) for k in ("color", "depth", "normal"))
     else:
         color, depth, normal = stack(CHANNELS["radiance"]), stack(CHANNELS["depth"]), stack(CHANNELS["normal"])
     normal, normal_stats = _unit_normals(normal, depth)
     out = {"color": color, "depth": depth, "normal": normal, "normal_stats": normal_stats,
            "K": cam.K.to(device), "cam_from_world": cam.cam_from_world.to(device)}
-    for key in ("motion", "motion_world"):
-        names = CHANNELS[key]
-        if all(c in ch and ch[c].shape == (seq.height, seq.width) for c in names):
-            out[key] = stack(names)
+    if seq.source == "blender":
+        if "motion" in conv:  # Blender's Vector pass; it has no world-space motion
+            out["motion"] = conv["motion"].to(device)
+    else:
+        for key in ("motion", "motion_world"):
+            names = CHANNELS[key]
+            if all(c in ch and ch[c].shape == (seq.height, seq.width) for c in names):
+                out[key] = stack(names)
     return out
 
 

@@ -1,0 +1,187 @@
+"""Blender (Cycles) frames in our conventions, converted here and nowhere else.
+
+:func:`write_cameras` runs inside Blender's Python (or ``bpy``, ``pip install bpy``) and writes our
+``cameras.json`` for both eyes of a multiview (stereo 3D) camera; :func:`frame_from_channels` converts the channels
+of Blender's own multilayer EXRs (one part per pass) when ``stereorepro reproject --from blender`` reads them.
+
+Blender's conventions, and what we do with them:
+
+* **Camera frame**: x right, y up, z backward (the camera looks along −z). Ours is OpenCV's (x right, y down, z
+  forward): ``cam_from_world = diag(1, −1, −1, 1) · inv(matrix_world_eye)``.
+* **Stereo eyes**: offset along the camera's x axis by the interocular distance, from the camera as the stereo
+  ``pivot`` says (``LEFT``: the camera is the left eye, Blender's default; ``CENTER``: ±IOD/2; ``RIGHT``).
+  ``PARALLEL`` and ``OFFAXIS`` convergence are supported; ``OFFAXIS`` shifts each eye's principal point so that a
+  point at the convergence distance straight ahead of the *camera* (the pivot, not the rig's centre) is at the
+  image centre of both eyes, ``cx = W/2 + f · x_eye / convergence_distance`` (measured against Cycles' Position
+  pass for pivots LEFT and CENTER);
+  ``TOE`` (toe-in) is refused.
+* **Intrinsics**: ``fx = fy = lens / sensor · W`` (horizontal fit; the vertical fit uses ``H``; ``AUTO`` fits the
+  larger image side to ``sensor_width``), principal point at the image centre; lens shift is refused.
+* **Passes**: ``Depth`` is the camera-space z, ``1e10`` where nothing is hit; ``Normal`` is world space, averaged
+  over the pixel's samples (not unit at edges: the reader renormalises it), ``0`` where nothing is hit; ``Vector``
+  XY is previous − current in pixels with **y up**: our ``motion = (X, −Y)``. Blender has no world-space motion, so
+  moving objects still fail the position test (static geometry is warped as exactly as with the cameras).
+* **Inside Blender**, whose Python has no torch, load this file by path (it then needs only numpy)::
+
+      import importlib.util
+      spec = importlib.util.spec_from_file_location("stereorepro_blender", "/path/to/stereorepro/io/blender.py")
+      blender = importlib.util.module_from_spec(spec); spec.loader.exec_module(blender)
+      blender.write_cameras("/path/to/frames/cameras.json")
+
+* **Files**: Blender 5 needs ``image_settings.media_type = 'MULTI_LAYER_IMAGE'`` before ``file_format =
+  'OPEN_EXR_MULTILAYER'``; with ``render.filepath = "DIR/"`` stereo frames are ``DIR/{frame:04d}_L.exr`` and
+  ``_R.exr``. Turn the denoiser off (``cycles.use_denoising = False``) to keep 1-spp samples unbiased.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["FLIP", "BLENDER_CHANNELS", "BACKGROUND_DEPTH", "eye_camera", "write_cameras", "frame_from_channels",
+           "file_name"]
+
+#: Blender's camera axes (y up, z backward) to OpenCV's (y down, z forward).
+FLIP = np.diag([1.0, -1.0, -1.0, 1.0])
+#: Channels of a Blender view layer the conversion reads (layer name first, as Blender writes them).
+BLENDER_CHANNELS = ("Combined.R", "Combined.G", "Combined.B", "Depth.Z", "Normal.X", "Normal.Y", "Normal.Z")
+#: Depths at or beyond this are Blender's background (it writes 1e10).
+BACKGROUND_DEPTH = 1e9
+
+
+def _atomic_write(path, text: str) -> None:
+    """The package's one atomic write; loaded by path when this file was (inside Blender, without the package)."""
+    try:
+        from .atomic import atomic_write
+    except ImportError:
+        spec = importlib.util.spec_from_file_location("_stereorepro_atomic", Path(__file__).with_name("atomic.py"))
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+        atomic_write = mod.atomic_write
+    atomic_write(path, text)
+
+
+def file_name(frame_number: int, eye: str) -> str:
+    """Blender's stereo output name for ``render.filepath = "DIR/"``: ``0001_L.exr``."""
+    return f"{int(frame_number):04d}_{'L' if eye == 'left' else 'R'}.exr"
+
+
+def eye_camera(camera_object, scene, eye: str) -> tuple[np.ndarray, np.ndarray]:
+    """(K (3, 3), cam_from_world (4, 4)) float64, ours (OpenCV), of one eye of a Blender camera at the scene's
+    current frame. Works for a mono camera too (``eye`` then only matters with multiview on)."""
+    cam = camera_object.data
+    if cam.type != "PERSP":
+        raise ValueError(f"write_cameras: camera {camera_object.name!r} is {cam.type}, expected PERSP")
+    if cam.shift_x != 0 or cam.shift_y != 0:
+        raise ValueError(f"write_cameras: camera {camera_object.name!r} has a lens shift; not supported")
+    r = scene.render
+    if r.pixel_aspect_x != r.pixel_aspect_y:
+        raise ValueError("write_cameras: non-square pixels (pixel_aspect_x != pixel_aspect_y) are not supported")
+    W = int(round(r.resolution_x * r.resolution_percentage / 100))
+    H = int(round(r.resolution_y * r.resolution_percentage / 100))
+    fit = cam.sensor_fit
+    if fit == "AUTO":
+        fit, sensor = ("HORIZONTAL", cam.sensor_width) if W >= H else ("VERTICAL", cam.sensor_width)
+    else:
+        sensor = cam.sensor_width if fit == "HORIZONTAL" else cam.sensor_height
+    f = cam.lens / sensor * (W if fit == "HORIZONTAL" else H)
+    cx = W / 2.0
+    world = np.array(camera_object.matrix_world, dtype=np.float64)
+    stereo = r.use_multiview and r.views_format == "STEREO_3D"
+    if stereo:
+        st = cam.stereo
+        iod = float(st.interocular_distance)
+        x = {"LEFT": {"left": 0.0, "right": iod}, "RIGHT": {"left": -iod, "right": 0.0},
+             "CENTER": {"left": -iod / 2, "right": iod / 2}}[st.pivot][eye]
+        if st.convergence_mode == "TOE":
+            raise ValueError("write_cameras: toe-in stereo is not supported (use PARALLEL or OFFAXIS)")
+        if st.convergence_mode == "OFFAXIS":  # a point at the convergence distance ahead of the camera -> centre
+            cx = W / 2.0 + f * x / float(st.convergence_distance)
+        offset = np.eye(4)
+        offset[0, 3] = x
+        world = world @ offset
+    K = np.array([[f, 0.0, cx], [0.0, f, H / 2.0], [0.0, 0.0, 1.0]])
+    return K, FLIP @ np.linalg.inv(world)
+
+
+def write_cameras(path, scene=None, frames=None, position_threshold: float | None = None,
+                  normal_threshold: float | None = None) -> Path:
+    """Write our ``cameras.json`` for both eyes of the scene's camera at ``frames`` (default: frame_start ..
+    frame_end), with ``meta.frame_numbers`` so that ``stereorepro reproject --from blender`` finds Blender's
+    ``{frame:04d}_L.exr`` / ``_R.exr``. Runs where ``bpy`` imports (Blender's Python, or ``pip install bpy``).
+
+    Returns:
+        the path written (atomically).
+    """
+    import bpy
+
+    scene = bpy.context.scene if scene is None else scene
+    if scene.camera is None:
+        raise ValueError("write_cameras: the scene has no camera")
+    frames = list(range(scene.frame_start, scene.frame_end + 1)) if frames is None else [int(f) for f in frames]
+    current = scene.frame_current
+    records = []
+    try:
+        for fr in frames:
+            scene.frame_set(fr)
+            rec = {}
+            for eye in ("left", "right"):
+                K, T = eye_camera(scene.camera, scene, eye)
+                rec[eye] = {"K": K.tolist(), "cam_from_world": T.tolist()}
+            records.append(rec)
+    finally:
+        scene.frame_set(current)
+    doc = {"frames": records, "meta": {"writer": "stereorepro.io.blender.write_cameras", "frame_numbers": frames}}
+    rep = {k: v for k, v in (("position_threshold", position_threshold), ("normal_threshold", normal_threshold))
+           if v is not None}
+    if rep:
+        doc["reprojection"] = rep
+    _atomic_write(path, json.dumps(doc, indent=1))
+    return Path(path)
+
+
+def _layer_prefix(channels: dict, where: str) -> str:
+    from ..errors import SequenceError
+
+    prefixes = {k[: -len("Depth.Z")] for k in channels if k.endswith("Depth.Z")}
+    if len(prefixes) != 1:
+        raise SequenceError(f"{where}: expected one view layer with a Depth pass, found {sorted(prefixes) or 'none'} "
+                            "(enable the Z, Normal (and Vector) passes)")
+    return prefixes.pop()
+
+
+def frame_from_channels(channels: dict, where: str = "") -> dict:
+    """Our frame from the channels of a Blender multilayer EXR (as :func:`~stereorepro.io.exr.read_exr` returns
+    them): ``color`` (1, 3, H, W), ``depth`` (camera z, ``+inf`` at the background), ``normal`` (world; zero at
+    the background), and ``motion`` (1, 2, H, W) when the Vector pass is present.
+
+    Raises:
+        SequenceError: no single view layer with the needed passes.
+    """
+    import torch
+
+    from ..errors import SequenceError
+
+    pre = _layer_prefix(channels, where)
+    missing = [pre + c for c in BLENDER_CHANNELS if pre + c not in channels]
+    if missing:
+        raise SequenceError(f"{where}: missing Blender pass channel(s) {', '.join(missing)} (enable the Combined, Z "
+                            "and Normal passes of the view layer)")
+
+    def stack(names):
+        return torch.from_numpy(np.stack([np.asarray(channels[pre + c], np.float32) for c in names])[None].copy())
+
+    depth = stack(("Depth.Z",))
+    normal = stack(("Normal.X", "Normal.Y", "Normal.Z"))
+    background = ~(depth < BACKGROUND_DEPTH) | (normal.abs().sum(1, keepdim=True) == 0)
+    out = {"color": stack(("Combined.R", "Combined.G", "Combined.B")),
+           "depth": torch.where(background, torch.full((), math.inf), depth), "normal": normal}
+    if all(pre + c in channels for c in ("Vector.X", "Vector.Y")):
+        v = stack(("Vector.X", "Vector.Y"))
+        motion = torch.cat([v[:, :1], -v[:, 1:2]], 1)  # y up -> our y down
+        out["motion"] = torch.where(background, torch.full((), math.nan), motion)
+    return out
