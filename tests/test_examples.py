@@ -47,6 +47,17 @@ class TestExamples:
         assert json.loads((tmp_path / "mitsuba_stereo.json").read_text()) == res
         assert (tmp_path / "reprojected" / "0001_left_reprojected.exr").is_file()
 
+    def test_oidn_denoise(self, tmp_path):
+        pytest.importorskip("pyoidn")
+        doc = load_example("oidn_denoise").main(["--smoke", "--out", str(tmp_path)])
+        r = doc["results"][0]
+        assert json.loads((tmp_path / "oidn_denoise.json").read_text())["table"] == doc["table"]
+        m = r["methods"]
+        assert m["1 spp"]["effective_spp"] == pytest.approx(1.0, abs=0.05)  # the ladder's first rung itself
+        assert m["OIDN(1 spp)"]["rmse"] < m["1 spp"]["rmse"]  # OIDN works on our frames and aux images
+        assert m["stereo+temporal"]["rmse"] < m["1 spp"]["rmse"]
+        assert all(np.isfinite(v["rmse"]) for v in m.values())
+
     def test_denoiser_preprocess(self, tmp_path):
         load_example("denoiser_preprocess").main(["--smoke", "--out", str(tmp_path)])
         res = json.loads((tmp_path / "denoiser_preprocess.json").read_text())
