@@ -88,6 +88,8 @@ __all__ = [
     "mse",
     "rmse",
     "ssim",
+    "flip",
+    "flip_available",
     "ladder_rmse",
     "fit_ladder",
     "effective_spp",
@@ -187,6 +189,47 @@ def rmse(image: Tensor, reference: Tensor, mask: Tensor | None = None, nonfinite
         (B,) float64.
     """
     return mse(image, reference, mask, nonfinite).sqrt()
+
+
+def flip_available() -> bool:
+    """True when NVIDIA's FLIP (``pip install flip-evaluator``, extra ``[flip]``) is importable."""
+    try:
+        import flip_evaluator  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def flip(image: Tensor, reference: Tensor) -> Tensor:
+    """Mean LDR FLIP error per batch item (NVIDIA's perceptual difference, 0 = identical; ``flip-evaluator``), of
+    linear radiance clamped to [0, 1] (the display at exposure 1, as the experiment's LDR RMSE; passed as linear,
+    ``inputsRGB=False``), at FLIP's default 67 pixels per degree.
+
+    Effective spp stays MSE-based: it rests on the 1/n decay of an unbiased estimator's MSE, which FLIP (a
+    perceptual, non-additive error) does not have; FLIP is reported beside it.
+
+    Args:
+        image, reference: (B, 3, H, W) (reference may be (1, 3, H, W)), finite.
+
+    Returns:
+        (B,) float64.
+    """
+    _check_pair(image, reference, None, "flip")
+    if image.shape[1] != 3:
+        raise ShapeError(f"flip: expected 3 colour channels, got shape {tuple(image.shape)}")
+    try:
+        import flip_evaluator
+    except ImportError:
+        raise ImportError("flip: needs NVIDIA FLIP: pip install flip-evaluator (extra [flip])") from None
+    ref = reference.expand_as(image)
+    out = []
+    for b in range(image.shape[0]):
+        def hwc(t):
+            return t[b].detach().to("cpu", torch.float32).clamp(0, 1).permute(1, 2, 0).contiguous().numpy()
+
+        _, mean, _ = flip_evaluator.evaluate(hwc(ref), hwc(image), "LDR", inputsRGB=False, applyMagma=False)
+        out.append(float(mean))
+    return torch.tensor(out, dtype=torch.float64)
 
 
 def ssim(image: Tensor, reference: Tensor, mask: Tensor | None = None, window_size: int = 11,

@@ -45,6 +45,23 @@ class TestExperiment:
         # the masked trace of the left eye's discarded pixels reproduces the full 1-spp render there
         assert all(r.get("masked_trace_matches", True) for r in data["per_frame"])
 
+    def test_flip_reported(self, first_run, tmp_path):
+        from stereorepro.measure.metrics import flip_available
+
+        if not flip_available():
+            pytest.skip("flip-evaluator is not installed")
+        out, res = first_run
+        data = json.loads((out / "results.json").read_text())
+        assert set(data["flip"]) == set(data["table2"]) | set(data["table2_variants"])
+        for r in data["per_frame"]:
+            assert all(0.0 <= v <= 1.0 for v in r["flip"].values())
+        # frame 0 has no history: the temporal output is the 1-spp image, the noisiest; stereo+temporal beats it later
+        assert data["flip"]["stereo_temporal"]["avg"] < data["per_frame"][0]["flip"]["temporal"]
+        assert "## FLIP" in (out / "report.md").read_text()
+        off = run_experiment(ExperimentConfig(out=str(tmp_path), cache_dir=str(out / "cache"), flip=False,
+                                              **dict(SMALL, frames=1)))
+        assert off["flip"] is None and off["cache"]["misses"] == 0
+
     def test_cached_run_is_identical(self, first_run, tmp_path):
         out, res = first_run
         again = run_experiment(ExperimentConfig(out=str(out), **SMALL))

@@ -215,6 +215,39 @@ class TestSsim:
             ssim(x, x, mask=torch.zeros(1, 1, 16, 16, dtype=torch.bool))
 
 
+class TestFlip:
+    @pytest.fixture(autouse=True)
+    def _needs_flip(self):
+        from stereorepro.measure.metrics import flip_available
+
+        if not flip_available():
+            pytest.skip("flip-evaluator is not installed")
+
+    def test_smoke_and_identity(self):
+        from stereorepro.measure.metrics import flip
+
+        a = torch.rand(2, 3, 20, 24, generator=torch.Generator().manual_seed(0))
+        f = flip(a, a)
+        assert f.shape == (2,) and f.dtype == torch.float64 and bool((f == 0).all())
+
+    def test_more_noise_more_error(self):
+        from stereorepro.measure.metrics import flip
+
+        g = torch.Generator().manual_seed(1)
+        ref = torch.rand(1, 3, 32, 32, generator=g) * 0.5 + 0.25
+        noise = torch.randn(1, 3, 32, 32, generator=g)
+        small, large = flip(ref + 0.02 * noise, ref), flip(ref + 0.2 * noise, ref)
+        assert 0 < float(small) < float(large) <= 1
+
+    def test_exceptions(self):
+        from stereorepro.measure.metrics import flip
+
+        with pytest.raises(ShapeError):
+            flip(torch.rand(1, 1, 8, 8), torch.rand(1, 1, 8, 8))
+        with pytest.raises(ShapeError):
+            flip(torch.rand(1, 3, 8, 8), torch.rand(1, 3, 8, 9))
+
+
 class TestLadderRmse:
     def test_smoke(self):
         ref = torch.zeros(1, 1, 2, 2, dtype=F64)

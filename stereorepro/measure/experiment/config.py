@@ -63,6 +63,9 @@ class ExperimentConfig:
     #: ``"hdr"``: RMSE of linear radiance; ``"ldr"``: RMSE after clamping to [0, 1] (display-referred), applied alike
     #: to the method's images, the ladder and the reference.
     metric: str = "ldr"
+    #: Also report the mean LDR FLIP per scheme and frame (when ``flip-evaluator`` is installed; see
+    #: :func:`stereorepro.measure.metrics.flip`). Effective spp stays MSE-based.
+    flip: bool = True
 
 
 #: Variants of scenes with moving objects: the temporal steps read the history through the motion vectors.

@@ -14,7 +14,7 @@ from ... import __version__
 from ...accumulate import SpatiotemporalReprojection
 from ...camera import has_surface
 from ...io.atomic import sweep
-from ..metrics import effective_spp_many, ladder_rmse, rmse
+from ..metrics import effective_spp_many, flip, flip_available, ladder_rmse, rmse
 from .cache import RenderCache, code_version, scene_fingerprint
 from .config import LEFT, RIGHT, ExperimentConfig, validate_config
 from .config import schemes as all_schemes
@@ -58,6 +58,7 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
     code = cfg.renderer_version or code_version()
     base_key = {"scene": scene_fingerprint(scene), "code": code, "seed": cfg.seed, "w": W, "h": H}
     moving = "moving_objects" in scene.effects
+    use_flip = bool(cfg.flip) and flip_available()
     schemes = all_schemes(cfg, moving)
     drivers = {s.name: SpatiotemporalReprojection(pos_thr, nrm_thr, alpha=s.alpha, sampling=s.sampling,
                                                   stereo=s.stereo, temporal=s.temporal) for s in schemes}
@@ -83,7 +84,7 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
         timing["reference_ms"] += [L.ms_reference, R.ms_reference]
         surface = {e: has_surface(d.depth) for e, d in eyes.items()}
         row = {"frame": f, "discard_pct": {}, "rmse": {}, "effective_spp": {}, "flags": {},
-               "ladder_rmse": {}, "no_surface_pct": {}, "rmse_noise_free": {}}
+               "ladder_rmse": {}, "no_surface_pct": {}, "rmse_noise_free": {}, "flip": {}}
         if moving:
             row.update(discard_pct_moving={}, discard_pct_static={}, moving_pct=100.0 * float(
                 ((R.object_id >= 0) & surface[RIGHT]).float().mean()))
@@ -113,6 +114,8 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
             spp, flags = effective_spp_many(torch.tensor([err]), torch.tensor(ladder_spp, dtype=torch.float64),
                                             torch.tensor(ladder_err[s.eye], dtype=torch.float64))
             row["rmse"][s.name] = err
+            if use_flip:
+                row["flip"][s.name] = float(flip(img, d.reference)[0])
             if s.name in clean:
                 c = clean[s.name]
                 c_right = c.right(R.reference, R.depth, R.normal, R.K, R.cam_from_world, *mv_r)
@@ -174,6 +177,7 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
         "thresholds": {"position": pos_thr, "normal": nrm_thr, "position_scene": float(scene.position_threshold),
                        "scale": scale},
         "table1": table1,
+        "flip": ({s.name: _stats([r["flip"][s.name] for r in per_frame]) for s in schemes} if use_flip else None),
         **({"moving_objects": moving_table} if moving else {}),
         "table2": {k: table2[k] for k in ("stereo", "temporal", "stereo_temporal")},
         "table2_variants": {k: v for k, v in table2.items() if k not in ("stereo", "temporal", "stereo_temporal")},
