@@ -127,9 +127,12 @@ def staged_outputs(out: str | os.PathLike, last: Iterable[str] = ()) -> Iterator
     """Yield a staging folder inside ``out`` to write a set of files into (flat, by their final names); on
     leaving the block without an exception every file is synced and renamed into ``out`` (the names in ``last``
     after the others, in that order: a marker such as ``results.json`` appears only once the set is complete);
-    with an exception the staging folder is removed and ``out`` keeps what it had."""
+    with an exception the staging folder is removed and ``out`` keeps what it had (a folder this call created is
+    removed). The temporaries that dead processes left in ``out`` are swept first (:func:`sweep`)."""
     out = Path(out)
+    created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
+    sweep(out)
     while True:
         staging = out / f"{STAGING_PREFIX}{os.getpid()}-{secrets.token_hex(4)}"
         try:
@@ -148,5 +151,8 @@ def staged_outputs(out: str | os.PathLike, last: Iterable[str] = ()) -> Iterator
             os.replace(staging / n, out / n)
         with contextlib.suppress(OSError):
             _fsync_path(out, directory=True)
+    except BaseException:
+        shutil.rmtree(out if created else staging, ignore_errors=True)
+        raise
     finally:
         shutil.rmtree(staging, ignore_errors=True)

@@ -27,7 +27,6 @@ import json
 import math
 import os
 import re
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -37,7 +36,7 @@ from torch import Tensor
 
 from .._checks import intrinsics_problem, rigid_problem
 from ..errors import SequenceError
-from .atomic import atomic_write, staged_outputs, sweep
+from .atomic import atomic_write, staged_outputs
 from .exr import CHANNELS, exr_header
 
 __all__ = ["REQUIRED_CHANNELS", "SequenceError", "EyeCamera", "FrameSequence", "load_sequence", "read_frame",
@@ -127,7 +126,8 @@ def _threshold(table, key: str, where: str) -> float | None:
     return float(v)
 
 
-def _parse_cameras(path: Path, eyes: tuple[str, ...]) -> tuple[list[dict], dict]:
+def _parse_cameras(path: Path, eyes: tuple[str, ...]) -> tuple[list[dict], dict, dict]:
+    """Per-frame cameras of ``eyes``, the default thresholds and the ``meta`` object of a ``cameras.json``."""
     try:
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError as e:
@@ -185,7 +185,8 @@ def _parse_cameras(path: Path, eyes: tuple[str, ...]) -> tuple[list[dict], dict]
         raise SequenceError(f"{path}: 'reprojection' must be an object with position_threshold and/or "
                             f"normal_threshold, got {json.dumps(rep)[:80]}")
     thr = {k: _threshold(rep, k, f"{path}: reprojection") for k in ("position_threshold", "normal_threshold")}
-    return out, thr
+    meta = data.get("meta", {})
+    return out, thr, meta if isinstance(meta, dict) else {}
 
 
 def _exr_header(path: Path) -> tuple[list[str], int, int]:
@@ -222,11 +223,10 @@ def _has(names, channel: str, source: str) -> bool:
     return any(n.endswith("." + channel) for n in names) if source == "blender" else channel in names
 
 
-def _frame_numbers(path: Path, n: int) -> tuple:
+def _frame_numbers(meta: dict, path: Path, n: int) -> tuple:
     """Blender's file frame numbers from ``cameras.json`` ``meta.frame_numbers`` (default 1 .. n, Blender's
     default frame_start = 1)."""
-    meta = json.loads(path.read_text(encoding="utf-8")).get("meta", {})
-    nums = meta.get("frame_numbers") if isinstance(meta, dict) else None
+    nums = meta.get("frame_numbers")
     if nums is None:
         return tuple(range(1, n + 1))
     if not (isinstance(nums, list) and len(nums) == n and all(isinstance(x, int) and x >= 0 for x in nums)):
@@ -252,9 +252,9 @@ def load_sequence(input_dir, eyes: tuple[str, ...] = EYES, source: str = "stereo
     root = Path(input_dir)
     if not root.is_dir():
         raise SequenceError(f"{root}: not a directory")
-    cams, thr = _parse_cameras(root / "cameras.json", tuple(eyes))
+    cams, thr, meta = _parse_cameras(root / "cameras.json", tuple(eyes))
     n = len(cams)
-    numbers = _frame_numbers(root / "cameras.json", n) if source == "blender" else None
+    numbers = _frame_numbers(meta, root / "cameras.json", n) if source == "blender" else None
     probe = FrameSequence(root, tuple(cams), 0, 0, source=source, frame_numbers=numbers)
     beyond = [] if source == "blender" else sorted(p.name for p in root.iterdir() if (m := _FILE_RE.match(p.name)) and int(m.group(1)) >= n)
     if beyond:
@@ -392,32 +392,24 @@ def export_sequence(scene, frames, width: int, height: int, out_dir, spp: int = 
     if out.exists() and not out.is_dir():
         raise ValueError(f"export_sequence: {out} exists and is not a directory")
     tracer = PathTracer(scene, seed=seed, workers=workers)
-    created = not out.exists()
-    out.mkdir(parents=True, exist_ok=True)
-    sweep(out)
-    try:
-        with staged_outputs(out, last=["cameras.json"]) as stage:  # all frames or none; cameras.json last
-            records = []
-            for i, f in enumerate(frame_ids):
-                left, right = scene.stereo_cameras(f, width, height)
-                rec = {}
-                moving = "moving_objects" in scene.effects  # static scenes: the cameras give the motion exactly
-                prev = scene.stereo_cameras(frame_ids[i - 1], width, height) if i and moving else None
-                for eye, cam, key in (("left", left, 0), ("right", right, 1)):
-                    res = tracer.render(cam, f, spp, eye=key, prev_camera=None if prev is None else prev[key],
-                                        prev_frame=frame_ids[i - 1] if prev is not None else None)
-                    write_exr(stage / f"{i:04d}_{eye}.exr", res)
-                    rec[eye] = {"K": _json_matrix(cam.K), "cam_from_world": _json_matrix(cam.cam_from_world)}
-                records.append(rec)
-            position_threshold, normal_threshold = scene.thresholds(height)
-            doc = {"frames": records,
-                   "reprojection": {"position_threshold": position_threshold, "normal_threshold": normal_threshold},
-                   "meta": {"scene": scene.name, "scene_frames": frame_ids, "spp": int(spp), "seed": int(seed),
-                            "width": int(width), "height": int(height),
-                            "writer": "stereorepro.io.frames.export_sequence"}}
-            atomic_write(stage / "cameras.json", json.dumps(doc, indent=1))
-    except BaseException:
-        if created:
-            shutil.rmtree(out, ignore_errors=True)
-        raise
+    with staged_outputs(out, last=["cameras.json"]) as stage:  # all frames or none; cameras.json last
+        records = []
+        moving = "moving_objects" in scene.effects  # static scenes: the cameras give the motion exactly
+        for i, f in enumerate(frame_ids):
+            left, right = scene.stereo_cameras(f, width, height)
+            rec = {}
+            prev = scene.stereo_cameras(frame_ids[i - 1], width, height) if i and moving else None
+            for eye, cam, key in (("left", left, 0), ("right", right, 1)):
+                res = tracer.render(cam, f, spp, eye=key, prev_camera=None if prev is None else prev[key],
+                                    prev_frame=frame_ids[i - 1] if prev is not None else None)
+                write_exr(stage / f"{i:04d}_{eye}.exr", res)
+                rec[eye] = {"K": _json_matrix(cam.K), "cam_from_world": _json_matrix(cam.cam_from_world)}
+            records.append(rec)
+        position_threshold, normal_threshold = scene.thresholds(height)
+        doc = {"frames": records,
+               "reprojection": {"position_threshold": position_threshold, "normal_threshold": normal_threshold},
+               "meta": {"scene": scene.name, "scene_frames": frame_ids, "spp": int(spp), "seed": int(seed),
+                        "width": int(width), "height": int(height),
+                        "writer": "stereorepro.io.frames.export_sequence"}}
+        atomic_write(stage / "cameras.json", json.dumps(doc, indent=1))
     return out

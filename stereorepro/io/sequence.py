@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import json
 import math
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -38,7 +37,7 @@ from torch import Tensor
 from ..accumulate import SpatiotemporalReprojection, temporal_step
 from ..errors import SequenceError
 from ..reproject import Reason, StereoReprojection, TemporalReprojection
-from .atomic import atomic_write, staged_outputs, sweep
+from .atomic import atomic_write, staged_outputs
 from .diagnose import diagnose_conventions
 from .exr import write_exr
 from .frames import EYES, FrameSequence, load_sequence, read_frame
@@ -191,45 +190,34 @@ def reproject_sequence(input_dir, out_dir, mode: str = "both", eye: str = "right
 
     out = Path(out_dir)
     _check_output_dir(out, seq.root)
-    created = not out.exists()
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise SequenceError(f"{out}: cannot create the output directory: {e.strerror or e}") from None
-    sweep(out)
-    try:
-        with staged_outputs(out, last=["summary.json"]) as staging:  # summary.json last: it marks a complete output
-            def emit(frame, e, chans):
-                write_exr(staging / f"{frame:04d}_{e}_reprojected.exr", chans)
+    with staged_outputs(out, last=["summary.json"]) as staging:  # summary.json last: it marks a complete output
+        def emit(frame, e, chans):
+            write_exr(staging / f"{frame:04d}_{e}_reprojected.exr", chans)
 
-            with torch.no_grad():
-                per_frame = _process(seq, mode, eyes, float(pos), float(nrm), float(alpha), sampling, device, emit,
-                                     log)
-            eyes_out = ("left",) if mode == "stereo" else eyes
-            for f in per_frame:
-                for e in eyes_out:
-                    ns = f[e]["normals"]
-                    if ns["surface"] and ns["invalid"] > 0.01 * ns["surface"]:
-                        warnings.append({"test": "normals", "frame": f["frame"], "eye": e, "message":
-                                         f"frame {f['frame']} {e}: normals are zero or not finite on "
-                                         f"{100.0 * ns['invalid'] / ns['surface']:.1f} % of the surface pixels "
-                                         "(those pixels fail the normal test)"})
-            for w in warnings:
-                warn(w["message"])
-            with_history = {e: [f[e]["discard_pct"] for f in per_frame if not f[e]["no_history"]] for e in eyes_out}
-            summary = {
-                "mode": mode, "eyes": list(eyes_out), "input": str(seq.root), "frames": len(seq),
-                "width": seq.width, "height": seq.height, "position_threshold": float(pos),
-                "normal_threshold": float(nrm), "alpha": float(alpha) if mode != "stereo" else None,
-                "sampling": sampling, "source": source,
-                "mean_discard_pct": {e: float(np.mean(v)) if v else None for e, v in with_history.items()},
-                "no_history_frames": {e: [f["frame"] for f in per_frame if f[e]["no_history"]] for e in eyes_out},
-                "warnings": warnings,
-                "per_frame": per_frame,
-            }
-            atomic_write(staging / "summary.json", json.dumps(summary, indent=1))
-    except BaseException:
-        if created:
-            shutil.rmtree(out, ignore_errors=True)
-        raise
+        with torch.no_grad():
+            per_frame = _process(seq, mode, eyes, float(pos), float(nrm), float(alpha), sampling, device, emit,
+                                 log)
+        eyes_out = ("left",) if mode == "stereo" else eyes
+        for f in per_frame:
+            for e in eyes_out:
+                ns = f[e]["normals"]
+                if ns["surface"] and ns["invalid"] > 0.01 * ns["surface"]:
+                    warnings.append({"test": "normals", "frame": f["frame"], "eye": e, "message":
+                                     f"frame {f['frame']} {e}: normals are zero or not finite on "
+                                     f"{100.0 * ns['invalid'] / ns['surface']:.1f} % of the surface pixels "
+                                     "(those pixels fail the normal test)"})
+        for w in warnings:
+            warn(w["message"])
+        with_history = {e: [f[e]["discard_pct"] for f in per_frame if not f[e]["no_history"]] for e in eyes_out}
+        summary = {
+            "mode": mode, "eyes": list(eyes_out), "input": str(seq.root), "frames": len(seq),
+            "width": seq.width, "height": seq.height, "position_threshold": float(pos),
+            "normal_threshold": float(nrm), "alpha": float(alpha) if mode != "stereo" else None,
+            "sampling": sampling, "source": source,
+            "mean_discard_pct": {e: float(np.mean(v)) if v else None for e, v in with_history.items()},
+            "no_history_frames": {e: [f["frame"] for f in per_frame if f[e]["no_history"]] for e in eyes_out},
+            "warnings": warnings,
+            "per_frame": per_frame,
+        }
+        atomic_write(staging / "summary.json", json.dumps(summary, indent=1))
     return summary

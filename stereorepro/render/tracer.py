@@ -315,7 +315,6 @@ class PathTracer:
         self._lock = threading.Lock()
         self._stage_times: dict | None = None  # set to {} to accumulate per-stage seconds (profiling)
         self._triangle_distances: tuple | None = None  # (frame, TriangleDistances), built on first use by _limit
-        self._limit_frame = 0
         self._ws_free: list[dict] = []  # scratch arrays of the native path, one set per concurrent worker
 
     # ------------------------------------------------------------------ geometry
@@ -369,8 +368,7 @@ class PathTracer:
             return cache[1], cache[2], cache[3]
         pos, inten = self.scene.point_lights(0 if key is None else key)
         ls = LightSet(self._emitters, pos, inten)
-        self._limit_frame = int(frame)
-        limit = self._limit(pos, inten)
+        limit = self._limit(pos, inten, int(frame))
         shader = self._make_shader(ls, self.geometry(frame)) if self.backend == "native" else None
         self.stats["light_prepare"] += 1
         self._lights_cache = (key, ls, limit, shader)
@@ -391,7 +389,7 @@ class PathTracer:
             bool(ls.empty), c(ls.cdf, np.float64), c(ls.prob, np.float64), c(ls._table, f32), int(ls.num_area),
             c(ls.point_pos, f32), c(ls.point_int, f32), c(ls.pdf_area_face, f32))
 
-    def _limit(self, pos: np.ndarray, inten: np.ndarray) -> float | None:
+    def _limit(self, pos: np.ndarray, inten: np.ndarray, frame: int) -> float | None:
         if self.clamp is None:
             return None
         if self.clamp != "auto":
@@ -405,7 +403,7 @@ class PathTracer:
         elif dmin is not None:
             dist = np.full(len(pos), float(dmin))
         else:  # distance of each light to the nearest surface of each material (L, M)
-            geom = self.geometry(self._limit_frame)
+            geom = self.geometry(frame)
             if self._triangle_distances is None or self._triangle_distances[0] != geom.frame:
                 # per-face data once per tracer (moving lights ask every frame), per frame for moving objects
                 self._triangle_distances = (geom.frame, TriangleDistances(geom.vertices, self.faces))

@@ -310,8 +310,8 @@ def general_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor,
     rows = max(1, BLOCK_PIXELS // max(1, B * W)) if inference else None
     args["src_rotation"] = src_rotation
 
-    def mo(x, r0=None, r1=None):
-        return None if x is None or r0 is None else x[:, :, r0:r1]
+    def block(x, r0, r1):  # rows r0:r1 of an optional per-pixel input
+        return None if x is None else x[:, :, r0:r1]
 
     if rows is None or rows >= H:
         return warp_pixels(dst_depth=dst_depth, dst_normal=dst_normal, **pixel_centres(0, H, W, wdt, dev),
@@ -323,8 +323,8 @@ def general_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor,
     for r0 in range(0, H, rows):
         r1 = min(H, r0 + rows)
         out = warp_pixels(dst_depth=dst_depth[:, :, r0:r1], dst_normal=dst_normal[:, :, r0:r1],
-                          **pixel_centres(r0, r1, W, wdt, dev), motion=mo(motion, r0, r1),
-                          motion_world=mo(motion_world, r0, r1), **args)
+                          **pixel_centres(r0, r1, W, wdt, dev), motion=block(motion, r0, r1),
+                          motion_world=block(motion_world, r0, r1), **args)
         for buf, o in zip((values, valid, reason, den), out):
             buf[:, :, r0:r1] = o
     return values, valid, reason, den

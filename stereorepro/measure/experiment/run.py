@@ -13,7 +13,6 @@ import torch
 from ... import __version__
 from ...accumulate import SpatiotemporalReprojection
 from ...camera import has_surface
-from ...io.atomic import sweep
 from ..metrics import effective_spp_many, flip, flip_available, ladder_rmse, rmse
 from .cache import RenderCache, code_version, scene_fingerprint
 from .config import LEFT, RIGHT, ExperimentConfig, validate_config
@@ -49,7 +48,6 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
         raise ValueError(f"frames must be in 1..{scene.num_frames} for scene {scene.name!r}, got {frames}")
     out = Path(cfg.out)  # everything is checked: only now is anything created
     out.mkdir(parents=True, exist_ok=True)
-    sweep(out)
     W, H = cfg.width, cfg.height
     scale = cfg.threshold_scale if cfg.threshold_scale is not None else threshold_scale(H)
     pos_thr, nrm_thr = scene.thresholds(H, scale)
