@@ -28,6 +28,7 @@ from .camera import (
     project,
     unproject,
 )
+from .denoise import ReprojectionDenoiser, denoise_features, empty_history, reproject_denoise, reprojection_features
 from .errors import CameraError, SceneError, SequenceError, ShapeError, StereoreproError, UserError
 from .io.onnx import export_onnx
 from .measure.metrics import (
@@ -72,6 +73,8 @@ __all__ = [
     "stereo_reproject", "temporal_blend", "temporal_reproject", "export_onnx",
     # accumulation over a sequence
     "SpatiotemporalReprojection", "EyeState", "temporal_step",
+    # a learned denoiser and its reprojection in one graph
+    "ReprojectionDenoiser", "reproject_denoise", "reprojection_features", "denoise_features", "empty_history",
     # metrics
     "EFFECTIVE_SPP_FLAGS", "EffectiveSppLadder", "effective_spp", "effective_spp_many", "fit_ladder",
     "ladder_rmse", "mse", "rmse", "ssim", "suggest_reference_spp",

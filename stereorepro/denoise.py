@@ -1,0 +1,328 @@
+"""A learned denoiser and its temporal reprojection in one graph (one nn.Module, one ONNX file).
+
+Per frame, :func:`reproject_denoise`:
+
+1. accumulates this frame's 1-spp colour with the previous frame's history
+   (:func:`~stereorepro.reproject.temporal_reproject`, hard accept tests, EMA with warm-up);
+2. optionally (``stereo``) reprojects the *other eye's* accumulated colour into this eye
+   (:func:`~stereorepro.reproject.stereo_reproject`);
+3. stacks the denoiser's input features (:func:`denoise_features`, channels in :data:`FEATURES`) and runs the
+   denoiser, any module mapping (B, C_in, H, W) features to a (B, 3, H, W) frame.
+
+It returns the denoised frame and the new state. The caller feeds the state back next frame, together with this
+frame's G-buffer and camera::
+
+    model = ReprojectionDenoiser(denoiser, position_threshold, normal_threshold)
+    history = empty_history(depth, normal, K, cam_from_world)           # first frame: no history
+    for frame in frames:
+        denoised, color, n = model(frame.color, frame.depth, frame.normal, frame.K, frame.cam_from_world, *history)
+        history = (color, n, frame.depth, frame.normal, frame.K, frame.cam_from_world)
+
+The denoised frame is *not* fed back: the history is the plain accumulation, so the state does not depend on the
+network and a deployed graph (onnxruntime) and the torch module cannot drift apart over a sequence.
+
+Features (:data:`FEATURES`, in this order; (B, 9, H, W), (B, 13, H, W) with ``stereo``):
+
+======== ============================================================================================
+channels feature
+======== ============================================================================================
+0-2      ``log1p(max(color, 0))`` of the accumulated colour (first, so that a residual network such as
+         ``examples/denoiser_preprocess.py``'s ``UNet`` starts from the accumulation)
+3        ``history_len / max_history``: the accumulated sample count, in (0, 1]
+4        ``valid``: 1 where the history passed the reprojection tests, else 0
+5        ``1 / depth`` where the pixel has a surface, else 0 (inverse depth: finite, 0 at the background)
+6-8      the shading normal (unit, world space), 0 where not finite
+9-11     (``stereo``) ``log1p(max(c, 0))`` of the other eye's accumulated colour reprojected into this eye, 0
+         where discarded
+12       (``stereo``) 1 where the stereo reprojection kept the pixel, else 0
+======== ============================================================================================
+
+First frame: pass :func:`empty_history` (zero history, and a previous depth of 0, i.e. no surface), so every
+history tap is rejected: ``valid`` is 0, the accumulation is this frame's colour and ``history_len`` 1 — what
+:func:`~stereorepro.temporal_step` gives without a state. (A history of length 0 on real depths also restarts the
+accumulation, but ``valid`` then reports the tests' verdict on the empty history.)
+
+Stereo: with ``stereo=True`` the forward takes five more inputs, the other eye's accumulated colour, G-buffer and
+camera (``other_color`` (B, 3, H, W), ``other_depth``, ``other_normal``, ``other_K``, ``other_cam_from_world``),
+typically the other eye's ``color`` output of this frame (run that eye first, e.g. the right eye temporal only,
+then the left eye with stereo features). The other eye has this eye's size.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from ._checks import check_shape, tracing
+from .camera import has_surface
+from .errors import ShapeError
+from .reproject import StereoReprojection, TemporalReprojection, stereo_reproject, temporal_reproject
+
+__all__ = ["FEATURES", "STEREO_FEATURES", "OTHER_NAMES", "feature_channels", "denoise_features",
+           "reprojection_features", "reproject_denoise",
+           "empty_history", "ReprojectionDenoiser", "denoiser_example_inputs"]
+
+#: The denoiser's input channels, in order (see the module docstring).
+FEATURES = ("log1p_color_r", "log1p_color_g", "log1p_color_b", "history_len_norm", "valid", "inverse_depth",
+            "normal_x", "normal_y", "normal_z")
+#: Channels appended with ``stereo=True``.
+STEREO_FEATURES = ("log1p_stereo_r", "log1p_stereo_g", "log1p_stereo_b", "stereo_valid")
+
+#: The five extra inputs of the stereo variant, in order.
+OTHER_NAMES = ("other_color", "other_depth", "other_normal", "other_K", "other_cam_from_world")
+
+
+def feature_channels(stereo: bool = False) -> int:
+    """C_in of the denoiser: 9, or 13 with ``stereo``."""
+    return len(FEATURES) + (len(STEREO_FEATURES) if stereo else 0)
+
+
+def _log1p_color(c: Tensor) -> Tensor:
+    return torch.log1p(c.clamp_min(0.0))
+
+
+def _finite_or_zero(x: Tensor) -> Tensor:
+    return torch.where(torch.isfinite(x), x, torch.zeros((), dtype=x.dtype, device=x.device))
+
+
+def denoise_features(color: Tensor, history_len: Tensor, valid: Tensor, depth: Tensor, normal: Tensor,
+                     max_history: float = 255.0, stereo_color: Tensor | None = None,
+                     stereo_valid: Tensor | None = None) -> Tensor:
+    """The denoiser's input: (B, 9, H, W), or (B, 13, H, W) with the stereo channels (:data:`FEATURES`,
+    :data:`STEREO_FEATURES`), in ``color``'s dtype.
+
+    Args:
+        color: (B, 3, H, W) accumulated colour of this frame.
+        history_len: (B, 1, H, W) its sample count (float).
+        valid: (B, 1, H, W) bool (or 0/1 float), where the history was kept.
+        depth: (B, 1, H, W) camera-space z; normal: (B, 3, H, W) unit world-space normals.
+        max_history: the accumulation's cap of ``history_len``; the feature is ``history_len / max_history``.
+        stereo_color: optional (B, 3, H, W) the other eye's colour reprojected into this eye.
+        stereo_valid: (B, 1, H, W) bool, where it was kept (required with ``stereo_color``).
+    """
+    bind = check_shape(color, ["B", "3", "H", "W"], "color")
+    check_shape(history_len, ["B", "1", "H", "W"], "history_len", bind)
+    check_shape(valid, ["B", "1", "H", "W"], "valid", bind)
+    check_shape(depth, ["B", "1", "H", "W"], "depth", bind)
+    check_shape(normal, ["B", "3", "H", "W"], "normal", bind)
+    if (stereo_color is None) != (stereo_valid is None):
+        raise ValueError("stereo_color and stereo_valid go together: pass both or neither")
+    if not tracing() and not float(max_history) >= 1:
+        raise ValueError(f"max_history must be >= 1, got {max_history}")
+    dt = color.dtype
+    surface = has_surface(depth)
+    inv_depth = torch.where(surface, 1.0 / torch.where(surface, depth, torch.ones((), dtype=depth.dtype,
+                                                                                    device=depth.device)),
+                            torch.zeros((), dtype=depth.dtype, device=depth.device))
+    feats = [_log1p_color(color), (history_len / float(max_history)).to(dt), valid.to(dt), inv_depth.to(dt),
+             _finite_or_zero(normal).to(dt)]
+    if stereo_color is not None:
+        check_shape(stereo_color, ["B", "3", "H", "W"], "stereo_color", bind)
+        check_shape(stereo_valid, ["B", "1", "H", "W"], "stereo_valid", bind)
+        feats += [_log1p_color(stereo_color).to(dt), stereo_valid.to(dt)]
+    return torch.cat(feats, 1)
+
+
+def reprojection_features(current_color: Tensor, depth: Tensor, normal: Tensor, K: Tensor, cam_from_world: Tensor,
+                          history_color: Tensor, history_len: Tensor, prev_depth: Tensor, prev_normal: Tensor,
+                          prev_K: Tensor, prev_cam_from_world: Tensor, position_threshold, normal_threshold,
+                          alpha=0.2, warmup: bool = True, max_history: float = 255.0, sampling: str = "bilinear",
+                          backend: str = "auto", other: tuple[Tensor, Tensor, Tensor, Tensor, Tensor] | None = None
+                          ) -> tuple[Tensor, Tensor, Tensor]:
+    """The reprojection half of :func:`reproject_denoise`: the denoiser's input features and the new state.
+
+    It has no trained parameters (hard tests), so a training loop can compute the features of a clip once and
+    train the denoiser on them. Arguments as :func:`reproject_denoise` (without the denoiser).
+
+    Returns:
+        features: (B, 9, H, W), or (B, 13, H, W) with ``other`` (:func:`denoise_features`).
+        color: (B, 3, H, W) the accumulated colour — the next frame's ``history_color``.
+        history_len: (B, 1, H, W) its sample count — the next frame's ``history_len``.
+    """
+    color, n, valid = temporal_reproject(current_color, depth, normal, K, cam_from_world, history_color,
+                                         history_len, prev_depth, prev_normal, prev_K, prev_cam_from_world,
+                                         position_threshold, normal_threshold, alpha, warmup, max_history,
+                                         sampling, backend=backend)
+    s_color = s_valid = None
+    if other is not None:
+        if len(other) != len(OTHER_NAMES):
+            raise ValueError(f"other: expected ({', '.join(OTHER_NAMES)}), got {len(other)} tensors")
+        o_color, o_depth, o_normal, o_K, o_T = other
+        check_shape(o_color, ["B", "3", "H", "W"], "other_color",
+                    {"B": depth.shape[0], "H": depth.shape[-2], "W": depth.shape[-1]})
+        s_color, s_valid, _ = stereo_reproject(o_color, o_depth, o_normal, o_K, o_T, depth, normal, K,
+                                               cam_from_world, position_threshold, normal_threshold, sampling,
+                                               backend=backend)
+    return denoise_features(color, n, valid, depth, normal, max_history, s_color, s_valid), color, n
+
+
+def reproject_denoise(current_color: Tensor, depth: Tensor, normal: Tensor, K: Tensor, cam_from_world: Tensor,
+                      history_color: Tensor, history_len: Tensor, prev_depth: Tensor, prev_normal: Tensor,
+                      prev_K: Tensor, prev_cam_from_world: Tensor, denoiser, position_threshold,
+                      normal_threshold, alpha=0.2, warmup: bool = True, max_history: float = 255.0,
+                      sampling: str = "bilinear", backend: str = "auto",
+                      other: tuple[Tensor, Tensor, Tensor, Tensor, Tensor] | None = None
+                      ) -> tuple[Tensor, Tensor, Tensor]:
+    """Temporal reprojection, (optional) stereo reprojection and a denoiser, for one eye and one frame.
+
+    Args:
+        current_color: (B, 3, H, W) this frame's 1-spp colour.
+        depth, normal: (B, 1, H, W), (B, 3, H, W) this frame's G-buffer; K, cam_from_world: (B, 3, 3), (B, 4, 4).
+        history_color, history_len: (B, 3, Hp, Wp), (B, 1, Hp, Wp) the state returned for the previous frame
+            (first frame: :func:`empty_history`).
+        prev_depth, prev_normal, prev_K, prev_cam_from_world: the previous frame's G-buffer and camera.
+        denoiser: a callable (an nn.Module) mapping (B, C_in, H, W) features (:func:`denoise_features`;
+            C_in = :func:`feature_channels`) to a (B, 3, H, W) frame.
+        position_threshold, normal_threshold, alpha, warmup, max_history, sampling, backend: the temporal
+            reprojection's settings (:func:`~stereorepro.reproject.temporal_reproject`; hard tests); the stereo
+            step uses the same thresholds, sampling and backend.
+        other: optional (other_color (B, 3, H, W), other_depth (B, 1, H, W), other_normal (B, 3, H, W), other_K
+            (B, 3, 3), other_cam_from_world (B, 4, 4)): the other eye's accumulated colour, G-buffer and camera,
+            reprojected into this eye as four more feature channels.
+
+    Returns:
+        denoised: (B, 3, H, W) the denoiser's output.
+        color: (B, 3, H, W) the accumulated colour — the next frame's ``history_color``.
+        history_len: (B, 1, H, W) its sample count — the next frame's ``history_len``.
+    """
+    if not callable(denoiser):
+        raise TypeError(f"denoiser: expected a module mapping (B, C_in, H, W) to (B, 3, H, W), "
+                        f"got {type(denoiser).__name__}")
+    x, color, n = reprojection_features(current_color, depth, normal, K, cam_from_world, history_color,
+                                        history_len, prev_depth, prev_normal, prev_K, prev_cam_from_world,
+                                        position_threshold, normal_threshold, alpha, warmup, max_history, sampling,
+                                        backend, other)
+    if tracing():
+        return denoiser(x), color, n
+    try:
+        denoised = denoiser(x)
+    except RuntimeError as e:  # typically a first layer built for another C_in: say what the features are
+        if "channels" not in str(e):
+            raise
+        raise ShapeError(f"denoiser: failed on the features, shape {tuple(x.shape)} (C_in = {x.shape[1]}: "
+                         f"{', '.join(FEATURES + (STEREO_FEATURES if other is not None else ()))}): {e}") from e
+    if not isinstance(denoised, Tensor):
+        raise TypeError(f"denoiser: expected it to return a tensor of shape (B, 3, H, W), "
+                        f"got {type(denoised).__name__}")
+    B, _, H, W = current_color.shape
+    if tuple(denoised.shape) != (B, 3, H, W):
+        raise ShapeError(f"denoiser: expected an output of shape (B, 3, H, W) = {(B, 3, H, W)} for input "
+                         f"features {tuple(x.shape)}, got {tuple(denoised.shape)}")
+    return denoised, color, n
+
+
+def empty_history(depth: Tensor, normal: Tensor, K: Tensor, cam_from_world: Tensor
+                  ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """The state to pass on a first frame (or after a camera cut): (history_color, history_len, prev_depth,
+    prev_normal, prev_K, prev_cam_from_world) = zeros (B, 3, H, W), zeros (B, 1, H, W), zeros (B, 1, H, W) (no
+    surface: every history tap is rejected), zeros (B, 3, H, W), ``K``, ``cam_from_world``; images in ``depth``'s
+    dtype, on its device."""
+    bind = check_shape(depth, ["B", "1", "H", "W"], "depth")
+    check_shape(normal, ["B", "3", "H", "W"], "normal", bind)
+    z1 = torch.zeros_like(depth)
+    return (torch.zeros_like(normal), z1, z1.clone(), torch.zeros_like(normal), K, cam_from_world)
+
+
+class ReprojectionDenoiser(nn.Module):
+    """Temporal reprojection + a learned denoiser (+ optional stereo features) in one module. See
+    :func:`reproject_denoise` and the module docstring (features, state, first frame).
+
+    Args:
+        denoiser: an nn.Module mapping (B, C_in, H, W) → (B, 3, H, W), C_in = :func:`feature_channels` (9, or 13
+            with ``stereo``); its parameters are this module's (``self.denoiser``), trainable through it.
+        position_threshold, normal_threshold: the accept tests (scene units; unit normals), hard.
+        alpha, warmup, max_history, sampling, backend: as :class:`~stereorepro.TemporalReprojection`.
+        stereo: also reproject the other eye's accumulated colour into this eye (five more inputs).
+
+    Forward:
+        ``forward(current_color, depth, normal, K, cam_from_world, history_color, history_len, prev_depth,
+        prev_normal, prev_K, prev_cam_from_world[, other_color, other_depth, other_normal, other_K,
+        other_cam_from_world]) -> (denoised, color, history_len_out)`` with shapes (B,3,H,W), (B,1,H,W), (B,3,H,W),
+        (B,3,3), (B,4,4), (B,3,Hp,Wp), (B,1,Hp,Wp), (B,1,Hp,Wp), (B,3,Hp,Wp), (B,3,3), (B,4,4)[, (B,3,H,W),
+        (B,1,H,W), (B,3,H,W), (B,3,3), (B,4,4)] → (B,3,H,W), (B,3,H,W), (B,1,H,W) float.
+        Feed ``color`` and ``history_len_out`` back next frame as ``history_color`` / ``history_len``, with this
+        frame's ``depth``, ``normal``, ``K``, ``cam_from_world`` as ``prev_*``.
+
+    Export: ``stereorepro.export_onnx(model, path, inputs=denoiser_example_inputs(model))`` (symbolic B, H, W,
+    and Hp, Wp for the history).
+    """
+
+    input_names = list(TemporalReprojection.input_names)
+    output_names = ["denoised", "color", "history_len_out"]
+
+    def __init__(self, denoiser: nn.Module, position_threshold: float, normal_threshold: float, alpha: float = 0.2,
+                 warmup: bool = True, max_history: float = 255.0, sampling: str = "bilinear",
+                 backend: str = "auto", stereo: bool = False):
+        super().__init__()
+        if not isinstance(denoiser, nn.Module):
+            raise TypeError(f"denoiser: expected an nn.Module mapping (B, C_in, H, W) to (B, 3, H, W), "
+                            f"got {type(denoiser).__name__}")
+        # the settings (validated there): hard tests, no learnable thresholds
+        self.temporal = TemporalReprojection(position_threshold, normal_threshold, alpha, warmup, max_history,
+                                             sampling, backend=backend)
+        self.stereo = bool(stereo)
+        if self.stereo:
+            self.input_names = type(self).input_names + list(OTHER_NAMES)
+        self.denoiser = denoiser
+
+    @property
+    def in_channels(self) -> int:
+        """C_in the denoiser must take: :func:`feature_channels` (``stereo``)."""
+        return feature_channels(self.stereo)
+
+    def extra_repr(self) -> str:
+        return f"stereo={self.stereo}, in_channels={self.in_channels}"
+
+    def _other(self, others: tuple, method: str) -> tuple | None:
+        given = [n for n, o in zip(OTHER_NAMES, others) if o is not None]
+        if self.stereo and len(given) != len(OTHER_NAMES):
+            missing = [n for n in OTHER_NAMES if n not in given]
+            raise TypeError(f"ReprojectionDenoiser(stereo=True).{method} needs {', '.join(missing)}")
+        if not self.stereo and given:
+            raise TypeError(f"ReprojectionDenoiser(stereo=False).{method} got {', '.join(given)}: construct it "
+                            f"with stereo=True for stereo features")
+        return others if self.stereo else None
+
+    def _settings(self) -> tuple:
+        t = self.temporal
+        return (t.position_threshold, t.normal_threshold, t.alpha, t.warmup, t.max_history, t.sampling, t.backend)
+
+    def features(self, current_color: Tensor, depth: Tensor, normal: Tensor, K: Tensor, cam_from_world: Tensor,
+                 history_color: Tensor, history_len: Tensor, prev_depth: Tensor, prev_normal: Tensor,
+                 prev_K: Tensor, prev_cam_from_world: Tensor, other_color: Tensor | None = None,
+                 other_depth: Tensor | None = None, other_normal: Tensor | None = None,
+                 other_K: Tensor | None = None, other_cam_from_world: Tensor | None = None
+                 ) -> tuple[Tensor, Tensor, Tensor]:
+        """The forward without the denoiser: (features, color, history_len) (:func:`reprojection_features`), the
+        denoiser's training input."""
+        other = self._other((other_color, other_depth, other_normal, other_K, other_cam_from_world), "features")
+        return reprojection_features(current_color, depth, normal, K, cam_from_world, history_color, history_len,
+                                     prev_depth, prev_normal, prev_K, prev_cam_from_world, *self._settings(),
+                                     other)
+
+    def forward(self, current_color: Tensor, depth: Tensor, normal: Tensor, K: Tensor, cam_from_world: Tensor,
+                history_color: Tensor, history_len: Tensor, prev_depth: Tensor, prev_normal: Tensor,
+                prev_K: Tensor, prev_cam_from_world: Tensor, other_color: Tensor | None = None,
+                other_depth: Tensor | None = None, other_normal: Tensor | None = None,
+                other_K: Tensor | None = None, other_cam_from_world: Tensor | None = None
+                ) -> tuple[Tensor, Tensor, Tensor]:
+        other = self._other((other_color, other_depth, other_normal, other_K, other_cam_from_world), "forward")
+        pos, nrm, *rest = self._settings()
+        return reproject_denoise(current_color, depth, normal, K, cam_from_world, history_color, history_len,
+                                 prev_depth, prev_normal, prev_K, prev_cam_from_world, self.denoiser, pos, nrm,
+                                 *rest, other)
+
+
+def denoiser_example_inputs(module: ReprojectionDenoiser, batch: int = 1, height: int = 24, width: int = 32,
+                            dtype: torch.dtype = torch.float32, seed: int = 0) -> tuple[Tensor, ...]:
+    """Synthetic inputs for ``module``'s forward, in the order of its ``input_names`` (for export and tests):
+    :func:`stereorepro.io.onnx.example_inputs`' temporal inputs (a stereo pair with head motion, one eye as the
+    previous frame), and with ``stereo`` the other camera of that pair as the other eye."""
+    from .io.onnx import example_inputs
+
+    kw = dict(batch=batch, height=height, width=width, dtype=dtype)
+    temporal = example_inputs(TemporalReprojection(1.0, 1.0), seed=seed, **kw)
+    if not module.stereo:
+        return temporal
+    src = example_inputs(StereoReprojection(1.0, 1.0), seed=seed + 1, **kw)
+    return temporal + src[:5]  # src_color, src_depth, src_normal, src_K, src_cam_from_world: the other eye
