@@ -14,6 +14,13 @@
 //   d² = ((qx-px)² + (qy-py)²) + (qz-z_s)²,   |dn|² = (dn0² + dn1²) + dn2²
 // The camera matrices (P, kt, M, t, Ks_inv) are composed in Python by reproject._compose_cameras (float64, then
 // cast), the same helper the torch path uses. Layout: NCHW, C-contiguous, CPU.
+//
+// Image dtypes: every image plane (colour / values, depths, normals, history length, current colour) is float32
+// or float16, each on its own (mixed inputs need no conversion); float16 planes are widened exactly on load
+// (F16C vcvtph2ps in the vector path, half_to_float in the scalar one) and all arithmetic stays the float32 above,
+// so a float16 input gives what torch computes on its float32 upcast. The colour output is float32 or float16
+// (torch's `.to(dtype)`: round to nearest, ties to even); valid, reason, confidence and history length keep their
+// types (bool, uint8, float32, float32).
 #if defined(__clang__)
 #pragma clang fp contract(off)
 #elif defined(__GNUC__)
@@ -27,6 +34,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #include <optional>
 #include <stdexcept>
 #include <string>
@@ -36,7 +44,17 @@
 #if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
 #include <immintrin.h>
 #define SR_AVX2_PATH 1
-#define SR_AVX2 __attribute__((target("avx2")))  // deliberately not "fma": nothing may be fused
+// deliberately not "fma": nothing may be fused. F16C: the float16 loads and stores (every AVX2 CPU has it).
+#define SR_AVX2 __attribute__((target("avx2,f16c")))
+#endif
+// The per-tap helpers must be inlined into the row loops (the instantiations per dtype layout would otherwise
+// exceed the compiler's inlining budget, measured 15 % slower).
+#if defined(__GNUC__) || defined(__clang__)
+#define SR_INLINE inline __attribute__((always_inline))
+#define SR_LAMBDA_INLINE __attribute__((always_inline))
+#else
+#define SR_INLINE inline
+#define SR_LAMBDA_INLINE
 #endif
 
 namespace nb = nanobind;
@@ -45,6 +63,8 @@ namespace {
 
 using CF = nb::ndarray<const float, nb::c_contig, nb::device::cpu>;
 using OF = nb::ndarray<float, nb::c_contig, nb::device::cpu>;
+using CA = nb::ndarray<nb::ro, nb::c_contig, nb::device::cpu>;  // image input: float32 or float16 (checked)
+using OA = nb::ndarray<nb::c_contig, nb::device::cpu>;          // image output: float32 or float16 (checked)
 using OB = nb::ndarray<bool, nb::c_contig, nb::device::cpu>;
 using OU8 = nb::ndarray<uint8_t, nb::c_contig, nb::device::cpu>;
 
@@ -70,19 +90,113 @@ void expect_shape(const A &a, const char *name, std::initializer_list<int64_t> w
     }
 }
 
+// ---- float16 (IEEE binary16, held as its bits) ------------------------------------------------------------
+// Portable scalar conversions that give the results of the F16C instructions of the vector path (vcvtph2ps, and
+// vcvtps2ph with round-to-nearest-even), so that a pixel comes out the same in either path: widening is exact;
+// narrowing rounds to nearest, ties to even (subnormals included), overflows to ±inf from 65520 (the midpoint of
+// 65504 and 2^16) on, and keeps a NaN's sign and top payload bits with the quiet bit set.
+inline float half_to_float(uint16_t h) {
+    const uint32_t sign = uint32_t(h & 0x8000u) << 16, exp = (h >> 10) & 0x1fu, man = h & 0x3ffu;
+    uint32_t bits;
+    if (exp == 0x1fu) {  // inf, NaN (quieted)
+        bits = sign | 0x7f800000u | (man << 13) | (man ? 0x400000u : 0u);
+    } else if (exp != 0) {  // normal: rebias 15 -> 127
+        bits = sign | ((exp + 112u) << 23) | (man << 13);
+    } else if (man == 0) {  // ±0
+        bits = sign;
+    } else {  // subnormal man·2^-24: shift the leading one into the implicit bit
+        uint32_t m = man, e = 113u;
+        while (!(m & 0x400u)) m <<= 1, --e;
+        bits = sign | (e << 23) | ((m & 0x3ffu) << 13);
+    }
+    float f;
+    std::memcpy(&f, &bits, 4);
+    return f;
+}
+
+inline uint16_t float_to_half(float f) {
+    uint32_t x;
+    std::memcpy(&x, &f, 4);
+    const uint16_t sign = uint16_t((x >> 16) & 0x8000u);
+    const uint32_t ax = x & 0x7fffffffu;
+    if (ax > 0x7f800000u) return sign | 0x7e00u | uint16_t((ax >> 13) & 0x3ffu);  // NaN
+    if (ax >= 0x477ff000u) return sign | 0x7c00u;                                // >= 65520, inf: ±inf
+    if (ax >= 0x38800000u)  // >= 2^-14, a normal half: round the mantissa at bit 13 (a carry bumps the exponent)
+        return sign | uint16_t((ax + 0xfffu + ((ax >> 13) & 1u) - (112u << 23)) >> 13);
+    const uint32_t e = ax >> 23;  // a subnormal half k·2^-24 (k = 1024 is the smallest normal), or 0
+    if (e < 102u) return sign;    // below 2^-25 (half the smallest subnormal): ±0
+    const uint32_t m = (ax & 0x7fffffu) | 0x800000u, s = 126u - e;  // |f| = m·2^(e-150) = (m >> s)·2^-24 + rest
+    const uint32_t k = m >> s, rem = m & ((1u << s) - 1u), halfway = 1u << (s - 1u);
+    return sign | uint16_t(k + ((rem > halfway) | ((rem == halfway) & (k & 1u))));
+}
+
+// An image plane of float32 or float16 elements (one dtype per plane). Offsets count elements.
+struct Plane {
+    const void *data = nullptr;
+    bool half = false;
+    const float *f32() const { return static_cast<const float *>(data); }
+    const uint16_t *f16() const { return static_cast<const uint16_t *>(data); }
+    float operator[](int64_t i) const { return half ? half_to_float(f16()[i]) : f32()[i]; }
+    Plane operator+(int64_t off) const {
+        return {half ? static_cast<const void *>(f16() + off) : static_cast<const void *>(f32() + off), half};
+    }
+};
+
+struct OutPlane {
+    void *data = nullptr;
+    bool half = false;
+    float *f32() const { return static_cast<float *>(data); }
+    uint16_t *f16() const { return static_cast<uint16_t *>(data); }
+    void set(int64_t i, float v) const {
+        if (half)
+            f16()[i] = float_to_half(v);
+        else
+            f32()[i] = v;
+    }
+    OutPlane operator+(int64_t off) const {
+        return {half ? static_cast<void *>(f16() + off) : static_cast<void *>(f32() + off), half};
+    }
+};
+
+// float16 when the array is float16, float32 when it is float32; TypeError for any other dtype.
+bool is_half(const nb::dlpack::dtype &dt, const char *name) {
+    if (dt == nb::dtype<float>()) return false;
+    if (dt.code == (uint8_t)nb::dlpack::dtype_code::Float && dt.bits == 16 && dt.lanes == 1) return true;
+    throw nb::type_error((std::string("reproject: ") + name + " must be float32 or float16").c_str());
+}
+Plane plane_of(const CA &a, const char *name) { return {a.data(), is_half(a.dtype(), name)}; }
+OutPlane plane_of(const OA &a, const char *name) { return {a.data(), is_half(a.dtype(), name)}; }
+
+// What a kernel instantiation knows of the input planes' dtypes, per group (value planes, depths, normals): all
+// float32, all float16, or ANY (each plane's own flag, tested at run time: the mixed layouts). The common layouts
+// get their own instantiations, so their loads carry no dtype tests (dispatch()).
+enum Kind : int { F32, F16, ANY };
+template <int VALUES, int DEPTH, int NORMALS>
+struct Layout {
+    static constexpr int values = VALUES, depth = DEPTH, normals = NORMALS;
+};
+template <int K>
+inline bool halfp(const Plane &p) {
+    return K == F16 || (K == ANY && p.half);
+}
+template <int K>
+SR_INLINE float load(const Plane &p, int64_t i) {
+    return halfp<K>(p) ? half_to_float(p.f16()[i]) : p.f32()[i];
+}
+
 // ---- per-batch-item inputs ---------------------------------------------------------------------------------
 struct Camera {  // row-major 3x3 matrices, composed in Python
     const float *P, *kt, *M, *t, *Ki;
 };
 
 struct Source {  // one batch item of the source view
-    const float *chan[kMaxStackChannels];  // value planes (history colour and length may live in two arrays)
-    const float *depth, *n0, *n1, *n2;
+    Plane chan[kMaxStackChannels];  // value planes (history colour and length may live in two arrays)
+    Plane depth, n0, n1, n2;
     int64_t C, Hs, Ws;
 };
 
 struct Dest {  // one batch item of the destination view
-    const float *depth, *n0, *n1, *n2;
+    Plane depth, n0, n1, n2;
     int64_t H, W;
 };
 
@@ -95,9 +209,9 @@ inline bool finitef(float x) { return std::isfinite(x); }
 // One tap at integer source pixel (xi, yi) with bilinear weight w > 0. Returns its reason code; accumulates the
 // weighted values into num / den when it passes every test. q: destination point in the source frame; nd: the
 // destination normal (sanitised).
-template <int NC>
-inline uint8_t tap(const Source &s, const Camera &cam, const Tests &th, float xi, float yi, float w, float qx,
-                   float qy, float qz, float nd0, float nd1, float nd2, float &den, float *num) {
+template <int NC, class L>
+SR_INLINE uint8_t tap(const Source &s, const Camera &cam, const Tests &th, float xi, float yi, float w, float qx,
+                      float qy, float qz, float nd0, float nd1, float nd2, float &den, float *num) {
     const bool in_frame = (xi >= 0.0f) & (xi <= (float)(s.Ws - 1)) & (yi >= 0.0f) & (yi <= (float)(s.Hs - 1));
     if (!in_frame) return OUT_OF_FRAME;
     const int64_t idx = (int64_t)yi * s.Ws + (int64_t)xi;
@@ -106,14 +220,14 @@ inline uint8_t tap(const Source &s, const Camera &cam, const Tests &th, float xi
     float vals[NC > 0 ? NC : kMaxStackChannels];
     float vsum = 0.0f;
     for (int64_t c = 0; c < C; ++c) {
-        vals[c] = s.chan[c][idx];
+        vals[c] = load<L::values>(s.chan[c], idx);
         vsum += vals[c];
     }
     const bool finite = finitef(vsum);
-    const float zr = s.depth[idx];
+    const float zr = load<L::depth>(s.depth, idx);
     const bool src_ok = finitef(zr) & (zr > 0.0f);
     const float zs = src_ok ? zr : 1.0f;
-    float m0 = s.n0[idx], m1 = s.n1[idx], m2 = s.n2[idx];
+    float m0 = load<L::normals>(s.n0, idx), m1 = load<L::normals>(s.n1, idx), m2 = load<L::normals>(s.n2, idx);
     m0 = finitef(m0) ? m0 : 0.0f;
     m1 = finitef(m1) ? m1 : 0.0f;
     m2 = finitef(m2) ? m2 : 0.0f;
@@ -137,27 +251,27 @@ inline uint8_t tap(const Source &s, const Camera &cam, const Tests &th, float xi
 
 // Where a row's results go: C value rows, confidence, reason and valid (one byte, 0/1), each W long.
 struct RowOut {
-    float *num[kMaxStackChannels];
+    OutPlane num[kMaxStackChannels];
     float *den;
     uint8_t *reason;
     uint8_t *valid;
 };
 
 // Warp one destination pixel (x, y); writes its results at position x of the row outputs.
-template <int NC, bool BILINEAR>
+template <int NC, bool BILINEAR, class L>
 inline void warp_pixel(const Source &s, const Dest &d, const Camera &cam, const Tests &th, int64_t x, int64_t y,
                        const RowOut &o) {
     const int64_t C = NC > 0 ? NC : s.C;
     float num[NC > 0 ? NC : kMaxStackChannels];
     for (int64_t c = 0; c < C; ++c) num[c] = 0.0f;
     auto invalid = [&](uint8_t reason, float den) {
-        for (int64_t c = 0; c < C; ++c) o.num[c][x] = 0.0f;
+        for (int64_t c = 0; c < C; ++c) o.num[c].set(x, 0.0f);
         o.den[x] = den;
         o.reason[x] = reason;
         o.valid[x] = 0;
     };
     const int64_t p = y * d.W + x;
-    const float zr = d.depth[p];
+    const float zr = load<L::depth>(d.depth, p);
     if (!(finitef(zr) & (zr > 0.0f))) return invalid(NO_SURFACE_DST, 0.0f);
     const float inv_z = 1.0f / zr;
     const float uc = (float)x + 0.5f, vc = (float)y + 0.5f;
@@ -173,7 +287,7 @@ inline void warp_pixel(const Source &s, const Dest &d, const Camera &cam, const 
     const float qx = ((M[0] * uc + M[1] * vc) + M[2]) * zr + t[0];
     const float qy = ((M[3] * uc + M[4] * vc) + M[5]) * zr + t[1];
     const float qz = ((M[6] * uc + M[7] * vc) + M[8]) * zr + t[2];
-    float nd0 = d.n0[p], nd1 = d.n1[p], nd2 = d.n2[p];
+    float nd0 = load<L::normals>(d.n0, p), nd1 = load<L::normals>(d.n1, p), nd2 = load<L::normals>(d.n2, p);
     nd0 = finitef(nd0) ? nd0 : 0.0f;
     nd1 = finitef(nd1) ? nd1 : 0.0f;
     nd2 = finitef(nd2) ? nd2 : 0.0f;
@@ -189,14 +303,14 @@ inline void warp_pixel(const Source &s, const Dest &d, const Camera &cam, const 
         const float xs[4] = {x0, x1, x0, x1}, ys[4] = {y0, y0, y1, y1};
         for (int k = 0; k < 4; ++k) {
             if (!(w[k] > 0.0f)) continue;
-            const uint8_t code = tap<NC>(s, cam, th, xs[k], ys[k], w[k], qx, qy, qz, nd0, nd1, nd2, den, num);
+            const uint8_t code = tap<NC, L>(s, cam, th, xs[k], ys[k], w[k], qx, qy, qz, nd0, nd1, nd2, den, num);
             worst = std::max(worst, code);
         }
     } else {
-        worst = tap<NC>(s, cam, th, std::floor(u), std::floor(v), 1.0f, qx, qy, qz, nd0, nd1, nd2, den, num);
+        worst = tap<NC, L>(s, cam, th, std::floor(u), std::floor(v), 1.0f, qx, qy, qz, nd0, nd1, nd2, den, num);
     }
     if (!(den > 0.0f)) return invalid(worst, den);
-    for (int64_t c = 0; c < C; ++c) o.num[c][x] = num[c] / den;
+    for (int64_t c = 0; c < C; ++c) o.num[c].set(x, num[c] / den);
     o.den[x] = den;
     o.reason[x] = KEPT;
     o.valid[x] = 1;
@@ -222,6 +336,33 @@ SR_AVX2 inline __m256 gt(__m256 a, __m256 b) { return _mm256_cmp_ps(a, b, _CMP_G
 SR_AVX2 inline __m256 ge(__m256 a, __m256 b) { return _mm256_cmp_ps(a, b, _CMP_GE_OQ); }
 SR_AVX2 inline __m256 le(__m256 a, __m256 b) { return _mm256_cmp_ps(a, b, _CMP_LE_OQ); }
 
+// 8 consecutive elements of a plane from element i, widened to float32 (exact).
+template <int K = ANY>
+SR_AVX2 SR_INLINE __m256 ld8(const Plane &p, int64_t i) {
+    if (halfp<K>(p)) return _mm256_cvtph_ps(_mm_loadu_si128(reinterpret_cast<const __m128i *>(p.f16() + i)));
+    return _mm256_loadu_ps(p.f32() + i);
+}
+// Stores 8 float32 at element i (float16: rounded to nearest, ties to even, as torch's .to(torch.float16)).
+SR_AVX2 SR_INLINE void st8(const OutPlane &p, int64_t i, __m256 v) {
+    if (p.half)
+        _mm_storeu_si128(reinterpret_cast<__m128i *>(p.f16() + i), _mm256_cvtps_ph(v, _MM_FROUND_TO_NEAREST_INT));
+    else
+        _mm256_storeu_ps(p.f32() + i, v);
+}
+// 8 float16 elements at indices ix, widened: scalar 16-bit loads (pinsrw; no 16-bit gather in AVX2, and a 32-bit
+// gather could read past the plane's end).
+SR_AVX2 SR_INLINE __m256 gather16(const uint16_t *h, const int32_t *ix) {
+    __m128i v = _mm_cvtsi32_si128(h[ix[0]]);
+    v = _mm_insert_epi16(v, h[ix[1]], 1);
+    v = _mm_insert_epi16(v, h[ix[2]], 2);
+    v = _mm_insert_epi16(v, h[ix[3]], 3);
+    v = _mm_insert_epi16(v, h[ix[4]], 4);
+    v = _mm_insert_epi16(v, h[ix[5]], 5);
+    v = _mm_insert_epi16(v, h[ix[6]], 6);
+    v = _mm_insert_epi16(v, h[ix[7]], 7);
+    return _mm256_cvtph_ps(v);
+}
+
 struct Consts {
     __m256 Ki0, Ki1, Ki2, Ki4, Ki5, wm1, wm2, hm1, thr_p, thr_n;
     __m256i Wsi;
@@ -235,26 +376,37 @@ struct Taps {
 };
 
 // 8 taps at clamped (xi, yi): 8-lane gathers.
-template <int NC>
-SR_AVX2 inline void gather_taps(const Source &s, const Consts &k, __m256 xi, __m256 yi, Taps<NC> &t) {
+template <int NC, class L>
+SR_AVX2 SR_INLINE void gather_taps(const Source &s, const Consts &k, __m256 xi, __m256 yi, Taps<NC> &t) {
     const int64_t C = NC > 0 ? NC : s.C;
     const __m256 zero = _mm256_setzero_ps();
     const __m256i xc = _mm256_cvttps_epi32(_mm256_min_ps(_mm256_max_ps(xi, zero), k.wm1));
     const __m256i yc = _mm256_cvttps_epi32(_mm256_min_ps(_mm256_max_ps(yi, zero), k.hm1));
     const __m256i idx = _mm256_add_epi32(_mm256_mullo_epi32(yc, k.Wsi), xc);
-    for (int64_t c = 0; c < C; ++c) t.vals[c] = _mm256_i32gather_ps(s.chan[c], idx, 4);
-    t.z = _mm256_i32gather_ps(s.depth, idx, 4);
-    t.n0 = _mm256_i32gather_ps(s.n0, idx, 4);
-    t.n1 = _mm256_i32gather_ps(s.n1, idx, 4);
-    t.n2 = _mm256_i32gather_ps(s.n2, idx, 4);
+    alignas(32) int32_t ix[8];
+    if (L::values != F32 || L::depth != F32 || L::normals != F32)
+        _mm256_store_si256(reinterpret_cast<__m256i *>(ix), idx);
+    auto gather = [&](const Plane &p, auto kind) SR_AVX2 SR_LAMBDA_INLINE {
+        return halfp<decltype(kind)::value>(p) ? gather16(p.f16(), ix) : _mm256_i32gather_ps(p.f32(), idx, 4);
+    };
+    using KV = std::integral_constant<int, L::values>;
+    using KZ = std::integral_constant<int, L::depth>;
+    using KN = std::integral_constant<int, L::normals>;
+    for (int64_t c = 0; c < C; ++c) t.vals[c] = gather(s.chan[c], KV{});
+    t.z = gather(s.depth, KZ{});
+    t.n0 = gather(s.n0, KN{});
+    t.n1 = gather(s.n1, KN{});
+    t.n2 = gather(s.n2, KN{});
 }
 
 // The horizontally adjacent taps (x0, yi) and (x0 + 1, yi) of 8 pixels with one 64-bit load per pixel and plane
 // (half the gathered elements). Needs Ws >= 2. The pair starts at xp = clamp(x0, 0, Ws - 2); where x0 = Ws - 1 the
 // x0 tap is the pair's second element, where x0 = -1 the x0 + 1 tap is its first; other out-of-frame taps read
-// some in-frame pixel and are masked by the caller.
-template <int NC>
-SR_AVX2 inline void gather_pairs(const Source &s, const Consts &k, __m256 x0, __m256 yi, Taps<NC> &a, Taps<NC> &b) {
+// some in-frame pixel and are masked by the caller. A float16 pair is one 32-bit load (an 8-lane 32-bit gather of
+// the pairs measured 25 % slower).
+template <int NC, class L>
+SR_AVX2 SR_INLINE void gather_pairs(const Source &s, const Consts &k, __m256 x0, __m256 yi, Taps<NC> &a,
+                                    Taps<NC> &b) {
     const int64_t C = NC > 0 ? NC : s.C;
     const __m256 zero = _mm256_setzero_ps();
     const __m256i xp = _mm256_cvttps_epi32(_mm256_min_ps(_mm256_max_ps(x0, zero), k.wm2));
@@ -267,19 +419,38 @@ SR_AVX2 inline void gather_pairs(const Source &s, const Consts &k, __m256 x0, __
     const bool edge = _mm256_movemask_ps(_mm256_or_ps(a_from_b, b_from_a)) != 0;
     // Scalar 8-byte loads (two adjacent floats each; the 8 indices are extracted once for all planes) are cheaper
     // than 8-lane gathers on the CPUs measured here.
-    auto load = [&](const float *plane, __m256 &va, __m256 &vb) SR_AVX2 {
-        // movq / movhpd of two adjacent floats (intrinsics whose pointers may alias float data)
-        auto lo = [&](int l) {
-            return _mm_castsi128_pd(_mm_loadl_epi64(reinterpret_cast<const __m128i *>(plane + ix[l])));
-        };
-        auto hi = [&](__m128d q, int l) { return _mm_loadh_pd(q, reinterpret_cast<const double *>(plane + ix[l])); };
-        const __m128d q0 = hi(lo(0), 1), q1 = hi(lo(2), 3), q2 = hi(lo(4), 5), q3 = hi(lo(6), 7);  // a0 b0 a1 b1 ...
-        const __m256 g0 = _mm256_castpd_ps(_mm256_set_m128d(q1, q0));  // a0 b0 a1 b1 | a2 b2 a3 b3
-        const __m256 g1 = _mm256_castpd_ps(_mm256_set_m128d(q3, q2));  // a4 b4 a5 b5 | a6 b6 a7 b7
-        const __m256 ea = _mm256_castpd_ps(_mm256_permute4x64_pd(
-            _mm256_castps_pd(_mm256_shuffle_ps(g0, g1, _MM_SHUFFLE(2, 0, 2, 0))), _MM_SHUFFLE(3, 1, 2, 0)));
-        const __m256 eb = _mm256_castpd_ps(_mm256_permute4x64_pd(
-            _mm256_castps_pd(_mm256_shuffle_ps(g0, g1, _MM_SHUFFLE(3, 1, 3, 1))), _MM_SHUFFLE(3, 1, 2, 0)));
+    auto load = [&](const Plane &p, auto kind, __m256 &va, __m256 &vb) SR_AVX2 SR_LAMBDA_INLINE {
+        __m256 ea, eb;
+        if (halfp<decltype(kind)::value>(p)) {
+            // one 4-byte load per pixel: the halves a_l, b_l; de-interleaved, then widened
+            const uint16_t *plane = p.f16();
+            auto pair = [&](int l) SR_LAMBDA_INLINE {
+                int32_t v;
+                std::memcpy(&v, plane + ix[l], 4);
+                return v;
+            };
+            const __m128i deint = _mm_setr_epi8(0, 1, 4, 5, 8, 9, 12, 13, 2, 3, 6, 7, 10, 11, 14, 15);
+            const __m128i q0 = _mm_shuffle_epi8(_mm_setr_epi32(pair(0), pair(1), pair(2), pair(3)), deint);
+            const __m128i q1 = _mm_shuffle_epi8(_mm_setr_epi32(pair(4), pair(5), pair(6), pair(7)), deint);
+            ea = _mm256_cvtph_ps(_mm_unpacklo_epi64(q0, q1));  // a0 .. a7
+            eb = _mm256_cvtph_ps(_mm_unpackhi_epi64(q0, q1));  // b0 .. b7
+        } else {
+            // movq / movhpd of two adjacent floats (intrinsics whose pointers may alias float data)
+            const float *plane = p.f32();
+            auto lo = [&](int l) {
+                return _mm_castsi128_pd(_mm_loadl_epi64(reinterpret_cast<const __m128i *>(plane + ix[l])));
+            };
+            auto hi = [&](__m128d q, int l) {
+                return _mm_loadh_pd(q, reinterpret_cast<const double *>(plane + ix[l]));
+            };
+            const __m128d q0 = hi(lo(0), 1), q1 = hi(lo(2), 3), q2 = hi(lo(4), 5), q3 = hi(lo(6), 7);  // a0 b0 a1 ..
+            const __m256 g0 = _mm256_castpd_ps(_mm256_set_m128d(q1, q0));  // a0 b0 a1 b1 | a2 b2 a3 b3
+            const __m256 g1 = _mm256_castpd_ps(_mm256_set_m128d(q3, q2));  // a4 b4 a5 b5 | a6 b6 a7 b7
+            ea = _mm256_castpd_ps(_mm256_permute4x64_pd(
+                _mm256_castps_pd(_mm256_shuffle_ps(g0, g1, _MM_SHUFFLE(2, 0, 2, 0))), _MM_SHUFFLE(3, 1, 2, 0)));
+            eb = _mm256_castpd_ps(_mm256_permute4x64_pd(
+                _mm256_castps_pd(_mm256_shuffle_ps(g0, g1, _MM_SHUFFLE(3, 1, 3, 1))), _MM_SHUFFLE(3, 1, 2, 0)));
+        }
         if (edge) {
             va = sel(a_from_b, eb, ea);
             vb = sel(b_from_a, ea, eb);
@@ -288,19 +459,22 @@ SR_AVX2 inline void gather_pairs(const Source &s, const Consts &k, __m256 x0, __
             vb = eb;
         }
     };
-    for (int64_t c = 0; c < C; ++c) load(s.chan[c], a.vals[c], b.vals[c]);
-    load(s.depth, a.z, b.z);
-    load(s.n0, a.n0, b.n0);
-    load(s.n1, a.n1, b.n1);
-    load(s.n2, a.n2, b.n2);
+    using KV = std::integral_constant<int, L::values>;
+    using KZ = std::integral_constant<int, L::depth>;
+    using KN = std::integral_constant<int, L::normals>;
+    for (int64_t c = 0; c < C; ++c) load(s.chan[c], KV{}, a.vals[c], b.vals[c]);
+    load(s.depth, KZ{}, a.z, b.z);
+    load(s.n0, KN{}, a.n0, b.n0);
+    load(s.n1, KN{}, a.n1, b.n1);
+    load(s.n2, KN{}, a.n2, b.n2);
 }
 
 // Accept tests and accumulation of 8 taps at (xi, yi) with weights w (see the scalar tap()). With CODES, also the
 // running max of the taps' reason codes (worst); warp_row() asks for them only where a pixel kept nothing.
 template <int NC, bool CODES>
-SR_AVX2 inline void tap(const Source &s, const Consts &k, const Taps<NC> &g, __m256 xi, __m256 yi, __m256 w,
-                        __m256 pixel_ok, __m256 qx, __m256 qy, __m256 qz, __m256 nd0, __m256 nd1, __m256 nd2,
-                        __m256 &den, __m256 *num, __m256 &worst) {
+SR_AVX2 SR_INLINE void tap(const Source &s, const Consts &k, const Taps<NC> &g, __m256 xi, __m256 yi, __m256 w,
+                           __m256 pixel_ok, __m256 qx, __m256 qy, __m256 qz, __m256 nd0, __m256 nd1, __m256 nd2,
+                           __m256 &den, __m256 *num, __m256 &worst) {
     const int64_t C = NC > 0 ? NC : s.C;
     const __m256 zero = _mm256_setzero_ps(), one = set(1.0f);
     const __m256 in_frame = band(band(ge(xi, zero), le(xi, k.wm1)), band(ge(yi, zero), le(yi, k.hm1)));
@@ -334,7 +508,7 @@ SR_AVX2 inline void tap(const Source &s, const Consts &k, const Taps<NC> &g, __m
 }
 
 // Warps pixels [0, W - W % 8) of row y; returns the first pixel not done.
-template <int NC, bool BILINEAR>
+template <int NC, bool BILINEAR, class L>
 SR_AVX2 int64_t warp_row(const Source &s, const Dest &d, const Camera &cam, const Tests &th, int64_t y,
                          const RowOut &o) {
     const int64_t C = NC > 0 ? NC : s.C;
@@ -357,7 +531,7 @@ SR_AVX2 int64_t warp_row(const Source &s, const Dest &d, const Camera &cam, cons
     for (; x + 8 <= d.W; x += 8) {
         const int64_t p = y * d.W + x;
         const __m256 uc = add(_mm256_cvtepi32_ps(_mm256_add_epi32(_mm256_set1_epi32((int32_t)x), iota)), half);
-        const __m256 zr = _mm256_loadu_ps(d.depth + p);
+        const __m256 zr = ld8<L::depth>(d.depth, p);
         const __m256 dst_ok = band(isfinite(zr), gt(zr, zero));
         const __m256 z = sel(dst_ok, zr, one);
         const __m256 inv_z = _mm256_div_ps(one, z);
@@ -373,9 +547,9 @@ SR_AVX2 int64_t warp_row(const Source &s, const Dest &d, const Camera &cam, cons
         const __m256 qx = add(mul(add(add(mul(M[0], uc), mul(M[1], vc)), M[2]), z), t[0]);
         const __m256 qy = add(mul(add(add(mul(M[3], uc), mul(M[4], vc)), M[5]), z), t[1]);
         const __m256 qz = add(mul(add(add(mul(M[6], uc), mul(M[7], vc)), M[8]), z), t[2]);
-        const __m256 nd0 = fin0(_mm256_loadu_ps(d.n0 + p));
-        const __m256 nd1 = fin0(_mm256_loadu_ps(d.n1 + p));
-        const __m256 nd2 = fin0(_mm256_loadu_ps(d.n2 + p));
+        const __m256 nd0 = fin0(ld8<L::normals>(d.n0, p));
+        const __m256 nd1 = fin0(ld8<L::normals>(d.n1, p));
+        const __m256 nd2 = fin0(ld8<L::normals>(d.n2, p));
         const __m256 pixel_ok = band(dst_ok, front);
         const int ok_bits = _mm256_movemask_ps(pixel_ok);
         __m256 den, worst;
@@ -399,10 +573,10 @@ SR_AVX2 int64_t warp_row(const Source &s, const Dest &d, const Camera &cam, cons
                 const int rows = _mm256_movemask_ps(gt(fy, zero)) != 0 ? 2 : 1;
                 for (int r = 0; r < rows; ++r) {  // taps in torch's order: (x0, y0), (x1, y0), (x0, y1), (x1, y1)
                     if (pairs) {
-                        gather_pairs<NC>(s, k, x0, ys[r], ga, gb);
+                        gather_pairs<NC, L>(s, k, x0, ys[r], ga, gb);
                     } else {
-                        gather_taps<NC>(s, k, x0, ys[r], ga);
-                        gather_taps<NC>(s, k, x1, ys[r], gb);
+                        gather_taps<NC, L>(s, k, x0, ys[r], ga);
+                        gather_taps<NC, L>(s, k, x1, ys[r], gb);
                     }
                     tap<NC, CODES>(s, k, ga, x0, ys[r], mul(gx, wy[r]), pixel_ok, qx, qy, qz, nd0, nd1, nd2, den,
                                    num, worst);
@@ -411,7 +585,7 @@ SR_AVX2 int64_t warp_row(const Source &s, const Dest &d, const Camera &cam, cons
                 }
             } else {
                 const __m256 xi = _mm256_floor_ps(u), yi = _mm256_floor_ps(v);
-                gather_taps<NC>(s, k, xi, yi, ga);
+                gather_taps<NC, L>(s, k, xi, yi, ga);
                 tap<NC, CODES>(s, k, ga, xi, yi, one, pixel_ok, qx, qy, qz, nd0, nd1, nd2, den, num, worst);
             }
         };
@@ -421,8 +595,7 @@ SR_AVX2 int64_t warp_row(const Source &s, const Dest &d, const Camera &cam, cons
         // groups (a few %) are the taps run again with codes (same arithmetic, so den and num come out the same).
         if (ok_bits & ~_mm256_movemask_ps(has_w)) run_taps(std::true_type{});
         const __m256 safe_den = sel(has_w, den, one);
-        for (int64_t c = 0; c < C; ++c)
-            _mm256_storeu_ps(o.num[c] + x, band(_mm256_div_ps(num[c], safe_den), has_w));
+        for (int64_t c = 0; c < C; ++c) st8(o.num[c], x, band(_mm256_div_ps(num[c], safe_den), has_w));
         _mm256_storeu_ps(o.den + x, den);
         __m256 reason = sel(front, worst, set(BEHIND_CAMERA));
         reason = sel(dst_ok, reason, set(NO_SURFACE_DST));
@@ -439,8 +612,8 @@ SR_AVX2 int64_t warp_row(const Source &s, const Dest &d, const Camera &cam, cons
 }
 
 // TemporalSink::finish for x in [0, W - W % 8): the same operations as the scalar loop, 8 pixels at a time.
-SR_AVX2 int64_t blend_row(const float *n, const uint8_t *valid, const float *const *hist, const float *const *cur,
-                          float *const *out, float *len, float alpha, float max_history, bool warmup, int64_t Cc,
+SR_AVX2 int64_t blend_row(const float *n, const uint8_t *valid, const float *const *hist, const Plane *cur,
+                          const OutPlane *out, float *len, float alpha, float max_history, bool warmup, int64_t Cc,
                           int64_t W) {
     const __m256 zero = _mm256_setzero_ps(), one = set(1.0f), va = set(alpha), cap = set(max_history);
     int64_t x = 0;
@@ -454,34 +627,34 @@ SR_AVX2 int64_t blend_row(const float *n, const uint8_t *valid, const float *con
         _mm256_storeu_ps(len + x, sel(v, _mm256_min_ps(add(nx, one), cap), one));
         const __m256 ga = sub(one, a);
         for (int64_t c = 0; c < Cc; ++c) {
-            const __m256 h = _mm256_loadu_ps(hist[c] + x), cx = _mm256_loadu_ps(cur[c] + x);
-            _mm256_storeu_ps(out[c] + x, sel(v, add(mul(ga, h), mul(a, cx)), cx));
+            const __m256 h = _mm256_loadu_ps(hist[c] + x), cx = ld8(cur[c], x);
+            st8(out[c], x, sel(v, add(mul(ga, h), mul(a, cx)), cx));
         }
     }
     return x;
 }
 }  // namespace v8
 
-bool use_avx2() {
-    static const bool ok = __builtin_cpu_supports("avx2");
+bool use_avx2() {  // and F16C (a float16 plane may come)
+    static const bool ok = __builtin_cpu_supports("avx2") && __builtin_cpu_supports("f16c");
     return ok;
 }
 #endif
 
-template <int NC, bool BILINEAR>
+template <int NC, bool BILINEAR, class L>
 void warp_row(const Source &s, const Dest &d, const Camera &cam, const Tests &th, int64_t y, const RowOut &o,
               bool vector) {
     int64_t x = 0;
 #ifdef SR_AVX2_PATH
-    if (vector) x = v8::warp_row<NC, BILINEAR>(s, d, cam, th, y, o);
+    if (vector) x = v8::warp_row<NC, BILINEAR, L>(s, d, cam, th, y, o);
 #endif
-    for (; x < d.W; ++x) warp_pixel<NC, BILINEAR>(s, d, cam, th, x, y, o);
+    for (; x < d.W; ++x) warp_pixel<NC, BILINEAR, L>(s, d, cam, th, x, y, o);
 }
 
 // ---- sinks: where a warped row goes ------------------------------------------------------------------------
 // Stereo: the row outputs are the output arrays themselves (the confidence row goes to scratch when not wanted).
 struct StereoSink {
-    float *values;  // (B, C, H, W)
+    OutPlane values;  // (B, C, H, W)
     bool *valid;
     uint8_t *reason;
     float *conf;  // nullptr: not wanted
@@ -501,9 +674,9 @@ struct StereoSink {
 
 // Temporal: warp [history colour, history length] into scratch rows, then temporal_blend with a bool confidence.
 struct TemporalSink {
-    const float *current;  // (B, C-1, H, W)
-    float *color;          // (B, C-1, H, W)
-    float *len;            // (B, 1, H, W)
+    Plane current;   // (B, C-1, H, W)
+    OutPlane color;  // (B, C-1, H, W)
+    float *len;      // (B, 1, H, W)
     bool *valid;
     float alpha, max_history;
     bool warmup;
@@ -512,7 +685,7 @@ struct TemporalSink {
     bool needs_scratch() const { return true; }
     RowOut row(int64_t b, int64_t y, float *scratch) const {  // scratch: (C + 2) * W floats
         RowOut o;
-        for (int64_t c = 0; c < C; ++c) o.num[c] = scratch + c * W;
+        for (int64_t c = 0; c < C; ++c) o.num[c] = OutPlane{scratch + c * W, false};
         o.den = scratch + C * W;
         o.reason = reinterpret_cast<uint8_t *>(scratch + (C + 1) * W);
         o.valid = reinterpret_cast<uint8_t *>(valid + (b * H + y) * W);
@@ -522,14 +695,15 @@ struct TemporalSink {
         // same operations as reproject.temporal_blend: n = n > 0 ? n : 0, a = max(1/(n + 1), alpha) (warmup) or
         // alpha, out = (1 - a)·hist + a·cur where valid else cur, n_out = min(n + 1, max_history) where valid else 1.
         const int64_t Cc = C - 1, row = (b * H + y) * W;
-        const float *n = o.num[Cc];
+        const float *n = o.num[Cc].f32();
         const uint8_t *v = o.valid;
         float *lo = len + row;
-        const float *hist[kMaxStackChannels], *cur[kMaxStackChannels];
-        float *out[kMaxStackChannels];
+        const float *hist[kMaxStackChannels];
+        Plane cur[kMaxStackChannels];
+        OutPlane out[kMaxStackChannels];
         for (int64_t c = 0; c < Cc; ++c) {
             const int64_t off = ((b * Cc + c) * H + y) * W;
-            hist[c] = o.num[c];
+            hist[c] = o.num[c].f32();
             cur[c] = current + off;
             out[c] = color + off;
         }
@@ -541,20 +715,22 @@ struct TemporalSink {
             const float nx = n[x] > 0.0f ? n[x] : 0.0f;
             const float a = warmup ? std::max(1.0f / (nx + 1.0f), alpha) : alpha;
             lo[x] = v[x] ? std::min(nx + 1.0f, max_history) : 1.0f;
-            for (int64_t c = 0; c < Cc; ++c)
-                out[c][x] = v[x] ? (1.0f - a) * hist[c][x] + a * cur[c][x] : cur[c][x];
+            for (int64_t c = 0; c < Cc; ++c) {
+                const float cx = cur[c][x];
+                out[c].set(x, v[x] ? (1.0f - a) * hist[c][x] + a * cx : cx);
+            }
         }
     }
 };
 
 struct Batch {  // pointers and strides shared by all rows
-    std::vector<const float *> chan;  // B * C value planes
-    const float *src_depth, *src_normal, *dst_depth, *dst_normal;
+    std::vector<Plane> chan;  // B * C value planes
+    Plane src_depth, src_normal, dst_depth, dst_normal;
     const float *P, *kt, *M, *t, *Ki;
     int64_t B, C, Hs, Ws, H, W;
 };
 
-template <int NC, bool BILINEAR, class Sink>
+template <int NC, bool BILINEAR, class L, class Sink>
 void run_rows(const Batch &bt, const Tests &th, const Sink &sink) {
     const int64_t rows = bt.B * bt.H, HWs = bt.Hs * bt.Ws, HW = bt.H * bt.W;
     bool vector = false;
@@ -590,27 +766,51 @@ void run_rows(const Batch &bt, const Tests &th, const Sink &sink) {
             d.W = bt.W;
             const Camera cam{bt.P + 9 * b, bt.kt + 3 * b, bt.M + 9 * b, bt.t + 3 * b, bt.Ki + 9 * b};
             const RowOut o = sink.row(b, y, scratch.data());
-            warp_row<NC, BILINEAR>(s, d, cam, th, y, o, vector);
+            warp_row<NC, BILINEAR, L>(s, d, cam, th, y, o, vector);
             sink.finish(b, y, o);
         }
     }
 }
 
-template <class Sink>
-void dispatch(const Batch &bt, const Tests &th, bool bilinear, const Sink &sink) {
-    nb::gil_scoped_release release;
+template <class L, class Sink>
+void dispatch_channels(const Batch &bt, const Tests &th, bool bilinear, const Sink &sink) {
     if (bt.C == 3) {
-        bilinear ? run_rows<3, true>(bt, th, sink) : run_rows<3, false>(bt, th, sink);
+        bilinear ? run_rows<3, true, L>(bt, th, sink) : run_rows<3, false, L>(bt, th, sink);
     } else if (bt.C == 4) {
-        bilinear ? run_rows<4, true>(bt, th, sink) : run_rows<4, false>(bt, th, sink);
+        bilinear ? run_rows<4, true, L>(bt, th, sink) : run_rows<4, false, L>(bt, th, sink);
     } else {
-        bilinear ? run_rows<0, true>(bt, th, sink) : run_rows<0, false>(bt, th, sink);
+        bilinear ? run_rows<0, true, L>(bt, th, sink) : run_rows<0, false, L>(bt, th, sink);
     }
 }
 
+// The Kind of a group of planes.
+template <class It>
+int kind_of(It first, It last) {
+    bool any_half = false, any_float = false;
+    for (; first != last; ++first) (first->half ? any_half : any_float) = true;
+    return any_half ? (any_float ? ANY : F16) : F32;
+}
+
+template <class Sink>
+void dispatch(const Batch &bt, const Tests &th, bool bilinear, const Sink &sink) {
+    nb::gil_scoped_release release;
+    const Plane zs[2] = {bt.src_depth, bt.dst_depth}, ns[2] = {bt.src_normal, bt.dst_normal};
+    const int values = kind_of(bt.chan.begin(), bt.chan.end()), depth = kind_of(zs, zs + 2),
+              normals = kind_of(ns, ns + 2);
+    // float32; float16 colour and normals with float32 depths (the engine layout); all float16; any other mix
+    if (values == F32 && depth == F32 && normals == F32)
+        dispatch_channels<Layout<F32, F32, F32>>(bt, th, bilinear, sink);
+    else if (values == F16 && depth == F32 && normals == F16)
+        dispatch_channels<Layout<F16, F32, F16>>(bt, th, bilinear, sink);
+    else if (values == F16 && depth == F16 && normals == F16)
+        dispatch_channels<Layout<F16, F16, F16>>(bt, th, bilinear, sink);
+    else
+        dispatch_channels<Layout<ANY, ANY, ANY>>(bt, th, bilinear, sink);
+}
+
 // Checks the geometry arrays shared by both kernels and fills bt (except chan and C).
-void check_geometry(Batch &bt, const CF &src_depth, const CF &src_normal, const CF &P, const CF &kt, const CF &M,
-                    const CF &t, const CF &Ks_inv, const CF &dst_depth, const CF &dst_normal) {
+void check_geometry(Batch &bt, const CA &src_depth, const CA &src_normal, const CF &P, const CF &kt, const CF &M,
+                    const CF &t, const CF &Ks_inv, const CA &dst_depth, const CA &dst_normal) {
     expect_shape(src_depth, "src_depth", {bt.B, 1, -1, -1});
     bt.Hs = src_depth.shape(2);
     bt.Ws = src_depth.shape(3);
@@ -624,10 +824,10 @@ void check_geometry(Batch &bt, const CF &src_depth, const CF &src_normal, const 
     bt.H = dst_depth.shape(2);
     bt.W = dst_depth.shape(3);
     expect_shape(dst_normal, "dst_normal", {bt.B, 3, bt.H, bt.W});
-    bt.src_depth = src_depth.data();
-    bt.src_normal = src_normal.data();
-    bt.dst_depth = dst_depth.data();
-    bt.dst_normal = dst_normal.data();
+    bt.src_depth = plane_of(src_depth, "src_depth");
+    bt.src_normal = plane_of(src_normal, "src_normal");
+    bt.dst_depth = plane_of(dst_depth, "dst_depth");
+    bt.dst_normal = plane_of(dst_normal, "dst_normal");
     bt.P = P.data();
     bt.kt = kt.data();
     bt.M = M.data();
@@ -635,8 +835,8 @@ void check_geometry(Batch &bt, const CF &src_depth, const CF &src_normal, const 
     bt.Ki = Ks_inv.data();
 }
 
-void reproject(CF src_values, CF src_depth, CF src_normal, CF P, CF kt, CF M, CF t, CF Ks_inv, CF dst_depth,
-               CF dst_normal, float pos_thr2, float nrm_thr2, bool bilinear, OF out_values, OB out_valid,
+void reproject(CA src_values, CA src_depth, CA src_normal, CF P, CF kt, CF M, CF t, CF Ks_inv, CA dst_depth,
+               CA dst_normal, float pos_thr2, float nrm_thr2, bool bilinear, OA out_values, OB out_valid,
                OU8 out_reason, std::optional<OF> out_confidence) {
     if (src_values.ndim() != 4) throw std::invalid_argument("reproject: src_values must be 4-D (B, C, Hs, Ws)");
     Batch bt;
@@ -653,15 +853,16 @@ void reproject(CF src_values, CF src_depth, CF src_normal, CF P, CF kt, CF M, CF
     if (out_confidence) expect_shape(*out_confidence, "out_confidence", {bt.B, 1, bt.H, bt.W});
     const int64_t HWs = bt.Hs * bt.Ws;
     bt.chan.resize(bt.B * bt.C);
-    for (int64_t i = 0; i < bt.B * bt.C; ++i) bt.chan[i] = src_values.data() + i * HWs;
-    const StereoSink sink{out_values.data(), out_valid.data(), out_reason.data(),
+    const Plane values = plane_of(src_values, "src_values");
+    for (int64_t i = 0; i < bt.B * bt.C; ++i) bt.chan[i] = values + i * HWs;
+    const StereoSink sink{plane_of(out_values, "out_values"), out_valid.data(), out_reason.data(),
                           out_confidence ? out_confidence->data() : nullptr, bt.C, bt.H, bt.W};
     dispatch(bt, Tests{pos_thr2, nrm_thr2}, bilinear, sink);
 }
 
-void temporal_reproject(CF current, CF history_color, CF history_len, CF prev_depth, CF prev_normal, CF P, CF kt,
-                        CF M, CF t, CF Ks_inv, CF depth, CF normal, float pos_thr2, float nrm_thr2, bool bilinear,
-                        float alpha, bool warmup, float max_history, OF out_color, OF out_len, OB out_valid) {
+void temporal_reproject(CA current, CA history_color, CA history_len, CA prev_depth, CA prev_normal, CF P, CF kt,
+                        CF M, CF t, CF Ks_inv, CA depth, CA normal, float pos_thr2, float nrm_thr2, bool bilinear,
+                        float alpha, bool warmup, float max_history, OA out_color, OF out_len, OB out_valid) {
     if (history_color.ndim() != 4)
         throw std::invalid_argument("temporal_reproject: history_color must be 4-D (B, C, Hs, Ws)");
     Batch bt;
@@ -680,16 +881,17 @@ void temporal_reproject(CF current, CF history_color, CF history_len, CF prev_de
     expect_shape(out_valid, "out_valid", {bt.B, 1, bt.H, bt.W});
     const int64_t HWs = bt.Hs * bt.Ws;
     bt.chan.resize(bt.B * bt.C);
+    const Plane hc = plane_of(history_color, "history_color"), hl = plane_of(history_len, "history_len");
     for (int64_t b = 0; b < bt.B; ++b) {
-        for (int64_t c = 0; c < Cc; ++c) bt.chan[b * bt.C + c] = history_color.data() + (b * Cc + c) * HWs;
-        bt.chan[b * bt.C + Cc] = history_len.data() + b * HWs;
+        for (int64_t c = 0; c < Cc; ++c) bt.chan[b * bt.C + c] = hc + (b * Cc + c) * HWs;
+        bt.chan[b * bt.C + Cc] = hl + b * HWs;
     }
     bool vector = false;
 #ifdef SR_AVX2_PATH
     vector = use_avx2();
 #endif
-    const TemporalSink sink{current.data(), out_color.data(), out_len.data(), out_valid.data(), alpha, max_history,
-                            warmup, bt.C, bt.H, bt.W, vector};
+    const TemporalSink sink{plane_of(current, "current"), plane_of(out_color, "out_color"), out_len.data(),
+                            out_valid.data(), alpha, max_history, warmup, bt.C, bt.H, bt.W, vector};
     dispatch(bt, Tests{pos_thr2, nrm_thr2}, bilinear, sink);
 }
 
@@ -702,7 +904,8 @@ void bind_reproject(nb::module_ &m) {
           nb::arg("dst_depth").noconvert(), nb::arg("dst_normal").noconvert(), nb::arg("pos_thr2"),
           nb::arg("nrm_thr2"), nb::arg("bilinear"), nb::arg("out_values").noconvert(),
           nb::arg("out_valid").noconvert(), nb::arg("out_reason").noconvert(), nb::arg("out_confidence").noconvert().none(),
-          "Fused hard backward reprojection (float32, NCHW, C-contiguous CPU arrays; no copies are made).\n"
+          "Fused hard backward reprojection (NCHW, C-contiguous CPU arrays; no copies are made). Image arrays "
+          "(values, depths, normals, out_values) are float32 or float16, each on its own; compute is float32.\n"
           "Camera arrays P, M, Ks_inv are (B, 9) row-major and kt, t are (B, 3), composed by "
           "stereorepro.reproject._compose_cameras. pos_thr2 / nrm_thr2 are the float32 squared thresholds.\n"
           "Writes out_values (B, C, H, W), out_valid (B, 1, H, W) bool, out_reason (B, 1, H, W) uint8 and "
@@ -716,6 +919,6 @@ void bind_reproject(nb::module_ &m) {
           nb::arg("max_history"), nb::arg("out_color").noconvert(), nb::arg("out_len").noconvert(),
           nb::arg("out_valid").noconvert(),
           "Fused temporal reprojection: warps [history_color, history_len] like `reproject` and blends with "
-          "`current` in the same pass (a = max(1/(n+1), alpha) with warmup, else alpha). Writes out_color, "
-          "out_len and out_valid in place.");
+          "`current` in the same pass (a = max(1/(n+1), alpha) with warmup, else alpha). Writes out_color "
+          "(float32 or float16), out_len (float32) and out_valid in place; image inputs float32 or float16.");
 }

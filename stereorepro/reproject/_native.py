@@ -4,9 +4,12 @@ imports nothing from the rest of the package but the compiled core.
 The kernels (``cpp_ext/src/reproject.cpp``) compute what the torch reference computes, hard tests in float32 on
 the CPU, in one fused pass per pixel; they take the warp already composed (:func:`stereorepro.camera.compose_warp`)
 and the squared thresholds. Which calls may run here is decided by the op layer
-(:mod:`stereorepro.reproject.functional`). Inputs are made contiguous float32 once, here, then cross to C++
-without copies; outputs are allocated with ``torch.empty`` and written in place (``.noconvert()`` on the C++ side,
-so a wrong layout raises instead of silently writing into a temporary copy).
+(:mod:`stereorepro.reproject.functional`). Image inputs are float32 or float16, each on its own (a real-time
+engine's RGBA16F colour and normals are read as they are, widened exactly in the kernel: no conversion pass); they
+are made contiguous once, here, then cross to C++ without copies; outputs are allocated with ``torch.empty`` and
+written in place (``.noconvert()`` on the C++ side, so a wrong layout raises instead of silently writing into a
+temporary copy). The colour output takes the dtype of the source colour (temporal: of the current colour), rounded
+to nearest even as torch's ``.to(dtype)``, so results equal the torch reference on the same inputs.
 """
 
 from __future__ import annotations
@@ -32,11 +35,16 @@ def _require() -> None:
         raise RuntimeError("native: stereorepro._core with the reprojection kernels is not available")
 
 
-def _f32_contiguous(x: Tensor, name: str) -> Tensor:
+#: Image dtypes the kernels read (each image on its own; compute is float32).
+DTYPES = (torch.float32, torch.float16)
+
+
+def _image_contiguous(x: Tensor, name: str) -> Tensor:
     if x.device.type != "cpu":
         raise RuntimeError(f"native: {name} must be on the CPU, got {x.device}")
-    if x.dtype != torch.float32:
-        raise TypeError(f"native: {name} must be float32, got {x.dtype} (use backend='torch' for other dtypes)")
+    if x.dtype not in DTYPES:
+        raise TypeError(f"native: {name} must be float32 or float16, got {x.dtype} "
+                        "(use backend='torch' for other dtypes)")
     return x.contiguous()  # the one visible copy, only when x is not C-contiguous
 
 
@@ -53,26 +61,26 @@ def reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, warp, d
     """Backward reprojection with hard tests.
 
     Args:
-        src_values: (B, C, Hs, Ws), src_depth: (B, 1, Hs, Ws), src_normal: (B, 3, Hs, Ws) float32.
+        src_values: (B, C, Hs, Ws), src_depth: (B, 1, Hs, Ws), src_normal: (B, 3, Hs, Ws), float32 or float16.
         warp: the float32 :class:`~stereorepro.camera.Warp` from the destination into the source camera.
-        dst_depth: (B, 1, H, W), dst_normal: (B, 3, H, W) float32.
+        dst_depth: (B, 1, H, W), dst_normal: (B, 3, H, W), float32 or float16.
         thr2: squared position and normal thresholds (float32 values).
         bilinear: 2×2 taps, else the nearest one.
         want_confidence: also write the accepted weight (else None: saves writing it).
 
     Returns:
-        values (B, C, H, W) float32, valid (B, 1, H, W) bool, reason (B, 1, H, W) uint8, confidence
+        values (B, C, H, W) of src_values' dtype, valid (B, 1, H, W) bool, reason (B, 1, H, W) uint8, confidence
         (B, 1, H, W) float32 or None.
     """
     _require()
-    sv = _f32_contiguous(src_values, "src_values")
-    sd = _f32_contiguous(src_depth, "src_depth")
-    sn = _f32_contiguous(src_normal, "src_normal")
-    dd = _f32_contiguous(dst_depth, "dst_depth")
-    dn = _f32_contiguous(dst_normal, "dst_normal")
+    sv = _image_contiguous(src_values, "src_values")
+    sd = _image_contiguous(src_depth, "src_depth")
+    sn = _image_contiguous(src_normal, "src_normal")
+    dd = _image_contiguous(dst_depth, "dst_depth")
+    dn = _image_contiguous(dst_normal, "dst_normal")
     B, C = sv.shape[:2]
     H, W = dd.shape[-2:]
-    values = torch.empty(B, C, H, W, dtype=torch.float32)
+    values = torch.empty(B, C, H, W, dtype=sv.dtype)
     valid = torch.empty(B, 1, H, W, dtype=torch.bool)
     reason = torch.empty(B, 1, H, W, dtype=torch.uint8)
     confidence = torch.empty(B, 1, H, W, dtype=torch.float32) if want_confidence else None
@@ -90,26 +98,26 @@ def temporal_reproject(current_color: Tensor, history_color: Tensor, history_len
     Args:
         current_color: (B, 3, H, W); history_color: (B, 3, Hp, Wp); history_len: (B, 1, Hp, Wp);
             prev_depth: (B, 1, Hp, Wp); prev_normal: (B, 3, Hp, Wp); depth: (B, 1, H, W); normal: (B, 3, H, W),
-            all float32.
+            each float32 or float16.
         warp: the float32 :class:`~stereorepro.camera.Warp` from this frame's camera into the previous one.
         thr2, bilinear: as :func:`reproject`.
         alpha: minimum weight of the current frame, already clamped to [0, 1]; warmup: ``max(1/(n+1), alpha)``;
             max_history: cap of n.
 
     Returns:
-        color (B, 3, H, W), history_len (B, 1, H, W) float32, valid (B, 1, H, W) bool.
+        color (B, 3, H, W) of current_color's dtype, history_len (B, 1, H, W) float32, valid (B, 1, H, W) bool.
     """
     _require()
-    cur = _f32_contiguous(current_color, "current_color")
-    hc = _f32_contiguous(history_color, "history_color")
-    hl = _f32_contiguous(history_len, "history_len")
-    pd = _f32_contiguous(prev_depth, "prev_depth")
-    pn = _f32_contiguous(prev_normal, "prev_normal")
-    dd = _f32_contiguous(depth, "depth")
-    dn = _f32_contiguous(normal, "normal")
+    cur = _image_contiguous(current_color, "current_color")
+    hc = _image_contiguous(history_color, "history_color")
+    hl = _image_contiguous(history_len, "history_len")
+    pd = _image_contiguous(prev_depth, "prev_depth")
+    pn = _image_contiguous(prev_normal, "prev_normal")
+    dd = _image_contiguous(depth, "depth")
+    dn = _image_contiguous(normal, "normal")
     B, C = hc.shape[:2]
     H, W = dd.shape[-2:]
-    color = torch.empty(B, C, H, W, dtype=torch.float32)
+    color = torch.empty(B, C, H, W, dtype=cur.dtype)
     n_out = torch.empty(B, 1, H, W, dtype=torch.float32)
     valid = torch.empty(B, 1, H, W, dtype=torch.bool)
     _core.temporal_reproject(cur, hc, hl, pd, pn, *_warp_args(warp), dd, dn, float(thr2[0]), float(thr2[1]),

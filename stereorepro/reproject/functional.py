@@ -62,7 +62,8 @@ def native_unsupported(images: Iterable[Tensor], others: Iterable = (), soft: bo
     """Why the native kernels cannot run these inputs, or None when they can.
 
     Args:
-        images: image tensors (colours, depths, normals, history length): must be float32.
+        images: image tensors (colours, depths, normals, history length): float32 or float16, each on its own
+            (float16 is read as it is and computed in float32, as torch computes it).
         others: other inputs (cameras, thresholds, alpha): only device and autograd are checked.
         soft: soft accept tests (torch only).
         motion: motion vectors given (torch only).
@@ -80,9 +81,10 @@ def native_unsupported(images: Iterable[Tensor], others: Iterable = (), soft: bo
     devices = {str(t.device) for t in tensors if t.device.type != "cpu"}
     if devices:
         return f"the native kernels run on the CPU only, got tensors on {sorted(devices)}"
-    dtypes = {t.dtype for t in images if t.dtype != torch.float32}
+    dtypes = {t.dtype for t in images if t.dtype not in _native.DTYPES}
     if dtypes:
-        return f"the native kernels compute in float32 only, got images of dtype {sorted(map(str, dtypes))}"
+        return ("the native kernels read float32 or float16 images only (bfloat16 and float64 run on torch), got "
+                f"images of dtype {sorted(map(str, dtypes))}")
     if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
         return "an input requires grad (autograd needs the torch path; use torch.no_grad() for native)"
     return None
@@ -216,7 +218,8 @@ def _native_thresholds(position_threshold, normal_threshold) -> tuple[float, flo
 
 def _native_backward(src_values, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal, dst_K,
                      dst_cam_from_world, position_threshold, normal_threshold, sampling, want_confidence=True):
-    """The native backend of :func:`backward_reproject` (arguments checked, hard tests, float32 on the CPU)."""
+    """The native backend of :func:`backward_reproject` (arguments checked, hard tests, float32 compute on the CPU;
+    float32 or float16 images)."""
     warp = compose_warp(src_K, src_cam_from_world, dst_K, dst_cam_from_world, torch.float32)
     return _native.reproject(src_values, src_depth, src_normal, warp, dst_depth, dst_normal,
                              _native_thresholds(position_threshold, normal_threshold), sampling == "bilinear",

@@ -5,6 +5,9 @@ that lands on the squared threshold and rounds differently), which are counted a
 pixels. The kernels follow the torch arithmetic operation by operation, so in practice there are none.
 
 Temporal: ``_core.temporal_reproject`` warps [history colour, length] and blends in one fused pass.
+
+float16 images (TestNativeFloat16): every output byte-identical to the torch reference on the same inputs (the
+bits of float16 NaNs aside: see assert_bytes_equal).
 """
 
 import math
@@ -449,7 +452,8 @@ class TestBackendSelection:
         assert native.select_backend("native", imgs, cams) == "native"
         assert native.select_backend("auto", imgs, cams, soft=True) == "torch"
         assert native.select_backend("auto", [x.double() for x in imgs], cams) == "torch"
-        assert native.select_backend("auto", [x.half() for x in imgs], cams) == "torch"
+        assert native.select_backend("auto", [x.half() for x in imgs], cams) == "native"
+        assert native.select_backend("auto", [x.bfloat16() for x in imgs], cams) == "torch"
         grad = [imgs[0].clone().requires_grad_(True)] + imgs[1:]
         assert native.select_backend("auto", grad, cams) == "torch"
         with torch.no_grad():
@@ -547,3 +551,271 @@ class TestBackendSelection:
             assert o.dtype == r.numpy().dtype
             torch.testing.assert_close(torch.from_numpy(o).double(), r.double(), atol=1e-5, rtol=0)
 
+
+
+# --- float16 images --------------------------------------------------------------------------------------------
+# The kernels read float16 planes as they are (F16C in the vector path, a bit-exact scalar conversion in the
+# scalar one: widths < 8 and the last W % 8 pixels of a row), compute in float32 and round the colour output to
+# nearest even, as torch computes on the float32 upcast and casts back: every output is byte-identical to
+# backend="torch" on the same inputs (NaN bits aside: assert_bytes_equal). Each dtype layout names the images that
+# are float16 (the rest float32).
+STEREO_HALF = {
+    "colour+normals": ("src_color", "src_normal", "dst_normal"),  # depth float32: the recommended layout
+    "all": ("src_color", "src_normal", "dst_normal", "src_depth", "dst_depth"),
+    "mixed": ("src_color", "src_depth", "dst_normal"),
+    "fp32 colour": ("src_normal", "dst_depth"),
+}
+TEMPORAL_HALF = {
+    "colour+normals": ("current_color", "history_color", "history_len", "normal", "prev_normal"),
+    "all": ("current_color", "history_color", "history_len", "normal", "prev_normal", "depth", "prev_depth"),
+    "mixed": ("history_color", "normal", "prev_depth"),  # float32 current colour: float32 output
+    "fp16 current": ("current_color", "normal", "prev_normal"),  # float32 history, float16 output
+}
+
+
+def to_half(inp: dict, names) -> dict:
+    return {k: (v.half() if k in names else v) for k, v in inp.items()}
+
+
+def assert_bytes_equal(ref, got, what=""):
+    """Same dtype, shape and bytes for every output (None where None), except the bits of float16 NaNs: NaN where
+    NaN. (torch's float16 -> float32 conversion gives a NaN the F16C pattern in its vectorised loop and 0x7FFFFFFF
+    in the loop's scalar tail, so the NaN bits of its output depend on the element's position in the tensor; the
+    kernels always give the F16C pattern: sign and payload kept, quiet bit set.)"""
+    assert len(ref) == len(got), what
+    for i, (r, g) in enumerate(zip(ref, got)):
+        if r is None or g is None:
+            assert r is None and g is None, f"{what}: output {i}"
+            continue
+        assert g.dtype == r.dtype and g.shape == r.shape, (what, i, g.dtype, r.dtype, g.shape, r.shape)
+        if r.dtype == torch.float16:
+            nan = torch.isnan(r)
+            assert torch.equal(nan, torch.isnan(g)), f"{what}: output {i} has NaN elsewhere than torch's"
+            r, g = r.masked_fill(nan, 0.0), g.masked_fill(nan, 0.0)
+        rb, gb = r.contiguous().view(torch.uint8), g.contiguous().view(torch.uint8)
+        if not torch.equal(rb, gb):
+            bad = int((r != g).sum()) if r.is_floating_point() else int((rb != gb).sum())
+            raise AssertionError(f"{what}: output {i} ({r.dtype}) differs from torch's at {bad} elements")
+
+
+def hdr(inp: dict, seed: int, key="src_color") -> dict:
+    """Colours spread over float16's range: per-pixel scales 2^-20 .. 2^12 (subnormal to large results)."""
+    g = torch.Generator().manual_seed(seed)
+    x = inp[key]
+    e = torch.randint(-20, 13, x.shape[:1] + (1,) + x.shape[2:], generator=g).to(x.dtype)
+    return dict(inp, **{key: x * torch.exp2(e)})
+
+
+class TestNativeFloat16:
+    NAMES = TemporalReprojection.input_names
+
+    def _stereo_both(self, inp, pos, nrm, sampling="bilinear", confidence=False):
+        args = [inp[a] for a in ARGS]
+        if confidence:
+            ref = backward_reproject(*args, pos, nrm, sampling, backend="torch")
+            got = backward_reproject(*args, pos, nrm, sampling, backend="native")
+        else:
+            ref = stereo_reproject(*args, pos, nrm, sampling, backend="torch")
+            got = stereo_reproject(*args, pos, nrm, sampling, backend="native")
+        return ref, got
+
+    def _temporal_both(self, inp, pos=0.05, nrm=0.3, **kw):
+        args = [inp[n] for n in self.NAMES]
+        ref = temporal_reproject(*args, pos, nrm, backend="torch", **kw)
+        got = temporal_reproject(*args, pos, nrm, backend="native", **kw)
+        return ref, got
+
+    def _temporal_inputs(self, H, W, seed, forward=0.1):
+        inp, *_ = scene_pair(H=H, W=W, forward=forward, yaw=1.0)
+        g = torch.Generator().manual_seed(seed)
+        return dict(current_color=torch.rand(1, 3, H, W, generator=g) * 4, depth=inp["dst_depth"],
+                    normal=inp["dst_normal"], K=inp["dst_K"], cam_from_world=inp["dst_cam_from_world"],
+                    history_color=hdr(inp, seed)["src_color"],
+                    history_len=torch.randint(-2, 40, (1, 1, H, W), generator=g).float(),
+                    prev_depth=inp["src_depth"], prev_normal=inp["src_normal"], prev_K=inp["src_K"],
+                    prev_cam_from_world=inp["src_cam_from_world"])
+
+    @pytest.mark.parametrize("layout", sorted(STEREO_HALF))
+    @pytest.mark.parametrize("sampling", ["bilinear", "nearest"])
+    def test_parity_stereo(self, layout, sampling):
+        for hw in RESOLUTIONS:
+            for seed in range(2):
+                inp, pos, nrm = random_scene(*hw, seed=seed + 7 * hw[1])
+                inp = to_half(hdr(inp, seed), STEREO_HALF[layout])
+                ref, got = self._stereo_both(inp, pos, nrm, sampling)
+                assert got[0].dtype == inp["src_color"].dtype
+                assert_bytes_equal(ref, got, f"{layout} {hw} seed {seed}")
+
+    @pytest.mark.parametrize("layout", sorted(STEREO_HALF))
+    def test_parity_backward_confidence(self, layout):
+        for C in (1, 3, 5):
+            for hw in ((36, 48), (29, 67)):
+                inp, pos, nrm = random_scene(*hw, seed=C + hw[1])
+                g = torch.Generator().manual_seed(C)
+                inp["src_color"] = torch.rand(1, C, *hw, generator=g) * 3
+                inp = to_half(inp, STEREO_HALF[layout])
+                ref, got = self._stereo_both(inp, pos, nrm, confidence=True)
+                assert got[3].dtype == torch.float32 and got[0].dtype == inp["src_color"].dtype
+                assert_bytes_equal(ref, got, f"{layout} C={C} {hw}")
+
+    @pytest.mark.parametrize("layout", ["colour+normals", "all"])
+    @pytest.mark.parametrize("case", sorted(HARD_CASES))
+    def test_parity_hard_cases(self, case, layout):
+        inp, pos, nrm = HARD_CASES[case]()
+        inp = to_half(inp, STEREO_HALF[layout])
+        for sampling in ("bilinear", "nearest"):
+            assert_bytes_equal(*self._stereo_both(inp, pos, nrm, sampling, confidence=True), f"{case} {sampling}")
+
+    @pytest.mark.parametrize("layout", sorted(TEMPORAL_HALF))
+    @pytest.mark.parametrize("kw", [dict(), dict(alpha=0.5, warmup=False), dict(alpha=1.0), dict(max_history=4.0),
+                                    dict(sampling="nearest"), dict(return_reason=True)], ids=str)
+    def test_parity_temporal(self, layout, kw):
+        for hw in ((36, 48), (23, 61), (5, 7)):
+            inp = to_half(self._temporal_inputs(*hw, seed=hw[1]), TEMPORAL_HALF[layout])
+            ref, got = self._temporal_both(inp, **kw)
+            assert got[0].dtype == inp["current_color"].dtype and got[1].dtype == torch.float32
+            assert_bytes_equal(ref, got, f"{layout} {kw} {hw}")
+
+    @pytest.mark.parametrize("W", [7, 64, 69])
+    def test_every_half_exact(self, W):
+        """Every float16 bit pattern through an exact warp (integer shift: one tap of weight 1): finite values come
+        out as they went in (widening and narrowing are exact), non-finite ones are discarded (NONFINITE)."""
+        bits = torch.arange(-32768, 32768, dtype=torch.int32).to(torch.int16)
+        H = -(-bits.numel() // (3 * (W - 1)))
+        inp = plane_pair(H=H, W=W, shift_px=1)
+        src = torch.zeros(3 * H * (W - 1), dtype=torch.int16)
+        src[:bits.numel()] = bits
+        colour = torch.zeros(1, 3, H, W, dtype=torch.float16)
+        colour[..., :-1] = src.view(torch.float16).view(1, 3, H, W - 1)
+        inp = to_half(dict(inp, src_color=colour), STEREO_HALF["colour+normals"])
+        ref, got = self._stereo_both(inp, 0.01, 0.1, confidence=True)
+        assert_bytes_equal(ref, got, f"W={W}")
+        out, valid, reason = got[0][..., 1:], got[1][..., 1:], got[2][..., 1:]
+        finite = torch.isfinite(colour[..., :-1]).all(1, keepdim=True)
+        assert torch.equal(valid, finite) and bool((reason[~finite] == Reason.NONFINITE).all())
+        assert torch.equal(out.float()[finite.expand_as(out)], colour[..., :-1].float()[finite.expand_as(out)])
+
+    @pytest.mark.parametrize("W", [7, 64, 69])
+    def test_rounding_to_half(self, W):
+        """The colour output's float32 -> float16 rounding, probed through temporal with alpha = 0 (no warmup): the
+        output is then the float32 history itself, rounded to the float16 current colour's dtype. Values around
+        every rounding boundary: ties to even, subnormals, underflow to 0, 65504 and the overflow at 65520."""
+        g = torch.Generator().manual_seed(W)
+        halves = torch.arange(0, 0x7C00, dtype=torch.int32).to(torch.int16).view(torch.float16).float()  # finite
+        nxt = torch.cat([halves[1:], torch.tensor([65536.0])])
+        mid = (halves + nxt) / 2  # exact ties (float32 holds them), and their neighbours
+        probes = torch.cat([mid, torch.nextafter(mid, torch.zeros(())), torch.nextafter(mid, nxt),
+                            torch.rand(20000, generator=g) * 1e-4, torch.tensor([65504.0, 65519.996, 65520.0, 1e9,
+                                                                                 3.4e38, 2.0 ** -25, 2.0 ** -26])])
+        probes = torch.cat([probes, -probes])
+        H = -(-probes.numel() // (3 * (W - 1)))
+        inp = plane_pair(H=H, W=W, shift_px=1)
+        hist = torch.zeros(1, 3, H, W)
+        flat = torch.zeros(3 * H * (W - 1))
+        flat[:probes.numel()] = probes
+        hist[..., :-1] = flat.view(1, 3, H, W - 1)
+        t = dict(current_color=torch.zeros(1, 3, H, W, dtype=torch.float16), depth=inp["dst_depth"],
+                 normal=inp["dst_normal"].half(), K=inp["dst_K"], cam_from_world=inp["dst_cam_from_world"],
+                 history_color=hist, history_len=torch.full((1, 1, H, W), 5.0), prev_depth=inp["src_depth"],
+                 prev_normal=inp["src_normal"].half(), prev_K=inp["src_K"],
+                 prev_cam_from_world=inp["src_cam_from_world"])
+        ref, got = self._temporal_both(t, 0.01, 0.1, alpha=0.0, warmup=False)
+        assert_bytes_equal(ref, got, f"W={W}")
+        assert bool(got[2][..., 1:].all())
+        assert torch.equal(got[0][..., 1:], hist[..., :-1].half())  # torch's rounding of the float32 history
+
+    @pytest.mark.parametrize("W", [6, 40, 45])
+    def test_nonfinite_and_huge_colour(self, W):
+        """NaN / ±inf / 65504 / -65504 / subnormal float16 colours, in the source (stereo) and in the history and the
+        current frame (temporal; a float32 history overflows the float16 output)."""
+        H = 9
+        inp = plane_pair(H=H, W=W, shift_px=1.25)
+        c = inp["src_color"].clone() * 100
+        specials = [math.nan, math.inf, -math.inf, 65504.0, -65504.0, 6e-8, -6e-8, 1e-5, 65000.0]
+        for i, v in enumerate(specials):
+            c[0, i % 3, i % H, (3 * i) % W] = v
+            c[0, :, (i + 4) % H, (5 * i + 1) % W] = v
+        inp = to_half(dict(inp, src_color=c), STEREO_HALF["colour+normals"])
+        assert torch.isinf(inp["src_color"]).any() and (inp["src_color"].abs() == 65504).any()
+        for sampling in ("bilinear", "nearest"):
+            ref, got = self._stereo_both(inp, 0.1, 0.1, sampling, confidence=True)
+            assert_bytes_equal(ref, got, f"stereo {sampling}")
+            assert bool(torch.isfinite(got[0]).all())
+        t = dict(current_color=(torch.rand(1, 3, H, W) * 6e4).half(), depth=inp["dst_depth"],
+                 normal=inp["dst_normal"], K=inp["dst_K"], cam_from_world=inp["dst_cam_from_world"],
+                 history_color=c * 700, history_len=torch.full((1, 1, H, W), 2.0), prev_depth=inp["src_depth"],
+                 prev_normal=inp["src_normal"], prev_K=inp["src_K"], prev_cam_from_world=inp["src_cam_from_world"])
+        t["current_color"][0, 1, 2, :] = torch.tensor([math.inf, -math.inf, 65504.0] * W)[:W]
+        t["current_color"][0, 2, 3, :] = math.nan  # passes through where the history is discarded
+        t["current_color"][0, 2, H - 1, W - 3:] = math.nan  # in torch's scalar tail (see assert_bytes_equal)
+        for kw in (dict(), dict(alpha=0.5, warmup=False), dict(return_reason=True)):
+            ref, got = self._temporal_both(t, 0.1, 0.1, **kw)
+            assert_bytes_equal(ref, got, f"temporal {kw}")
+            assert bool(torch.isinf(got[0]).any())  # a float32 history of up to 4.6e7 overflows float16
+        t16 = dict(t, history_color=c.half(), history_len=t["history_len"].half())
+        assert_bytes_equal(*self._temporal_both(t16, 0.1, 0.1), "temporal, float16 history")
+
+    @pytest.mark.parametrize("W", [7, 48])
+    def test_zero_and_nan_normals(self, W):
+        """Zero, NaN and ±inf float16 normals (source and destination) read as zero vectors: NORMAL."""
+        inp = plane_pair(H=6, W=W, shift_px=1)
+        sn, dn = inp["src_normal"].clone(), inp["dst_normal"].clone()
+        sn[..., 1, :] = 0.0
+        sn[0, 2, 2, :] = math.nan  # the z component: the normal (0, 0, -1) becomes (0, 0, 0)
+        dn[0, 2, 3, :] = -math.inf
+        dn[..., 4, :] = 0.0
+        inp = to_half(dict(inp, src_normal=sn, dst_normal=dn), STEREO_HALF["all"])
+        ref, got = self._stereo_both(inp, 0.01, 0.1, confidence=True)
+        assert_bytes_equal(ref, got, "normals")
+        reason = got[2][0, 0, :, 1:]
+        assert bool((reason[[1, 2, 3, 4]] == Reason.NORMAL).all()) and bool((reason[[0, 5]] == Reason.KEPT).all())
+
+    def test_auto_picks_native(self, monkeypatch):
+        monkeypatch.delenv(native.ENV_VAR, raising=False)
+        calls = []
+        real_s, real_t = functional._native_backward, functional._native_temporal
+        monkeypatch.setattr(functional, "_native_backward", lambda *a, **k: calls.append("s") or real_s(*a, **k))
+        monkeypatch.setattr(functional, "_native_temporal", lambda *a, **k: calls.append("t") or real_t(*a, **k))
+        inp, *_ = scene_pair(H=12, W=16)
+        for layout, names in STEREO_HALF.items():
+            with torch.no_grad():
+                StereoReprojection(0.05, 0.3)(*[to_half(inp, names)[a] for a in ARGS])
+            assert calls[-1:] == ["s"], layout
+        t = self._temporal_inputs(12, 16, 0)
+        for layout, names in TEMPORAL_HALF.items():
+            calls.clear()
+            with torch.no_grad():
+                TemporalReprojection(0.05, 0.3)(*[to_half(t, names)[k] for k in self.NAMES])
+            assert calls == ["t"], layout
+        calls.clear()
+        bf = {k: (v.bfloat16() if k == "src_color" else v) for k, v in inp.items()}
+        stereo_reproject(*[bf[a] for a in ARGS], 0.05, 0.3)
+        assert calls == []  # bfloat16: torch
+        imgs = [inp[a].half() for a in ARGS if inp[a].dim() == 4]
+        assert native.select_backend("auto", imgs) == "native"
+        assert native.native_unsupported(imgs) is None
+        assert "bfloat16" in native.native_unsupported([x.bfloat16() for x in imgs])
+        with pytest.raises(RuntimeError, match="bfloat16"):
+            native.select_backend("native", [x.bfloat16() for x in imgs])
+
+    def test_kernel_dtypes_checked(self):
+        """Direct kernel calls: image arrays float32 or float16 (TypeError otherwise), no hidden conversions."""
+        inp = plane_pair()
+        B, C, H, W = 1, 3, 6, 8
+        cams = [x.reshape(1, -1).contiguous() for x in compose_warp(
+            *[inp[a] for a in ("src_K", "src_cam_from_world", "dst_K", "dst_cam_from_world")], torch.float32)]
+        M, t, P, kt, Ki = cams
+        ins = [inp["src_color"].half(), inp["src_depth"], inp["src_normal"].half(), P, kt, M, t, Ki, inp["dst_depth"],
+               inp["dst_normal"].half(), 1e-4, 1e-2, True]
+        outs = [torch.empty(B, C, H, W, dtype=torch.float16), torch.empty(B, 1, H, W, dtype=torch.bool),
+                torch.empty(B, 1, H, W, dtype=torch.uint8), None]
+        _core.reproject(*ins, *outs)
+        assert torch.equal(outs[0][..., 1:], inp["src_color"].half()[..., :-1])
+        with pytest.raises(TypeError, match="src_values"):
+            _core.reproject(inp["src_color"].bfloat16(), *ins[1:], *outs)
+        with pytest.raises(TypeError, match="dst_depth"):
+            _core.reproject(*ins[:8], inp["dst_depth"].double(), *ins[9:], *outs)
+        with pytest.raises(TypeError, match="out_values"):
+            _core.reproject(*ins, outs[0].bfloat16(), *outs[1:])
+        with pytest.raises(TypeError):  # non-contiguous float16 input: refused, not copied
+            _core.reproject(ins[0].transpose(-1, -2).contiguous().transpose(-1, -2), *ins[1:], *outs)
