@@ -1,9 +1,9 @@
 """Fuzz suite of the public reprojection ops (hypothesis, derandomized: CI runs the same examples every time).
 
-Every op on every backend — the torch general path, the torch fast path, the native kernels (float32 on the
-CPU) and, for the exported modules, onnxruntime — on random, often hostile inputs: random and near-degenerate
-cameras, depths with 0 / negative / ±inf / NaN / 1e-12 / 1e30 / FLT_MAX, normals non-unit / zero / NaN, colours
-with NaN / Inf, H or W = 1, B = 0, float16 / bfloat16 / float32 / float64. Properties:
+Every op on every backend — the torch general path, the torch fast path, the native kernels (float32 and float16 on
+the CPU) and, for the exported modules, onnxruntime — on random, often hostile inputs: random and near-degenerate
+cameras, depths with 0 / negative / ±inf / NaN / 1e-12 / 1e30 / FLT_MAX, normals non-unit / zero / NaN, colours with
+NaN / Inf, H or W = 1, B = 0, float16 / bfloat16 / float32 / float64. Properties:
 
 * no exception on valid-shaped inputs;
 * no NaN/Inf in any output colour (temporal: wherever the current sample is finite, see ``temporal_blend``);
@@ -205,9 +205,17 @@ def temporal_inputs(c: Case) -> tuple:
             (alpha, bool(rng.uniform() < 0.7), max_history))
 
 
-def _bytes_equal(a: torch.Tensor, b: torch.Tensor) -> bool:
-    return a.dtype == b.dtype and a.shape == b.shape and torch.equal(
-        a.contiguous().view(-1).view(torch.uint8), b.contiguous().view(-1).view(torch.uint8))
+def _bytes_equal(a: torch.Tensor, b: torch.Tensor, half_nan_bits: bool = True) -> bool:
+    """Same dtype, shape and bytes. ``half_nan_bits=False``: float16 NaNs only need to be NaN in both (see
+    :func:`assert_same`)."""
+    if a.dtype != b.dtype or a.shape != b.shape:
+        return False
+    if a.dtype == torch.float16 and not half_nan_bits:
+        nan = torch.isnan(a)
+        if not torch.equal(nan, torch.isnan(b)):
+            return False
+        a, b = a.masked_fill(nan, 0.0), b.masked_fill(nan, 0.0)
+    return torch.equal(a.contiguous().view(-1).view(torch.uint8), b.contiguous().view(-1).view(torch.uint8))
 
 
 def run_backends(fn, native_ok: bool, op: str):
@@ -229,10 +237,16 @@ def run_backends(fn, native_ok: bool, op: str):
 
 
 def assert_same(outs: dict, what: str) -> None:
+    """Every backend's outputs byte for byte as the torch reference's, except the bits of a NaN in a float16
+    output of native (a NaN current colour passing through temporal): torch's own float16 -> float32 conversion
+    gives a NaN the F16C pattern (sign and payload kept, quiet bit set) in its vectorised loop but 0x7FFFFFFF in
+    the loop's scalar tail, so the NaN bits torch returns depend on where the element lies in the tensor; the
+    native kernels always give the F16C pattern."""
     ref = outs["torch"]
     for name, got in outs.items():
         for i, (g, r) in enumerate(zip(got, ref)):
-            assert _bytes_equal(g, r), f"{what}: output {i} of {name} differs from the torch reference"
+            assert _bytes_equal(g, r, half_nan_bits=name != "native"), \
+                f"{what}: output {i} of {name} differs from the torch reference"
 
 
 def assert_masks(valid: torch.Tensor, reason: torch.Tensor, dst_depth: torch.Tensor) -> None:
@@ -244,7 +258,7 @@ def assert_masks(valid: torch.Tensor, reason: torch.Tensor, dst_depth: torch.Ten
 
 
 def _native_ok(c: Case) -> bool:
-    return HAS_NATIVE and c.dtype == torch.float32
+    return HAS_NATIVE and c.dtype in _native.DTYPES
 
 
 @pytest.mark.parametrize("slow", [pytest.param(False), pytest.param(True, marks=pytest.mark.slow)],
