@@ -1,5 +1,6 @@
-"""Reprojection speed at 1280×720: torch eager, native (when built), onnxruntime, kornia's bare warp, and the
-copy floor, on the same realistic inputs, in one run. Writes bench/results/reproject.{json,md}.
+"""Reprojection speed at 1280×720: torch eager, native (when built; also on float16 colour and normals),
+onnxruntime, kornia's bare warp, and the copy floor, on the same realistic inputs, in one run. Writes
+bench/results/reproject.{json,md}.
 
     python bench/reproject.py [--height 720 --width 1280 --repeats 7]
 """
@@ -25,6 +26,11 @@ def copy_floor(n_bytes: int):
     src = torch.empty(n_bytes // 4, dtype=torch.float32).uniform_()
     dst = torch.empty_like(src)
     return lambda: dst.copy_(src)
+
+
+#: The images a real-time engine keeps in float16 (RGBA16F colour, normals, history length); depths stay float32.
+HALF_INPUTS = {"src_color", "src_normal", "dst_normal", "current_color", "normal", "history_color", "history_len",
+               "prev_normal"}
 
 
 def module_backends(cls, **kw):
@@ -53,13 +59,19 @@ def main(argv=None) -> int:
     # bytes the op must read + write per pixel (float32 images, bool valid, uint8 reason)
     bytes_stereo = px * 4 * (3 + 1 + 3 + 1 + 3 + 3) + px * 2
     bytes_temporal = px * 4 * (3 + 1 + 3 + 1 + 3 + 3 + 1 + 3 + 1) + px * 1
+    # the same with float16 colour, normals and history length (HALF_INPUTS; the colour output float16 too), depths
+    # and the output history length float32
+    bytes_stereo16 = px * 2 * (3 + 3 + 3 + 3) + px * 4 * 2 + px * 2
+    bytes_temporal16 = px * 2 * (3 + 3 + 3 + 3 + 1 + 3) + px * 4 * (1 + 1 + 1) + px * 1
     # (row label, module class, head motion, floor): "stereo" is the paper's same-instant case (a parallel rig, whose
     # epipolar lines are rows); "stereo + head motion" warps between eyes of different instants (the general case,
     # as temporal reprojection does). Both stereo rows read and write the same bytes.
     cases = (("stereo", StereoReprojection, False, "stereo"),
              ("stereo + head motion", StereoReprojection, True, "stereo"),
              ("temporal", TemporalReprojection, True, "temporal"))
-    fns = {("stereo", "copy floor"): copy_floor(bytes_stereo), ("temporal", "copy floor"): copy_floor(bytes_temporal)}
+    fns = {("stereo", "copy floor"): copy_floor(bytes_stereo), ("temporal", "copy floor"): copy_floor(bytes_temporal),
+           ("stereo", "copy floor fp16"): copy_floor(bytes_stereo16),
+           ("temporal", "copy floor fp16"): copy_floor(bytes_temporal16)}
     floor_of = {}
     tmp = tempfile.TemporaryDirectory()
     for name, cls, motion, floor in cases:
@@ -67,6 +79,9 @@ def main(argv=None) -> int:
         for label, m in module_backends(cls, position_threshold=0.05, normal_threshold=0.3):
             inp = example_inputs(m, batch=1, height=H, width=W, head_motion=motion)
             fns[(name, f"{label} eager")] = lambda m=m, inp=inp: m(*inp)
+            if label == "native":
+                half = tuple(x.half() if n in HALF_INPUTS else x for n, x in zip(m.input_names, inp))
+                fns[(name, "native fp16")] = lambda m=m, inp=half: m(*inp)
         if not args.no_onnx:
             try:
                 import onnxruntime as ort
@@ -100,11 +115,14 @@ def main(argv=None) -> int:
     # and it reads ~1.7x faster). Implementations are not interleaved with each other: torch's and _core's OpenMP
     # runtimes (and onnxruntime's pool) keep their threads spinning for a while after a call, which takes the cores
     # from whatever runs next in the same process (measured: native medians +10-50 % when interleaved with torch).
-    floor_keys = [("stereo", "copy floor"), ("temporal", "copy floor")]
-    impls = sorted({impl for (_, impl) in fns if impl != "copy floor"})
+    # native fp16 is timed with the floors of its own bytes ("copy floor fp16").
+    floor_labels = ("copy floor", "copy floor fp16")
+    impls = sorted({impl for (_, impl) in fns if impl not in floor_labels})
     rows, floor_rows = [], {}
     with torch.inference_mode():
         for impl in impls:
+            fl = floor_labels[1] if impl.endswith("fp16") else floor_labels[0]
+            floor_keys = [("stereo", fl), ("temporal", fl)]
             group = {k: fns[k] for k in floor_keys}
             group.update({k: f for k, f in fns.items() if k[1] == impl})
             times = time_interleaved(group, R)
@@ -124,15 +142,20 @@ def main(argv=None) -> int:
         out_rows += [r for r in rows if r["op"] == name]
         f = ref[floor_of[name]]
         out_rows.append({"op": name, "impl": "copy floor (timed with native)", **f, "x_floor": 1.0})
+        if "native fp16" in floor_rows:
+            f = floor_rows["native fp16"][floor_of[name]]
+            out_rows.append({"op": name, "impl": "copy floor fp16 (timed with native fp16)", **f, "x_floor": 1.0})
     rows = out_rows
     record = {**header(), "resolution": f"{W}x{H}", "rows": rows,
-              "floor_bytes": {"stereo": bytes_stereo, "temporal": bytes_temporal}}
+              "floor_bytes": {"stereo": bytes_stereo, "temporal": bytes_temporal, "stereo fp16": bytes_stereo16,
+                              "temporal fp16": bytes_temporal16}}
     lines = ["| op | implementation | median ms | min ms | × copy floor |", "|---|---|---:|---:|---:|"]
     for r in rows:
         lines.append(f"| {r['op']} | {r['impl']} | {r['median_ms']:.1f} | {r['min_ms']:.1f} | {r['x_floor']:.1f} |")
-    table = (f"Reprojection at {W}×{H}, B=1, float32, median of {R} after warm-up; each implementation timed "
-             f"round-robin with the copy floors (one call each per round), × copy floor against the floor of its own "
-             f"run.\n\n") + "\n".join(lines) + "\n"
+    table = (f"Reprojection at {W}×{H}, B=1, float32 (native fp16: colour, normals and history length float16, "
+             f"depths float32), median of {R} after warm-up; each implementation timed round-robin with the copy "
+             f"floors (one call each per round), × copy floor against the floor of its own run (native fp16: the "
+             f"floor of the bytes it reads and writes).\n\n") + "\n".join(lines) + "\n"
     j, md = save("reproject", record, table)
     print(table)
     print(f"wrote {j} and {md}")
