@@ -38,6 +38,7 @@ from torch import Tensor
 from ._checks import check_camera, check_shape, tracing
 
 __all__ = [
+    "rectify_warp",
     "has_surface",
     "pixel_centers",
     "intrinsics_from_fov",
@@ -237,6 +238,49 @@ def _compose_warp_numpy(src_K: Tensor, src_cam_from_world: Tensor, dst_K: Tensor
         npd = np.float32 if dtype == torch.float32 else np.float64
         return Warp(*(torch.from_numpy(np.ascontiguousarray(a, dtype=npd)) for a in out))
     return Warp(*(torch.from_numpy(np.ascontiguousarray(a)).to(dtype) for a in out))
+
+
+#: How far from a rectified pair :func:`rectify_warp` accepts cameras: the vertical disparity it removes is at
+#: most this many pixels anywhere in the frame (rows), and at most this fraction of the horizontal one (baseline).
+RECTIFIED_TOLERANCE_PX = 1e-3
+RECTIFIED_TOLERANCE_REL = 1e-4
+
+
+def rectify_warp(warp: Warp, height: int, width: int, check: bool = True) -> Warp:
+    """The :class:`Warp` of a rectified stereo pair: every destination pixel reads its own row of the source.
+
+    A parallel rig at one instant with equal intrinsics (the paper's stereo case) warps rows to rows: ``P``'s last
+    two rows are ``(0, 1, 0)`` and ``(0, 0, 1)`` and ``kt = (k, 0, 0)``. Real cameras (look-at rotations, float32
+    extrinsics) miss that by rounding (~1e-9), which gives every bilinear footprint a second row of weight ~1e-6;
+    this sets those entries exactly, so the vertical fraction of every tap is 0 and two taps per pixel suffice
+    (the fast path, the native kernels and the exported graph then read only row y0). ``M`` and ``t`` (the
+    position test) are kept as they are.
+
+    Args:
+        warp: composed for the pair (:func:`compose_warp`).
+        height, width: the destination image's size (for the tolerance check).
+        check: raise :class:`~stereorepro.errors.CameraError` when the cameras are not a rectified pair within
+            :data:`RECTIFIED_TOLERANCE_PX` pixels of vertical disparity anywhere in the frame (rows) and
+            :data:`RECTIFIED_TOLERANCE_REL` of the horizontal disparity (baseline); skipped while tracing.
+    """
+    M, t, P, kt, Ks_inv = warp
+    if check and not tracing():
+        Pd, ktd = P.detach().double(), kt.detach().double()
+        size = float(max(height, width, 1))
+        rows = ((Pd[:, 1, 0].abs() * width + (Pd[:, 1, 1] - 1).abs() * height + Pd[:, 1, 2].abs())
+                + (Pd[:, 2, 0].abs() * width + Pd[:, 2, 1].abs() * height + (Pd[:, 2, 2] - 1).abs()) * size)
+        base = ktd[:, 1, 0].abs() + ktd[:, 2, 0].abs() * size
+        limit = RECTIFIED_TOLERANCE_REL * ktd[:, 0, 0].abs() + 1e-12
+        if bool((rows > RECTIFIED_TOLERANCE_PX).any()) or bool((base > limit).any()):
+            from .errors import CameraError
+
+            raise CameraError(
+                f"rectified=True: the cameras are not a rectified pair (rows deviate by up to {float(rows.max()):.3g} "
+                f"px, vertical/forward baseline {float(base.max()):.3g} against {float(limit.max()):.3g}); pass "
+                "rectified=False for a general pair")
+    keep = torch.tensor([[1.0, 1.0, 1.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]], dtype=P.dtype, device=P.device)
+    eye = torch.tensor([[0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], dtype=P.dtype, device=P.device)
+    return Warp(M, t, P * keep + eye, kt * keep[:, :1], Ks_inv)
 
 
 def unproject(depth: Tensor, K: Tensor) -> Tensor:

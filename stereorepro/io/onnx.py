@@ -1,8 +1,15 @@
 """ONNX export of the stateless reprojection modules, with symbolic batch and image sizes.
 
-onnxruntime notes: opset ≥ 17 is required (we default to 18); the exported graph uses Gather/GatherElements
-(no GridSample), so it runs in float32 and float64; float16 inputs are not supported by every onnxruntime
-kernel used here — cast to float32 before running.
+What is written for hard tests is the **export formulation** (:mod:`stereorepro.reproject._lean`): planar source
+tables read with ``GatherElements`` on int32 indices of H·W elements per tap, accept tests as comparisons, the
+reasons computed for the few pixels that need them, no image-sized ``Where`` in the taps; for
+``StereoReprojection(rectified=True)`` two taps per pixel instead of four. Soft tests and motion vectors export the
+general path as it is traced. Both give the torch reference's ``valid`` and ``reason`` exactly and its colours to
+rounding (tests/reproject/test_export.py, in onnxruntime and in the ``onnx.reference`` evaluator).
+
+onnxruntime notes: opset ≥ 17 is required (we default to 18); float32 graphs (the default, and what onnxruntime's
+``ThresholdedRelu`` supports) and float64 graphs (``export_onnx(..., inputs=<float64 inputs>)``) both run; float16
+inputs are not supported by every onnxruntime kernel used here: cast to float32 before running.
 """
 
 from __future__ import annotations

@@ -43,8 +43,8 @@ from torch import Tensor
 from .. import _backend
 from .._checks import (STEREO_NAMES, TEMPORAL_NAMES, check_floating, check_motion, check_reprojection_inputs,
                        check_sampling, check_scalar, check_shape, check_thresholds, tracing)
-from ..camera import compose_warp
-from . import _fast, _general, _native
+from ..camera import compose_warp, rectify_warp
+from . import _fast, _general, _lean, _native
 from ._general import as_scalar, compute_dtype, inference_only, squared_thresholds
 
 __all__ = ["BACKENDS", "backward_reproject", "stereo_reproject", "temporal_blend", "temporal_reproject",
@@ -55,6 +55,10 @@ BACKENDS = ("auto", "torch", "native")
 
 #: Whether the torch backend may take the inference fast path (tests switch it off to exercise the general path).
 FAST_PATH = True
+
+#: Whether ONNX export writes the export formulation (:mod:`._lean`) for hard tests without motion vectors
+#: (False: the general path, traced as it is; the benchmark compares both).
+EXPORT_LEAN = True
 
 
 def native_unsupported(images: Iterable[Tensor], others: Iterable = (), soft: bool = False,
@@ -126,6 +130,7 @@ def backward_reproject(
     backend: str = "auto",
     motion: Tensor | None = None,
     motion_world: Tensor | None = None,
+    rectified: bool = False,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Backward-warp ``src_values`` into the destination view with per-tap discard tests.
 
@@ -158,6 +163,11 @@ def backward_reproject(
             (``P_src = P_dst + motion_world``; with ``motion``): the position test compares the source tap with
             the moved point, so a moving object is kept and a disocclusion is still rejected. Default zeros
             (static geometry).
+        rectified: the caller declares a rectified pair (a parallel rig at one instant with equal intrinsics,
+            the paper's stereo case): every destination pixel reads its own source row, with the rounding of
+            real cameras removed (:func:`stereorepro.camera.rectify_warp`, which raises CameraError for cameras
+            that are not such a pair). Every backend then reads two taps per pixel instead of four, and so does
+            the exported ONNX graph. Not with ``motion``.
 
     Returns:
         values: (B, C, H, W) warped values (0 where nothing was accepted), dtype of ``src_values``.
@@ -176,24 +186,38 @@ def backward_reproject(
                                   dst_K, dst_cam_from_world, dict(STEREO_NAMES, src_values="src_values"))
         check_thresholds(position_threshold, normal_threshold)
         check_motion(motion, motion_world, dst_depth, "motion", "motion_world")
+    if rectified and motion is not None:
+        raise ValueError("backward_reproject: rectified=True declares a same-instant stereo pair; it cannot be "
+                         "combined with motion vectors")
     if _is_empty(dst_depth):
         return _empty_outputs(src_values, dst_depth, confidence=True)
     if select_backend(backend, (src_values, src_depth, src_normal, dst_depth, dst_normal),
                       (src_K, src_cam_from_world, dst_K, dst_cam_from_world, position_threshold, normal_threshold),
                       soft, motion is not None) == "native":
         return _native_backward(src_values, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal,
-                                dst_K, dst_cam_from_world, position_threshold, normal_threshold, sampling)
+                                dst_K, dst_cam_from_world, position_threshold, normal_threshold, sampling,
+                                rectified=rectified)
     return _torch_backward(src_values, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal, dst_K,
                            dst_cam_from_world, position_threshold, normal_threshold, sampling, soft, temperature,
-                           motion, motion_world)
+                           motion, motion_world, rectified)
+
+
+def _warp(src_K, src_cam_from_world, dst_K, dst_cam_from_world, dtype, dst_depth, rectified: bool):
+    """The composed warp (:func:`compose_warp`), rectified when the caller declares a rectified pair."""
+    warp = compose_warp(src_K, src_cam_from_world, dst_K, dst_cam_from_world, dtype)
+    return rectify_warp(warp, *dst_depth.shape[-2:]) if rectified else warp
 
 
 def _torch_backward(src_values, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal, dst_K,
                     dst_cam_from_world, position_threshold, normal_threshold, sampling, soft, temperature,
-                    motion=None, motion_world=None):
-    """The torch backend of :func:`backward_reproject` (arguments checked): the fast path where it applies."""
+                    motion=None, motion_world=None, rectified=False):
+    """The torch backend of :func:`backward_reproject` (arguments checked): the fast path where it applies, and
+    the export formulation (:mod:`._lean`) while exporting to ONNX with hard tests."""
     wdt = compute_dtype(src_values, src_depth, src_normal, dst_depth, dst_normal)
-    warp = compose_warp(src_K, src_cam_from_world, dst_K, dst_cam_from_world, wdt)
+    warp = _warp(src_K, src_cam_from_world, dst_K, dst_cam_from_world, wdt, dst_depth, rectified)
+    if EXPORT_LEAN and not soft and motion is None and torch.onnx.is_in_onnx_export():
+        return _lean.lean_reproject(src_values, src_depth, src_normal, dst_depth, dst_normal, warp,
+                                    position_threshold, normal_threshold, sampling, rectified)
     inference = inference_only((src_values, src_depth, src_normal, dst_depth, dst_normal, src_K, dst_K,
                                 src_cam_from_world, dst_cam_from_world, position_threshold, normal_threshold,
                                 motion, motion_world))
@@ -217,10 +241,11 @@ def _native_thresholds(position_threshold, normal_threshold) -> tuple[float, flo
 
 
 def _native_backward(src_values, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal, dst_K,
-                     dst_cam_from_world, position_threshold, normal_threshold, sampling, want_confidence=True):
+                     dst_cam_from_world, position_threshold, normal_threshold, sampling, want_confidence=True,
+                     rectified=False):
     """The native backend of :func:`backward_reproject` (arguments checked, hard tests, float32 compute on the CPU;
     float32 or float16 images)."""
-    warp = compose_warp(src_K, src_cam_from_world, dst_K, dst_cam_from_world, torch.float32)
+    warp = _warp(src_K, src_cam_from_world, dst_K, dst_cam_from_world, torch.float32, dst_depth, rectified)
     return _native.reproject(src_values, src_depth, src_normal, warp, dst_depth, dst_normal,
                              _native_thresholds(position_threshold, normal_threshold), sampling == "bilinear",
                              want_confidence)
@@ -255,11 +280,14 @@ def stereo_reproject(
     soft: bool = False,
     temperature: float = 0.1,
     backend: str = "auto",
+    rectified: bool = False,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Reproject one eye into the other at the same instant (paper §4.1: right → left).
 
-    Args: as :func:`backward_reproject`, with ``src_color`` (B, 3, Hs, Ws), and ``backend``: ``"auto"`` |
-        ``"torch"`` | ``"native"`` (see :func:`select_backend`; ``STEREOREPRO_BACKEND`` overrides it).
+    Args: as :func:`backward_reproject`, with ``src_color`` (B, 3, Hs, Ws), ``backend``: ``"auto"`` |
+        ``"torch"`` | ``"native"`` (see :func:`select_backend`; ``STEREOREPRO_BACKEND`` overrides it), and
+        ``rectified``: the pair is a parallel rig with equal intrinsics (two taps per pixel; see
+        :func:`backward_reproject`).
 
     Returns:
         color: (B, 3, H, W) reprojected colour, 0 where discarded.
@@ -282,12 +310,13 @@ def stereo_reproject(
                               dst_K, dst_cam_from_world, STEREO_NAMES)
     check_thresholds(position_threshold, normal_threshold)
     return warp_values(src_color, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal, dst_K,
-                       dst_cam_from_world, position_threshold, normal_threshold, sampling, soft, temperature, backend)
+                       dst_cam_from_world, position_threshold, normal_threshold, sampling, soft, temperature, backend,
+                       rectified)
 
 
 def warp_values(src_values, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal, dst_K,
                 dst_cam_from_world, position_threshold, normal_threshold, sampling="bilinear", soft=False,
-                temperature=0.1, backend="auto") -> tuple[Tensor, Tensor, Tensor]:
+                temperature=0.1, backend="auto", rectified=False) -> tuple[Tensor, Tensor, Tensor]:
     """:func:`backward_reproject` without the confidence map (the native kernel then does not write it), arguments
     assumed checked: (values (B, C, H, W), valid, reason (B, 1, H, W)). Used by :func:`stereo_reproject` and the
     stereo step of :class:`~stereorepro.accumulate.SpatiotemporalReprojection`."""
@@ -298,9 +327,9 @@ def warp_values(src_values, src_depth, src_normal, src_K, src_cam_from_world, ds
     if select_backend(backend, (src_values, src_depth, src_normal, dst_depth, dst_normal),
                       (src_K, src_cam_from_world, dst_K, dst_cam_from_world, position_threshold, normal_threshold),
                       soft) == "native":
-        values, valid, reason, _ = _native_backward(*args, want_confidence=False)
+        values, valid, reason, _ = _native_backward(*args, want_confidence=False, rectified=rectified)
     else:
-        values, valid, reason, _ = _torch_backward(*args, soft, temperature)
+        values, valid, reason, _ = _torch_backward(*args, soft, temperature, rectified=rectified)
     return values, valid, reason
 
 

@@ -57,6 +57,10 @@ class StereoReprojection(_ReprojectionBase):
         temperature: softness relative to the thresholds.
         backend: ``"auto"`` (native kernel when built, on CPU, float32, hard, without autograd), ``"torch"`` or
             ``"native"``; ``STEREOREPRO_BACKEND`` overrides it. See :func:`~stereorepro.reproject.select_backend`.
+        rectified: declare a rectified pair (parallel rig, one instant, equal intrinsics: the paper's stereo case):
+            every pixel reads its own source row with two taps instead of four, in eager and in the exported graph
+            (:func:`~stereorepro.camera.rectify_warp`; eager calls raise CameraError for other cameras, an
+            exported graph trusts the declaration).
 
     Forward:
         ``forward(src_color, src_depth, src_normal, src_K, src_cam_from_world,
@@ -70,15 +74,19 @@ class StereoReprojection(_ReprojectionBase):
     output_names = ["color", "valid", "reason"]
 
     def __init__(self, position_threshold: float, normal_threshold: float, sampling: str = "bilinear",
-                 soft: bool = False, temperature: float = 0.1, backend: str = "auto"):
+                 soft: bool = False, temperature: float = 0.1, backend: str = "auto", rectified: bool = False):
         super().__init__(position_threshold, normal_threshold, sampling, soft, temperature, backend)
+        self.rectified = bool(rectified)
+
+    def extra_repr(self) -> str:
+        return super().extra_repr() + (", rectified=True" if self.rectified else "")
 
     def forward(self, src_color: Tensor, src_depth: Tensor, src_normal: Tensor, src_K: Tensor,
                 src_cam_from_world: Tensor, dst_depth: Tensor, dst_normal: Tensor, dst_K: Tensor,
                 dst_cam_from_world: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         return stereo_reproject(src_color, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal,
                                 dst_K, dst_cam_from_world, self.position_threshold, self.normal_threshold,
-                                self.sampling, self.soft, self.temperature, self.backend)
+                                self.sampling, self.soft, self.temperature, self.backend, self.rectified)
 
 
 class TemporalReprojection(_ReprojectionBase):

@@ -1,0 +1,334 @@
+"""The export formulation of the backward reprojection: what :func:`~stereorepro.export_onnx` writes for hard
+tests, chosen for graph runtimes (onnxruntime, ``onnx.reference``) rather than for torch eager.
+
+A runtime evaluates an exported graph node by node on whole-image tensors, so what costs there is the number of
+whole-image elements each node reads and writes, and some node kinds (measured in onnxruntime 1.32 on a CPU:
+``Where`` with a tensor operand ~1 ns per element, ``Gather`` of rows ~5 ns per index) far more than others
+(``Add``, ``Mul``, comparisons, ``GatherElements`` ~0.2–0.6 ns). The general path (:mod:`._general`) traced as
+it is builds a (B, C+5, 4·H·W) ``GatherElements`` index (an int64 tensor the size of the image × taps ×
+channels) and some forty whole-image ``Where`` / ``Cast`` nodes for the per-tap tests. Here instead:
+
+* the source is sanitised once into **planar tables**, one (B, Hp·Wp) table per channel of a padded image
+  (:data:`PAD` pixels of border, so that every tap of a clamped coordinate lands in it): values, normal (3), and
+  ``z`` of the pixels a tap may accept (NaN where there is no surface, a value is not finite, or on the border),
+  so that a single comparison rejects them; each tap reads them with ``GatherElements`` on int32 indices of
+  (B, H·W) elements;
+* the accept test of a tap is two comparisons and an ``And``; the accepted weights are summed tap by tap (taps
+  unrolled: four, or one for nearest sampling), so the runtime reuses one tap's buffers for the next;
+* **reasons** are computed for the pixels that need them only (a surface, in front of the source camera, and
+  nothing accepted: ``Compress`` and ``ScatterElements``, usually a few per cent of the image), from a code table
+  (``OUT_OF_FRAME`` on the border, ``NO_SURFACE_SRC``, ``NONFINITE``, or accepted) and the tests repeated there
+  with the real depth; the rest follows from the depth and the projection in arithmetic (exact small integers);
+* non-finite normals are zeroed by ``ThresholdedRelu(alpha=-inf)`` twice with ``Neg`` (a comparison
+  ``x > -inf``, spec-defined for NaN and ±inf) instead of ``Where``; values (which a rejected tap multiplies by
+  0) only need to be finite: one ``ThresholdedRelu`` and a ``Clip``;
+* **rectified** (the caller declares a parallel rig at one instant, :func:`~stereorepro.camera.rectify_warp`):
+  the vertical fraction of every tap is 0, so only the two taps of row y0 are read; the y0 + 1 taps have weight 0
+  and contribute nothing to any output.
+
+The per-element float arithmetic that decides a result (projection, tap coordinates, weights, squared distances,
+comparisons) is that of :func:`._general.warp_pixels`, in the same order, so ``valid`` and ``reason`` are
+identical and colours agree to rounding (the weighted sum is accumulated tap by tap).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from ..camera import Warp
+from ._general import as_scalar
+from .reason import Reason
+
+#: Border of the tables: coordinates clamped to [-4, W + 4] give taps -5 .. W + 4.
+PAD = 5
+
+#: Code of a source pixel that passes every destination-independent test (above every Reason code).
+_OK = 8.0
+
+
+def _const(value, wdt: torch.dtype, dev) -> Tensor:
+    return torch.full((), float(value), dtype=wdt, device=dev)
+
+
+def _finite(x: Tensor) -> Tensor:
+    """``isfinite(x)`` as ``|x| < inf`` (NaN compares false): two cheap nodes, where the exporter writes
+    ``isfinite`` as a cast to double, IsInf, IsNaN, Or and Not."""
+    return x.abs() < math.inf
+
+
+def _surface(z: Tensor) -> Tensor:
+    """:func:`~stereorepro.camera.has_surface` (finite and > 0) as ``0 < z < inf``."""
+    return (z > 0) & (z < math.inf)
+
+
+class _ZeroNonFinite(torch.autograd.Function):
+    """``x`` with NaN and ±inf replaced by 0 (``finite_or_zero``). Exported as ``-TR(-TR(x))`` with
+    ``TR = ThresholdedRelu(alpha=-inf)`` (``x if x > -inf else 0``: NaN and -inf to 0, then +inf through the
+    negation): four streaming nodes instead of a mask and a ``Where``. onnxruntime has ThresholdedRelu in float32
+    only, so float64 graphs keep ``Where``."""
+
+    @staticmethod
+    def forward(ctx, x: Tensor) -> Tensor:  # noqa: D102 (what eager runs: the same values)
+        return torch.where(_finite(x), x, torch.zeros((), dtype=x.dtype, device=x.device))
+
+    @staticmethod
+    def symbolic(g, x):  # noqa: D102
+        for _ in range(2):
+            x = g.op("Neg", g.op("ThresholdedRelu", x, alpha_f=-math.inf))
+        return x
+
+
+class _Pick(torch.autograd.Function):
+    """Indices (K,) int64 of the True elements of a 1-D bool mask. Exported as ``Compress(Range(0, n), mask)``:
+    onnxruntime's ``NonZero`` (what ``torch.nonzero`` exports to) takes about twice as long."""
+
+    @staticmethod
+    def forward(ctx, mask: Tensor) -> Tensor:  # noqa: D102
+        return torch.nonzero(mask).reshape(-1)
+
+    @staticmethod
+    def symbolic(g, mask):  # noqa: D102
+        def const(v):
+            return g.op("Constant", value_t=torch.tensor(v, dtype=torch.int64))
+
+        n = g.op("Squeeze", g.op("Shape", mask), const([0]))
+        return g.op("Compress", g.op("Range", const(0), n, const(1)), mask, axis_i=0)
+
+
+def _pick(mask: Tensor) -> Tensor:
+    return _Pick.apply(mask) if torch.onnx.is_in_onnx_export() else _Pick.forward(None, mask)
+
+
+class _SomeFinite(torch.autograd.Function):
+    """``x`` with NaN and -inf replaced by 0 and +inf by the largest finite value: finite, and ``x`` wherever
+    ``x`` is finite. Enough for values that a rejected tap multiplies by 0; exported as two nodes,
+    ``Clip(ThresholdedRelu(x, alpha=-inf), -max, max)`` (float32)."""
+
+    @staticmethod
+    def forward(ctx, x: Tensor) -> Tensor:  # noqa: D102
+        return torch.nan_to_num(x, 0.0, torch.finfo(x.dtype).max, 0.0)
+
+    @staticmethod
+    def symbolic(g, x):  # noqa: D102
+        big = torch.finfo(torch.float32).max
+        lo, hi = (g.op("Constant", value_t=torch.tensor(v, dtype=torch.float32)) for v in (-big, big))
+        return g.op("Clip", g.op("ThresholdedRelu", x, alpha_f=-math.inf), lo, hi)
+
+
+def _export_or_eager(fn, x: Tensor) -> Tensor:
+    """``fn``'s exported form while exporting float32 (onnxruntime has ThresholdedRelu in float32 only), else
+    its eager form."""
+    if x.dtype == torch.float32 and torch.onnx.is_in_onnx_export():
+        return fn.apply(x)
+    return fn.forward(None, x)
+
+
+def _finite_or_zero(x: Tensor) -> Tensor:
+    return _export_or_eager(_ZeroNonFinite, x)
+
+
+def source_tables(src_values: Tensor, src_depth: Tensor, src_normal: Tensor,
+                  wdt: torch.dtype) -> tuple[list[Tensor], Tensor]:
+    """The source as planar tables of (B, Np) elements, Np = (Hs + 2·PAD)·(Ws + 2·PAD).
+
+    Returns:
+        taps: C + 4 tables, values (C; finite: exact where all the pixel's values are finite), z where a tap may be accepted (NaN where there is no
+            surface, a value of the pixel is not finite, and on the border), normal (3; non-finite components 0,
+            as in :func:`._general.source_features`).
+        code: (B, 1, Hs, Ws) the first destination-independent test a pixel fails: ``NO_SURFACE_SRC``,
+            ``NONFINITE``, or :data:`_OK` (its table, padded with ``OUT_OF_FRAME``, is made when the reasons need
+            it, after the taps).
+    """
+    B, C = src_values.shape[:2]
+    sv = src_values.to(wdt)
+    total = sv[:, 0:1]
+    for c in range(1, C):  # left to right, as the sum over channels of the general path and the native kernels
+        total = total + sv[:, c:c + 1]
+    finite = _finite(total)
+    sz = src_depth.to(wdt)
+    ok = _surface(sz)
+    code = ok.to(wdt) * (finite.to(wdt) + 3.0) + float(Reason.NO_SURFACE_SRC)  # 4, 7 or 8: exact
+    nan = (code == _OK).to(wdt).reciprocal() - 1.0  # 0 where accepted, inf - 1 elsewhere ...
+    z_acc = sz + (nan - nan)  # ... inf - inf = NaN: z where a tap may be accepted, NaN elsewhere
+    vals = _export_or_eager(_SomeFinite, sv)  # finite; exact where the pixel may be accepted
+    normal = _finite_or_zero(src_normal.to(wdt))
+    pad = (PAD, PAD, PAD, PAD)
+
+    def table(x: Tensor, border: float) -> Tensor:
+        return F.pad(x, pad, value=border).reshape(B, -1)
+
+    taps = ([table(vals[:, c:c + 1], 0.0) for c in range(C)] + [table(z_acc, math.nan)]
+            + [table(normal[:, c:c + 1], 0.0) for c in range(3)])
+    return taps, code
+
+
+class _TapGeometry:
+    """Per destination pixel (all of them, or the K whose reasons are needed): the tap coordinates and the
+    terms of :func:`._general.warp_pixels`' per-tap arithmetic, each computed once, when a tap first needs it.
+
+    Args:
+        x0, y0: the tap (0, 0) coordinates; fx, fy: bilinear fractions (None for nearest sampling).
+        ki: the 9 entries of K_src^-1 (per batch (B, 1), or per pixel); q: the destination point in the source
+            camera (3); nd: the sanitised destination normal (3); thr_p2, thr_n2: squared thresholds.
+    """
+
+    def __init__(self, x0, y0, fx, fy, ki, q, nd, thr_p2, thr_n2):
+        self.x0, self.y0, self.fx, self.fy, self.ki, self.q, self.nd = x0, y0, fx, fy, ki, q, nd
+        self.thr_p2, self.thr_n2 = thr_p2, thr_n2
+        self._kx, self._ky, self._g = {}, {}, {}
+
+    def position_ok(self, z: Tensor, dx: int, dy: int) -> Tensor:
+        """|P_src − q|² <= thr² of tap (x0 + dx, y0 + dy) of depth z: px = z·((ki0·ut + ki1·vt) + ki2),
+        py = z·(ki4·vt + ki5) with ut = x + 0.5, vt = y + 0.5 of the tap (warp_pixels' order)."""
+        ki = self.ki
+        if dx not in self._kx:
+            self._kx[dx] = ki[0] * (self.x0 + (dx + 0.5))
+        if dy not in self._ky:
+            vt = self.y0 + (dy + 0.5)
+            self._ky[dy] = (ki[1] * vt, ki[4] * vt + ki[5])
+        kx, (ky, ky_p) = self._kx[dx], self._ky[dy]
+        px = z * (kx + ky + ki[2])
+        py = z * ky_p
+        q = self.q
+        return (q[0] - px).square() + (q[1] - py).square() + (q[2] - z).square() <= self.thr_p2
+
+    def normal_ok(self, n: list[Tensor]) -> Tensor:
+        """|N_src − N_dst|² <= thr_n² (components summed in order)."""
+        nd = self.nd
+        return (n[0] - nd[0]).square() + (n[1] - nd[1]).square() + (n[2] - nd[2]).square() <= self.thr_n2
+
+    def weight(self, dx: int, dy: int) -> Tensor | None:
+        """The bilinear weight of tap (x0 + dx, y0 + dy): (1 − fx | fx)·(1 − fy | fy); None for nearest."""
+        if self.fx is None:
+            return None
+        for axis, f in (("x", self.fx), ("y", self.fy)):
+            if axis not in self._g:
+                self._g[axis] = 1 - f
+        return (self.fx if dx else self._g["x"]) * (self.fy if dy else self._g["y"])
+
+
+def lean_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, dst_depth: Tensor,
+                   dst_normal: Tensor, warp: Warp, position_threshold, normal_threshold, sampling: str,
+                   rectified: bool = False) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """:func:`~stereorepro.reproject.backward_reproject` with hard tests, in the export formulation.
+
+    Args: as :func:`._general.general_reproject` (``src_values`` (B, C, Hs, Ws), ``dst_depth`` (B, 1, H, W),
+        ``dst_normal`` (B, 3, H, W), ``warp`` composed), plus ``rectified``: read only the taps of row y0 (the
+        warp must have been rectified: :func:`~stereorepro.camera.rectify_warp`).
+
+    Returns:
+        values (B, C, H, W) in the dtype of ``src_values``, valid (B, 1, H, W) bool, reason (B, 1, H, W) uint8,
+        confidence (B, 1, H, W) accepted bilinear weight in the compute dtype.
+
+    The projection runs on (B, H, W) with the pixel centres broadcast ((1, 1, W) and (1, H, 1)); the taps on
+    (B, H·W), so that they gather the (B, Np) tables along axis 1.
+    """
+    M, t, P, kt, Ks_inv = warp
+    wdt = Ks_inv.dtype
+    dev = dst_depth.device
+    B, C = src_values.shape[:2]
+    Hs, Ws = src_values.shape[-2:]
+    H, W = dst_depth.shape[-2:]
+    Wp = Ws + 2 * PAD
+    tap_tables, src_code = source_tables(src_values, src_depth, src_normal, wdt)
+
+    def coef(A: Tensor, i: int, j: int) -> Tensor:  # (B, 1, 1) entry of a (B, 3, k) matrix
+        return A[:, i, j].reshape(B, 1, 1)
+
+    # --- destination pixels -> source coordinates and source-camera points (warp_pixels' arithmetic)
+    u_c = (torch.arange(W, dtype=wdt, device=dev) + 0.5).view(1, 1, -1)
+    v_c = (torch.arange(H, dtype=wdt, device=dev) + 0.5).view(1, -1, 1)
+    z_dst = dst_depth.to(wdt).reshape(B, H, W)
+    dst_ok = _surface(z_dst)
+    inv_z = 1.0 / z_dst  # without a surface: anything (the pixel is sent to the border below)
+    wx = coef(P, 0, 0) * u_c + coef(P, 0, 1) * v_c + coef(P, 0, 2) + coef(kt, 0, 0) * inv_z
+    wy = coef(P, 1, 0) * u_c + coef(P, 1, 1) * v_c + coef(P, 1, 2) + coef(kt, 1, 0) * inv_z
+    wz = coef(P, 2, 0) * u_c + coef(P, 2, 1) * v_c + coef(P, 2, 2) + coef(kt, 2, 0) * inv_z
+    u = wx / wz  # wz <= 0: sent to the border below
+    v = wy / wz
+    q = [((coef(M, i, 0) * u_c + coef(M, i, 1) * v_c + coef(M, i, 2)) * z_dst + coef(t, i, 0)).reshape(B, -1)
+         for i in range(3)]
+    front = (wz > 0) & _finite(u) & _finite(v)
+    # pixels without a surface or not in front of the source camera read border taps only (their reason is
+    # decided by the depth and the projection below)
+    sent = front & dst_ok
+    far = _const(-4.0, wdt, dev)
+    u = torch.where(sent, u, far).clamp(-4.0, Ws + 4.0).reshape(B, -1)
+    v = torch.where(sent, v, far).clamp(-4.0, Hs + 4.0).reshape(B, -1)
+    n_dst = _finite_or_zero(dst_normal.to(wdt)).reshape(B, 3, -1)
+    nd = [n_dst[:, c] for c in range(3)]
+    like = torch.empty((), dtype=wdt, device=dev)
+    thr_p, thr_n = as_scalar(position_threshold, like), as_scalar(normal_threshold, like)
+    thr_p2, thr_n2 = thr_p * thr_p, thr_n * thr_n
+
+    if sampling == "bilinear":
+        x, y = u - 0.5, v - 0.5
+        x0, y0 = torch.floor(x), torch.floor(y)
+        fx, fy = x - x0, y - y0
+        taps = [(0, 0), (1, 0)] + ([] if rectified else [(0, 1), (1, 1)])
+    else:
+        x0, y0 = torch.floor(u), torch.floor(v)
+        fx = fy = None
+        taps = [(0, 0)]
+    corner = (y0.to(torch.int32) + PAD) * Wp + (x0.to(torch.int32) + PAD)  # (B, H·W)
+    ki = [Ks_inv[:, i, j:j + 1] for i in range(3) for j in range(3)]  # (B, 1) each
+    geo = _TapGeometry(x0, y0, fx, fy, ki, q, nd, thr_p2, thr_n2)
+
+    # --- taps, one after the other: z first (the position test), then normals, then values, so that few gathered
+    # planes are alive at once
+    num = den = None
+    for dx, dy in taps:
+        index = corner + (dy * Wp + dx) if (dx or dy) else corner
+        z = torch.gather(tap_tables[C], 1, index)
+        pos_ok = geo.position_ok(z, dx, dy)
+        n = [torch.gather(tab, 1, index) for tab in tap_tables[C + 1:]]
+        accept = (pos_ok & geo.normal_ok(n)).to(wdt)
+        w = geo.weight(dx, dy)
+        ws = accept if w is None else w * accept
+        vals = [torch.gather(tab, 1, index) for tab in tap_tables[:C]]
+        num = [ws * x for x in vals] if num is None else [a + ws * x for a, x in zip(num, vals)]
+        den = ws if den is None else den + ws
+    valid = den > 0
+    inval = 1.0 - valid.to(wdt)
+    den_safe = den + inval  # den where valid, 1 elsewhere (where num = 0)
+    values = torch.stack([x / den_safe for x in num], 1)
+
+    # --- reasons: NO_SURFACE_DST (1) / BEHIND_CAMERA (2) from the projection, 0 where valid, and the taps' codes
+    # for the pixels that have a surface in front of the source camera but accepted nothing
+    ok_f, front_f = dst_ok.to(wdt).reshape(B, -1), front.to(wdt).reshape(B, -1)
+    reason = inval * (ok_f * (1.0 - front_f) * 2.0 + (1.0 - ok_f))
+    N = reason.shape[1]
+    pick = _pick((ok_f * front_f * inval).reshape(-1) > 0)  # (K,) flat pixel indices
+    batch = torch.div(pick, N, rounding_mode="floor")
+
+    def sel(x: Tensor | None) -> Tensor | None:  # (B, N) -> (K,) at the picked pixels; (B, 1) -> (K,)
+        if x is None:
+            return None
+        return torch.gather(x.reshape(-1), 0, batch if x.shape[1] == 1 else pick)
+
+    geo_k = _TapGeometry(*(sel(x) for x in (x0, y0, fx, fy)), [sel(k) for k in ki], [sel(x) for x in q],
+                         [sel(x) for x in nd], thr_p2, thr_n2)
+    code_table = F.pad(src_code, (PAD,) * 4, value=float(Reason.OUT_OF_FRAME)).reshape(-1)
+    depth_table = F.pad(src_depth.to(wdt), (PAD,) * 4, value=math.nan).reshape(-1)
+    normal_tables = [tab.reshape(-1) for tab in tap_tables[C + 1:]]
+    corner_k = sel(corner).to(torch.int64) + batch * tap_tables[0].shape[1]
+    c_ok = _const(_OK, wdt, dev)
+    code_max = None
+    for dx, dy in taps:
+        index = corner_k + (dy * Wp + dx) if (dx or dy) else corner_k
+        code = torch.gather(code_table, 0, index)
+        pos_ok = geo_k.position_ok(torch.gather(depth_table, 0, index), dx, dy)
+        nrm_ok = geo_k.normal_ok([torch.gather(tab, 0, index) for tab in normal_tables])
+        code = torch.minimum(torch.minimum(code, torch.where(pos_ok, c_ok, float(Reason.POSITION))),
+                             torch.where(nrm_ok, c_ok, float(Reason.NORMAL)))
+        if dx or dy:  # taps of weight 0 do not report a reason
+            code = code * (geo_k.weight(dx, dy) > 0).to(wdt)
+        code_max = code if code_max is None else torch.maximum(code_max, code)
+    reason = reason.reshape(-1).scatter(0, pick, code_max).reshape(B, 1, H, W)
+    shape = (B, 1, H, W)
+    return (values.reshape(B, C, H, W).to(src_values.dtype), valid.reshape(shape), reason.to(torch.uint8),
+            den.reshape(shape))
