@@ -74,6 +74,33 @@ def time_interleaved(fns: dict, repeats: int = 7, warmup: int = 2) -> dict:
             for name, v in ts.items()}
 
 
+def _status_bytes(key: str) -> int:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(key + ":"):
+            return int(line.split()[1]) * 1024
+    raise OSError(f"{key} not in /proc/self/status")
+
+
+def peak_rss_delta(fn) -> int:
+    """Bytes by which the process's peak resident set rises above its current one while ``fn()`` runs (Linux:
+    the peak is reset through ``/proc/self/clear_refs``, then read as ``VmHWM``). Call it on a fresh process's
+    first call of ``fn`` (inputs built, session created): later calls reuse what allocators kept. Free heap
+    pages that glibc keeps resident (left by building the inputs) are returned first (``malloc_trim``), so that
+    reusing them counts."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):  # not glibc: the measure may undercount reused heap pages
+        pass
+    base = _status_bytes("VmRSS")
+    Path("/proc/self/clear_refs").write_text("5")  # reset VmHWM to the current RSS
+    out = fn()
+    peak = _status_bytes("VmHWM") - base
+    del out
+    return peak
+
+
 def write_atomic(path: Path, text: str) -> None:
     from stereorepro.io.atomic import atomic_write  # the package's one atomic write
 

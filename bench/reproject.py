@@ -1,13 +1,16 @@
 """Reprojection speed at 1280×720: torch eager, native (when built; also on float16 colour and normals),
-onnxruntime, kornia's bare warp, and the copy floor, on the same realistic inputs, in one run. Writes
-bench/results/reproject.{json,md}.
+onnxruntime (the exported graph export_onnx writes, and the traced general path for comparison), kornia's bare
+warp, and the copy floor, on the same realistic inputs, in one run; and each implementation's peak memory, measured
+in a fresh process. Writes bench/results/reproject.{json,md}.
 
-    python bench/reproject.py [--height 720 --width 1280 --repeats 7]
+    python bench/reproject.py [--height 720 --width 1280 --repeats 7] [--no-onnx] [--no-memory]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import subprocess
 import sys
 import tempfile
 from pathlib import Path
@@ -15,10 +18,77 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import header, save, time_interleaved  # noqa: E402
+from _common import header, peak_rss_delta, save, time_interleaved  # noqa: E402
 
 from stereorepro import StereoReprojection, TemporalReprojection, export_onnx  # noqa: E402
 from stereorepro.io.onnx import example_inputs  # noqa: E402
+from stereorepro.reproject import functional  # noqa: E402
+
+#: (row label, module class, module keywords, head motion, floor). "stereo" is the paper's same-instant case (a
+#: parallel rig, whose epipolar lines are rows); "stereo (rectified)" the same pair declared rectified
+#: (StereoReprojection(rectified=True): two taps per pixel on every backend and in the exported graph); "stereo +
+#: head motion" warps between eyes of different instants (the general case, as temporal reprojection does). The
+#: stereo rows read and write the same bytes.
+CASES = (("stereo", StereoReprojection, {}, False, "stereo"),
+         ("stereo (rectified)", StereoReprojection, {"rectified": True}, False, "stereo"),
+         ("stereo + head motion", StereoReprojection, {}, True, "stereo"),
+         ("temporal", TemporalReprojection, {}, True, "temporal"))
+THRESHOLDS = dict(position_threshold=0.05, normal_threshold=0.3)
+
+
+def ort_session(module, path, lean: bool = True):
+    """An onnxruntime session of ``module`` exported to ``path`` (``lean``: the export formulation, as
+    export_onnx writes it; else the traced general path)."""
+    import onnxruntime as ort
+
+    saved = functional.EXPORT_LEAN
+    functional.EXPORT_LEAN = lean
+    try:
+        path = export_onnx(module, path)
+    finally:
+        functional.EXPORT_LEAN = saved
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = torch.get_num_threads()
+    # no spin-waiting between runs: its threads would take the cores from the calls timed next
+    so.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+
+
+def memory_child(case: str, impl: str, H: int, W: int) -> dict:
+    """In this (fresh) process: the peak resident memory one call of ``impl`` on ``case`` adds, the inputs built
+    and the session created first (bench/_common.peak_rss_delta); the bytes of its inputs and outputs."""
+    name, cls, kw, motion, _ = next(c for c in CASES if c[0] == case)
+    m = cls(**THRESHOLDS, **kw, backend="native" if impl == "native" else "torch")
+    inp = example_inputs(m, batch=1, height=H, width=W, head_motion=motion)
+    if impl == "onnxruntime":
+        tmp = tempfile.TemporaryDirectory()
+        sess = ort_session(m, Path(tmp.name) / "m.onnx")
+        feed = {n: x.numpy() for n, x in zip(m.input_names, inp)}
+
+        def call():
+            return sess.run(None, feed)
+    else:
+        def call():
+            with torch.inference_mode():
+                return m(*inp)
+    peak = peak_rss_delta(call)  # the first call: later ones reuse what the allocators kept
+    out = call()
+    nbytes = (lambda x: x.nbytes) if impl == "onnxruntime" else (lambda x: x.numel() * x.element_size())
+    return {"case": case, "impl": impl, "peak_bytes": peak, "input_bytes": sum(x.numel() * x.element_size() for x in inp),
+            "output_bytes": sum(nbytes(o) for o in out)}
+
+
+def memory_rows(H: int, W: int, impls) -> list[dict]:
+    """:func:`memory_child` for every case and implementation, each in a fresh interpreter."""
+    rows = []
+    for case, *_ in CASES:
+        for impl in impls:
+            res = subprocess.run([sys.executable, __file__, "--memory-child", case, impl, "--height", str(H),
+                                  "--width", str(W)], capture_output=True, text=True, check=True)
+            r = json.loads(res.stdout.strip().splitlines()[-1])
+            io = r["input_bytes"] + r["output_bytes"]
+            rows.append({**r, "x_inputs_outputs": r["peak_bytes"] / io, "x_outputs": r["peak_bytes"] / r["output_bytes"]})
+    return rows
 
 
 def copy_floor(n_bytes: int):
@@ -53,8 +123,13 @@ def main(argv=None) -> int:
     ap.add_argument("--width", type=int, default=1280)
     ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--no-onnx", action="store_true")
+    ap.add_argument("--no-memory", action="store_true")
+    ap.add_argument("--memory-child", nargs=2, metavar=("CASE", "IMPL"), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     H, W, R = args.height, args.width, args.repeats
+    if args.memory_child:
+        print(json.dumps(memory_child(*args.memory_child, H, W)))
+        return 0
     px = H * W
     # bytes the op must read + write per pixel (float32 images, bool valid, uint8 reason)
     bytes_stereo = px * 4 * (3 + 1 + 3 + 1 + 3 + 3) + px * 2
@@ -63,20 +138,15 @@ def main(argv=None) -> int:
     # and the output history length float32
     bytes_stereo16 = px * 2 * (3 + 3 + 3 + 3) + px * 4 * 2 + px * 2
     bytes_temporal16 = px * 2 * (3 + 3 + 3 + 3 + 1 + 3) + px * 4 * (1 + 1 + 1) + px * 1
-    # (row label, module class, head motion, floor): "stereo" is the paper's same-instant case (a parallel rig, whose
-    # epipolar lines are rows); "stereo + head motion" warps between eyes of different instants (the general case,
-    # as temporal reprojection does). Both stereo rows read and write the same bytes.
-    cases = (("stereo", StereoReprojection, False, "stereo"),
-             ("stereo + head motion", StereoReprojection, True, "stereo"),
-             ("temporal", TemporalReprojection, True, "temporal"))
+    cases = CASES
     fns = {("stereo", "copy floor"): copy_floor(bytes_stereo), ("temporal", "copy floor"): copy_floor(bytes_temporal),
            ("stereo", "copy floor fp16"): copy_floor(bytes_stereo16),
            ("temporal", "copy floor fp16"): copy_floor(bytes_temporal16)}
     floor_of = {}
     tmp = tempfile.TemporaryDirectory()
-    for name, cls, motion, floor in cases:
+    for name, cls, kw, motion, floor in cases:
         floor_of[name] = floor
-        for label, m in module_backends(cls, position_threshold=0.05, normal_threshold=0.3):
+        for label, m in module_backends(cls, **THRESHOLDS, **kw):
             inp = example_inputs(m, batch=1, height=H, width=W, head_motion=motion)
             fns[(name, f"{label} eager")] = lambda m=m, inp=inp: m(*inp)
             if label == "native":
@@ -84,21 +154,15 @@ def main(argv=None) -> int:
                 fns[(name, "native fp16")] = lambda m=m, inp=half: m(*inp)
         if not args.no_onnx:
             try:
-                import onnxruntime as ort
-
-                m = cls(position_threshold=0.05, normal_threshold=0.3)
+                m = cls(**THRESHOLDS, **kw)
                 inp = example_inputs(m, batch=1, height=H, width=W, head_motion=motion)
-                path = export_onnx(m, Path(tmp.name) / f"{cls.__name__}.onnx")
-                so = ort.SessionOptions()
-                so.intra_op_num_threads = torch.get_num_threads()
-                # no spin-waiting between runs: its threads would take the cores from the calls timed next
-                so.add_session_config_entry("session.intra_op.allow_spinning", "0")
-                sess = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
                 feed = {n: x.numpy() for n, x in zip(m.input_names, inp)}
-                fns[(name, "onnxruntime")] = lambda sess=sess, feed=feed: sess.run(None, feed)
+                for label, lean in (("onnxruntime", True), ("onnxruntime, general graph", False)):
+                    sess = ort_session(m, Path(tmp.name) / f"{name}-{lean}.onnx", lean)
+                    fns[(name, label)] = lambda sess=sess, feed=feed: sess.run(None, feed)
             except ImportError:
                 pass
-        if cls is StereoReprojection:
+        if cls is StereoReprojection and not kw:
             try:
                 from kornia.geometry.depth import warp_frame_depth
 
@@ -146,12 +210,29 @@ def main(argv=None) -> int:
             f = floor_rows["native fp16"][floor_of[name]]
             out_rows.append({"op": name, "impl": "copy floor fp16 (timed with native fp16)", **f, "x_floor": 1.0})
     rows = out_rows
-    record = {**header(), "resolution": f"{W}x{H}", "rows": rows,
+    for r in rows:  # ratio to torch eager on the same op, in this run
+        t = next((x["median_ms"] for x in rows if x["op"] == r["op"] and x["impl"] == "torch eager"), None)
+        r["x_torch_eager"] = r["median_ms"] / t if t else None
+    mem = [] if args.no_memory else memory_rows(H, W, ["torch", "native", "onnxruntime"] if not args.no_onnx
+                                                else ["torch", "native"])
+    record = {**header(), "resolution": f"{W}x{H}", "rows": rows, "memory": mem,
               "floor_bytes": {"stereo": bytes_stereo, "temporal": bytes_temporal, "stereo fp16": bytes_stereo16,
                               "temporal fp16": bytes_temporal16}}
-    lines = ["| op | implementation | median ms | min ms | × copy floor |", "|---|---|---:|---:|---:|"]
+    lines = ["| op | implementation | median ms | min ms | × copy floor | × torch eager |",
+             "|---|---|---:|---:|---:|---:|"]
     for r in rows:
-        lines.append(f"| {r['op']} | {r['impl']} | {r['median_ms']:.1f} | {r['min_ms']:.1f} | {r['x_floor']:.1f} |")
+        xt = "" if r["x_torch_eager"] is None else f"{r['x_torch_eager']:.2f}"
+        lines.append(f"| {r['op']} | {r['impl']} | {r['median_ms']:.1f} | {r['min_ms']:.1f} | {r['x_floor']:.1f} "
+                     f"| {xt} |")
+    if mem:
+        lines += ["", "Peak memory of one call (the first, in a fresh process, inputs built and session created: the rise "
+                  "of VmHWM over VmRSS), against the bytes of its inputs and outputs:", "",
+                  "| op | implementation | peak MiB | inputs + outputs MiB | × inputs + outputs | × outputs |",
+                  "|---|---|---:|---:|---:|---:|"]
+        for r in mem:
+            io = (r["input_bytes"] + r["output_bytes"]) / 2 ** 20
+            lines.append(f"| {r['case']} | {r['impl']} | {r['peak_bytes'] / 2 ** 20:.1f} | {io:.1f} "
+                         f"| {r['x_inputs_outputs']:.2f} | {r['x_outputs']:.2f} |")
     table = (f"Reprojection at {W}×{H}, B=1, float32 (native fp16: colour, normals and history length float16, "
              f"depths float32), median of {R} after warm-up; each implementation timed round-robin with the copy "
              f"floors (one call each per round), × copy floor against the floor of its own run (native fp16: the "

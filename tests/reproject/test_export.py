@@ -284,9 +284,12 @@ class TestExportedGraph:
         inp = example_inputs(m, batch=1, height=20, width=24)
         _compare(m, _ort_session(path).run(None, {n: x.numpy() for n, x in zip(m.input_names, inp)}), inp)
 
-    def test_float64_graph(self, tmp_path):
-        """A float64 export keeps Where for the sanitising (onnxruntime's ThresholdedRelu is float32 only)."""
-        m = StereoReprojection(*THR)
-        inp64 = example_inputs(m, batch=1, height=10, width=12, dtype=torch.float64)
-        path = export_onnx(m, tmp_path / "f64.onnx", inputs=inp64)
-        _compare(m, _ort_session(path).run(None, {n: x.numpy() for n, x in zip(m.input_names, inp64)}), inp64)
+    @pytest.mark.parametrize("dtype", [torch.float64, torch.float16], ids=["fp64", "fp16"])
+    def test_other_dtypes(self, dtype, tmp_path):
+        """A float64 export computes in float64 and keeps Where for the sanitising (onnxruntime's
+        ThresholdedRelu is float32 only); float16 inputs are widened to float32 inside the graph."""
+        for m in (StereoReprojection(*THR), TemporalReprojection(*THR)):
+            inp = example_inputs(m, batch=1, height=10, width=12, dtype=dtype)
+            path = export_onnx(m, tmp_path / f"{type(m).__name__}.onnx", inputs=inp)
+            _compare(m, _ort_session(path).run(None, {n: x.numpy() for n, x in zip(m.input_names, inp)}), inp,
+                     atol=1e-5 if dtype == torch.float64 else 1e-3)

@@ -1,7 +1,7 @@
 """Fuzz suite of the public reprojection ops (hypothesis, derandomized: CI runs the same examples every time).
 
 Every op on every backend — the torch general path, the torch fast path, the native kernels (float32 and float16 on
-the CPU) and, for the exported modules, onnxruntime — on random, often hostile inputs: random and near-degenerate
+the CPU), the export formulation run eagerly and, for the exported modules, onnxruntime — on random, often hostile inputs: random and near-degenerate
 cameras, depths with 0 / negative / ±inf / NaN / 1e-12 / 1e30 / FLT_MAX, normals non-unit / zero / NaN, colours with
 NaN / Inf, H or W = 1, B = 0, float16 / bfloat16 / float32 / float64. Properties:
 
@@ -39,7 +39,7 @@ SCALE = float(os.environ.get("STEREOREPRO_FUZZ_SCALE", "1"))
 #: Examples per test in one default run; each example runs every backend that applies to it.
 EXAMPLES = {"stereo": 2000, "backward": 2000, "temporal": 2000, "blend": 2000, "temporal_motion": 600,
             "grad_stereo": 300,
-            "grad_temporal": 300, "onnx_stereo": 400, "onnx_temporal": 400}
+            "grad_temporal": 300, "onnx_stereo": 400, "onnx_temporal": 400, "lean": 500}
 
 FLT_MAX = float(np.finfo(np.float32).max)
 SPECIAL_DEPTHS = (0.0, -1.0, math.inf, -math.inf, math.nan, 1e-12, 1e30, FLT_MAX, 1e-20, 1e-38)
@@ -475,4 +475,37 @@ class TestFuzzOnnx:
             assert torch.equal(got[2], ref[2])
             assert torch.allclose(got[0], ref[0], atol=1e-5, rtol=1e-5, equal_nan=True)
             assert torch.allclose(got[1], ref[1], atol=1e-5, rtol=1e-5)
+        check()
+
+
+class TestFuzzExportFormulation:
+    """The export formulation (what export_onnx writes for hard tests, :mod:`stereorepro.reproject._lean`) run
+    eagerly against the general path on every fuzz input, thresholds 0 and inf included (the onnxruntime tests
+    above fix them in the exported module): valid and reason identical, values and confidence within rounding."""
+
+    def test_lean_reproject(self):
+        from stereorepro.camera import compose_warp, rectify_warp
+        from stereorepro.reproject import _general, _lean
+
+        @fuzz_settings("lean")
+        @given(cases().filter(lambda c: c.B > 0), st.integers(1, 4), st.booleans())
+        def check(c, C, rectified):
+            rng = np.random.default_rng(c.seed + 3)
+            args = list(stereo_inputs(c))
+            args[0] = make_colour(c, rng, c.B, C, c.Hs, c.Ws)
+            src, dst = args[:3], args[5:7]
+            wdt = _general.compute_dtype(*src, *dst)
+            warp = compose_warp(*args[3:5], *args[7:9], wdt)
+            rectified = rectified and c.sampling == "bilinear"
+            if rectified:  # rectify whatever the cameras: the formulation must match on that warp
+                warp = rectify_warp(warp, c.H, c.W, check=False)
+            with torch.no_grad():
+                ref = _general.general_reproject(*src, *dst, warp, c.thr_p, c.thr_n, c.sampling, False, 0.1, False)
+                got = _lean.lean_reproject(*src, *dst, warp, c.thr_p, c.thr_n, c.sampling, rectified)
+            COUNTS[("lean_reproject", "torch eager")] += 1
+            for i in (1, 2):
+                assert _bytes_equal(got[i], ref[i]), f"{('valid', 'reason')[i - 1]} of the export formulation differs"
+            for i in (0, 3):  # values and confidence: sums over the taps, accumulated in another order
+                assert got[i].dtype == ref[i].dtype and bool(torch.isfinite(got[i]).all())
+                torch.testing.assert_close(got[i].double(), ref[i].double(), atol=1e-5, rtol=1e-5)
         check()
