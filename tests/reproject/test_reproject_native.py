@@ -226,6 +226,15 @@ def random_scene(H, W, seed, B=1):
 RESOLUTIONS = [(1, 17), (13, 1), (1, 1), (36, 48), (71, 129), (97, 203)]
 
 
+def count_native_calls(monkeypatch) -> list:
+    """A list that records "s" for each native warp call and "t" for each fused native temporal call."""
+    calls = []
+    real_s, real_t = functional._native_backward, functional._native_temporal
+    monkeypatch.setattr(functional, "_native_backward", lambda *a, **k: calls.append("s") or real_s(*a, **k))
+    monkeypatch.setattr(functional, "_native_temporal", lambda *a, **k: calls.append("t") or real_t(*a, **k))
+    return calls
+
+
 class TestNativeStereo:
     def test_smoke(self):
         values, valid, reason, conf = native_backward_reproject(*[plane_pair()[a] for a in ARGS], 0.01, 0.1)
@@ -491,10 +500,7 @@ class TestBackendSelection:
     def test_dispatch(self, monkeypatch):
         """Which implementation the functions and modules run, observed by counting native calls."""
         monkeypatch.delenv(native.ENV_VAR, raising=False)
-        calls = []
-        real_s, real_t = functional._native_backward, functional._native_temporal
-        monkeypatch.setattr(functional, "_native_backward", lambda *a, **k: calls.append("s") or real_s(*a, **k))
-        monkeypatch.setattr(functional, "_native_temporal", lambda *a, **k: calls.append("t") or real_t(*a, **k))
+        calls = count_native_calls(monkeypatch)
         inp = self._stereo_inputs()
         args = [inp[a] for a in ARGS]
         StereoReprojection(0.05, 0.3)(*args)
@@ -772,10 +778,7 @@ class TestNativeFloat16:
 
     def test_auto_picks_native(self, monkeypatch):
         monkeypatch.delenv(native.ENV_VAR, raising=False)
-        calls = []
-        real_s, real_t = functional._native_backward, functional._native_temporal
-        monkeypatch.setattr(functional, "_native_backward", lambda *a, **k: calls.append("s") or real_s(*a, **k))
-        monkeypatch.setattr(functional, "_native_temporal", lambda *a, **k: calls.append("t") or real_t(*a, **k))
+        calls = count_native_calls(monkeypatch)
         inp, *_ = scene_pair(H=12, W=16)
         for layout, names in STEREO_HALF.items():
             with torch.no_grad():
