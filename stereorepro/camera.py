@@ -278,9 +278,8 @@ def rectify_warp(warp: Warp, height: int, width: int, check: bool = True) -> War
                 f"rectified=True: the cameras are not a rectified pair (rows deviate by up to {float(rows.max()):.3g} "
                 f"px, vertical/forward baseline {float(base.max()):.3g} against {float(limit.max()):.3g}); pass "
                 "rectified=False for a general pair")
-    keep = torch.tensor([[1.0, 1.0, 1.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]], dtype=P.dtype, device=P.device)
-    eye = torch.tensor([[0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], dtype=P.dtype, device=P.device)
-    return Warp(M, t, P * keep + eye, kt * keep[:, :1], Ks_inv)
+    rows = torch.eye(3, dtype=P.dtype, device=P.device)[1:].expand(P.shape[0], 2, 3)  # (0, 1, 0), (0, 0, 1)
+    return Warp(M, t, torch.cat([P[:, :1], rows], 1), torch.cat([kt[:, :1], torch.zeros_like(kt[:, 1:])], 1), Ks_inv)
 
 
 def unproject(depth: Tensor, K: Tensor) -> Tensor:

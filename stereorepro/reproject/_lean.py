@@ -305,12 +305,13 @@ def lean_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, ds
     pick = _pick((ok_f * front_f * inval).reshape(-1) > 0)  # (K,) flat pixel indices
     batch = torch.div(pick, N, rounding_mode="floor")
 
-    def sel(x: Tensor | None) -> Tensor | None:  # (B, N) -> (K,) at the picked pixels; (B, 1) -> (K,)
+    def sel(x: Tensor | None, per_batch: bool = False) -> Tensor | None:
+        """(B, N) -> (K,) at the picked pixels; ``per_batch``: (B, 1) -> (K,) of their batch items."""
         if x is None:
             return None
-        return torch.gather(x.reshape(-1), 0, batch if x.shape[1] == 1 else pick)
+        return torch.gather(x.reshape(-1), 0, batch if per_batch else pick)
 
-    geo_k = _TapGeometry(*(sel(x) for x in (x0, y0, fx, fy)), [sel(k) for k in ki], [sel(x) for x in q],
+    geo_k = _TapGeometry(*(sel(x) for x in (x0, y0, fx, fy)), [sel(k, True) for k in ki], [sel(x) for x in q],
                          [sel(x) for x in nd], thr_p2, thr_n2)
     code_table = F.pad(src_code, (PAD,) * 4, value=float(Reason.OUT_OF_FRAME)).reshape(-1)
     depth_table = F.pad(src_depth.to(wdt), (PAD,) * 4, value=math.nan).reshape(-1)
