@@ -74,7 +74,8 @@ def memory_child(case: str, impl: str, H: int, W: int) -> dict:
     peak = peak_rss_delta(call)  # the first call: later ones reuse what the allocators kept
     out = call()
     nbytes = (lambda x: x.nbytes) if impl == "onnxruntime" else (lambda x: x.numel() * x.element_size())
-    return {"case": case, "impl": impl, "peak_bytes": peak, "input_bytes": sum(x.numel() * x.element_size() for x in inp),
+    return {"case": case, "impl": impl, "peak_bytes": peak,
+            "input_bytes": sum(x.numel() * x.element_size() for x in inp),
             "output_bytes": sum(nbytes(o) for o in out)}
 
 
@@ -87,7 +88,8 @@ def memory_rows(H: int, W: int, impls) -> list[dict]:
                                   "--width", str(W)], capture_output=True, text=True, check=True)
             r = json.loads(res.stdout.strip().splitlines()[-1])
             io = r["input_bytes"] + r["output_bytes"]
-            rows.append({**r, "x_inputs_outputs": r["peak_bytes"] / io, "x_outputs": r["peak_bytes"] / r["output_bytes"]})
+            rows.append({**r, "x_inputs_outputs": r["peak_bytes"] / io,
+                         "x_outputs": r["peak_bytes"] / r["output_bytes"]})
     return rows
 
 
@@ -225,8 +227,8 @@ def main(argv=None) -> int:
         lines.append(f"| {r['op']} | {r['impl']} | {r['median_ms']:.1f} | {r['min_ms']:.1f} | {r['x_floor']:.1f} "
                      f"| {xt} |")
     if mem:
-        lines += ["", "Peak memory of one call (the first, in a fresh process, inputs built and session created: the rise "
-                  "of VmHWM over VmRSS), against the bytes of its inputs and outputs:", "",
+        lines += ["", "Peak memory of one call (the first, in a fresh process, inputs built and session created: the "
+                  "rise of VmHWM over VmRSS), against the bytes of its inputs and outputs:", "",
                   "| op | implementation | peak MiB | inputs + outputs MiB | × inputs + outputs | × outputs |",
                   "|---|---|---:|---:|---:|---:|"]
         for r in mem:
