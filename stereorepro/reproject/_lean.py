@@ -17,9 +17,10 @@ channels) and some forty whole-image ``Where`` / ``Cast`` nodes for the per-tap 
 * the accept test of a tap is two comparisons and an ``And``; the accepted weights are summed tap by tap (taps
   unrolled: four, or one for nearest sampling), so the runtime reuses one tap's buffers for the next;
 * **reasons** are computed for the pixels that need them only (a surface, in front of the source camera, and
-  nothing accepted: ``Compress`` and ``ScatterElements``, usually a few per cent of the image), from a code table
-  (``OUT_OF_FRAME`` on the border, ``NO_SURFACE_SRC``, ``NONFINITE``, or accepted) and the tests repeated there
-  with the real depth; the rest follows from the depth and the projection in arithmetic (exact small integers);
+  nothing accepted: ``Compress`` and ``ScatterElements``, usually a few per cent of the image): their taps' codes
+  (``OUT_OF_FRAME`` off the image, ``NO_SURFACE_SRC``, ``NONFINITE``) from the tables and the padded depth, and
+  the tests repeated with the real depth; the rest follows from the depth and the projection in arithmetic
+  (exact small integers);
 * non-finite normals are zeroed by ``ThresholdedRelu(alpha=-inf)`` twice with ``Neg`` (a comparison
   ``x > -inf``, spec-defined for NaN and ±inf) instead of ``Where``; values (which a rejected tap multiplies by
   0) only need to be finite: one ``ThresholdedRelu`` and a ``Clip``;
@@ -133,16 +134,13 @@ def _finite_or_zero(x: Tensor) -> Tensor:
 
 
 def source_tables(src_values: Tensor, src_depth: Tensor, src_normal: Tensor,
-                  wdt: torch.dtype) -> tuple[list[Tensor], Tensor]:
+                  wdt: torch.dtype) -> list[Tensor]:
     """The source as planar tables of (B, Np) elements, Np = (Hs + 2·PAD)·(Ws + 2·PAD).
 
     Returns:
-        taps: C + 4 tables: values (C; finite, and exact where all the pixel's values are finite), z where a tap
+        C + 4 tables: values (C; finite, and exact where all the pixel's values are finite), z where a tap
             may be accepted (NaN where there is no surface, a value of the pixel is not finite, and on the border),
             normal (3; non-finite components 0, as in :func:`._general.source_features`).
-        code: (B, 1, Hs, Ws) the first destination-independent test a pixel fails: ``NO_SURFACE_SRC``,
-            ``NONFINITE``, or :data:`_OK` (its table, padded with ``OUT_OF_FRAME``, is made when the reasons need
-            it, after the taps).
     """
     B, C = src_values.shape[:2]
     sv = src_values.to(wdt)
@@ -151,9 +149,7 @@ def source_tables(src_values: Tensor, src_depth: Tensor, src_normal: Tensor,
         total = total + sv[:, c:c + 1]
     finite = _finite(total)
     sz = src_depth.to(wdt)
-    ok = _surface(sz)
-    code = ok.to(wdt) * (finite.to(wdt) + 3.0) + float(Reason.NO_SURFACE_SRC)  # 4, 7 or 8: exact
-    nan = (code == _OK).to(wdt).reciprocal() - 1.0  # 0 where accepted, inf - 1 elsewhere ...
+    nan = (_surface(sz) & finite).to(wdt).reciprocal() - 1.0  # 0 where a tap may be accepted, inf elsewhere ...
     z_acc = sz + (nan - nan)  # ... inf - inf = NaN: z where a tap may be accepted, NaN elsewhere
     vals = _export_or_eager(_SomeFinite, sv)  # finite; exact where the pixel may be accepted
     normal = _finite_or_zero(src_normal.to(wdt))
@@ -164,7 +160,7 @@ def source_tables(src_values: Tensor, src_depth: Tensor, src_normal: Tensor,
 
     taps = ([table(vals[:, c:c + 1], 0.0) for c in range(C)] + [table(z_acc, math.nan)]
             + [table(normal[:, c:c + 1], 0.0) for c in range(3)])
-    return taps, code
+    return taps
 
 
 class _TapGeometry:
@@ -235,7 +231,7 @@ def lean_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, ds
     Hs, Ws = src_values.shape[-2:]
     H, W = dst_depth.shape[-2:]
     Wp = Ws + 2 * PAD
-    tap_tables, src_code = source_tables(src_values, src_depth, src_normal, wdt)
+    tap_tables = source_tables(src_values, src_depth, src_normal, wdt)
 
     def coef(A: Tensor, i: int, j: int) -> Tensor:  # (B, 1, 1) entry of a (B, 3, k) matrix
         return A[:, i, j].reshape(B, 1, 1)
@@ -314,16 +310,24 @@ def lean_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, ds
 
     geo_k = _TapGeometry(*(sel(x) for x in (x0, y0, fx, fy)), [sel(k, True) for k in ki], [sel(x) for x in q],
                          [sel(x) for x in nd], thr_p2, thr_n2)
-    code_table = F.pad(src_code, (PAD,) * 4, value=float(Reason.OUT_OF_FRAME)).reshape(-1)
+    # each tap's destination-independent code, from what the tables hold: OUT_OF_FRAME off the source image, else
+    # _OK where z is acceptable, NONFINITE where the pixel has a surface (its values are not finite), NO_SURFACE_SRC
     depth_table = F.pad(src_depth.to(wdt), (PAD,) * 4, value=math.nan).reshape(-1)
+    z_table = tap_tables[C].reshape(-1)
     normal_tables = [tab.reshape(-1) for tab in tap_tables[C + 1:]]
     corner_k = sel(corner).to(torch.int64) + batch * tap_tables[0].shape[1]
     c_ok = _const(_OK, wdt, dev)
     code_max = None
     for dx, dy in taps:
         index = corner_k + (dy * Wp + dx) if (dx or dy) else corner_k
-        code = torch.gather(code_table, 0, index)
-        pos_ok = geo_k.position_ok(torch.gather(depth_table, 0, index), dx, dy)
+        xt, yt = geo_k.x0 + dx, geo_k.y0 + dy
+        in_frame = (xt >= 0) & (xt <= Ws - 1) & (yt >= 0) & (yt <= Hs - 1)
+        z_raw = torch.gather(depth_table, 0, index)
+        # in exact small-integer arithmetic: 4 or 7 (surface), 8 where acceptable, 3 off the image
+        code = _surface(z_raw).to(wdt) * 3.0 + float(Reason.NO_SURFACE_SRC)
+        code = code + _finite(torch.gather(z_table, 0, index)).to(wdt) * (_OK - code)
+        code = (code - float(Reason.OUT_OF_FRAME)) * in_frame.to(wdt) + float(Reason.OUT_OF_FRAME)
+        pos_ok = geo_k.position_ok(z_raw, dx, dy)
         nrm_ok = geo_k.normal_ok([torch.gather(tab, 0, index) for tab in normal_tables])
         code = torch.minimum(torch.minimum(code, torch.where(pos_ok, c_ok, float(Reason.POSITION))),
                              torch.where(nrm_ok, c_ok, float(Reason.NORMAL)))
