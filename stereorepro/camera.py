@@ -64,7 +64,8 @@ def has_surface(depth: Tensor) -> Tensor:
     Returns:
         bool tensor of the same shape.
     """
-    return torch.isfinite(depth) & (depth > 0)
+    return (depth > 0) & (depth < math.inf)  # NaN compares false; one comparison less than isfinite, and an
+    # exported graph gets two nodes where torch.isfinite exports as a cast to double, IsInf, IsNaN, Or and Not
 
 
 def pixel_centers(height: int, width: int, device=None, dtype=torch.float32) -> Tensor:

@@ -8,8 +8,8 @@ general path as it is traced. Both give the torch reference's ``valid`` and ``re
 rounding (tests/reproject/test_export.py, in onnxruntime and in the ``onnx.reference`` evaluator).
 
 onnxruntime notes: opset ≥ 17 is required (we default to 18); float32 graphs (the default, and what onnxruntime's
-``ThresholdedRelu`` supports) and float64 graphs (``export_onnx(..., inputs=<float64 inputs>)``) both run; float16
-inputs are not supported by every onnxruntime kernel used here: cast to float32 before running.
+``ThresholdedRelu`` supports) and float64 graphs (``export_onnx(..., inputs=<float64 inputs>)``) both run; a graph
+exported with float16 inputs widens them to float32 inside (tested with onnxruntime 1.32).
 """
 
 from __future__ import annotations

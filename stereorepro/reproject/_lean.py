@@ -41,8 +41,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ..camera import Warp
-from ._general import as_scalar
+from ..camera import Warp, has_surface
+from ._general import as_scalar, finite_or_zero
 from .reason import Reason
 
 #: Border of the tables: coordinates clamped to [-4, W + 4] give taps -5 .. W + 4.
@@ -62,11 +62,6 @@ def _finite(x: Tensor) -> Tensor:
     return x.abs() < math.inf
 
 
-def _surface(z: Tensor) -> Tensor:
-    """:func:`~stereorepro.camera.has_surface` (finite and > 0) as ``0 < z < inf``."""
-    return (z > 0) & (z < math.inf)
-
-
 class _ZeroNonFinite(torch.autograd.Function):
     """``x`` with NaN and ±inf replaced by 0 (``finite_or_zero``). Exported as ``-TR(-TR(x))`` with
     ``TR = ThresholdedRelu(alpha=-inf)`` (``x if x > -inf else 0``: NaN and -inf to 0, then +inf through the
@@ -75,7 +70,7 @@ class _ZeroNonFinite(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, x: Tensor) -> Tensor:  # noqa: D102 (what eager runs: the same values)
-        return torch.where(_finite(x), x, torch.zeros((), dtype=x.dtype, device=x.device))
+        return finite_or_zero(x)
 
     @staticmethod
     def symbolic(g, x):  # noqa: D102
@@ -149,7 +144,7 @@ def source_tables(src_values: Tensor, src_depth: Tensor, src_normal: Tensor,
         total = total + sv[:, c:c + 1]
     finite = _finite(total)
     sz = src_depth.to(wdt)
-    nan = (_surface(sz) & finite).to(wdt).reciprocal() - 1.0  # 0 where a tap may be accepted, inf elsewhere ...
+    nan = (has_surface(sz) & finite).to(wdt).reciprocal() - 1.0  # 0 where a tap may be accepted, inf elsewhere ...
     z_acc = sz + (nan - nan)  # ... inf - inf = NaN: z where a tap may be accepted, NaN elsewhere
     vals = _export_or_eager(_SomeFinite, sv)  # finite; exact where the pixel may be accepted
     normal = _finite_or_zero(src_normal.to(wdt))
@@ -240,7 +235,7 @@ def lean_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, ds
     u_c = (torch.arange(W, dtype=wdt, device=dev) + 0.5).view(1, 1, -1)
     v_c = (torch.arange(H, dtype=wdt, device=dev) + 0.5).view(1, -1, 1)
     z_dst = dst_depth.to(wdt).reshape(B, H, W)
-    dst_ok = _surface(z_dst)
+    dst_ok = has_surface(z_dst)
     inv_z = 1.0 / z_dst  # without a surface: anything (the pixel is sent to the border below)
     wx = coef(P, 0, 0) * u_c + coef(P, 0, 1) * v_c + coef(P, 0, 2) + coef(kt, 0, 0) * inv_z
     wy = coef(P, 1, 0) * u_c + coef(P, 1, 1) * v_c + coef(P, 1, 2) + coef(kt, 1, 0) * inv_z
@@ -324,7 +319,7 @@ def lean_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, ds
         in_frame = (xt >= 0) & (xt <= Ws - 1) & (yt >= 0) & (yt <= Hs - 1)
         z_raw = torch.gather(depth_table, 0, index)
         # in exact small-integer arithmetic: 4 or 7 (surface), 8 where acceptable, 3 off the image
-        code = _surface(z_raw).to(wdt) * 3.0 + float(Reason.NO_SURFACE_SRC)
+        code = has_surface(z_raw).to(wdt) * 3.0 + float(Reason.NO_SURFACE_SRC)
         code = code + _finite(torch.gather(z_table, 0, index)).to(wdt) * (_OK - code)
         code = (code - float(Reason.OUT_OF_FRAME)) * in_frame.to(wdt) + float(Reason.OUT_OF_FRAME)
         pos_ok = geo_k.position_ok(z_raw, dx, dy)
