@@ -58,20 +58,46 @@ def time_ms(fn, repeats: int = 7, warmup: int = 2) -> dict:
     return {"median_ms": statistics.median(ts), "min_ms": min(ts), "max_ms": max(ts), "repeats": repeats}
 
 
-def time_interleaved(fns: dict, repeats: int = 7, warmup: int = 2) -> dict:
+def time_interleaved(fns: dict, repeats: int = 7, warmup: int = 2, sync=None) -> dict:
     """Like :func:`time_ms` for several callables, timed round-robin (one call of each per round), so that every
-    one sees the same machine state and cache pressure: name -> {median_ms, min_ms, max_ms, repeats}."""
+    one sees the same machine state and cache pressure: name -> {median_ms, min_ms, max_ms, repeats}.
+
+    ``sync``: called before and after every timed call (e.g. ``torch.cuda.synchronize``, so that a call's time is
+    its own kernels, not the queue before it)."""
+    sync = sync or (lambda: None)
     for _ in range(warmup):
         for fn in fns.values():
             fn()
+    sync()
     ts = {name: [] for name in fns}
     for _ in range(repeats):
         for name, fn in fns.items():
+            sync()
             t0 = time.perf_counter()
             fn()
+            sync()
             ts[name].append((time.perf_counter() - t0) * 1e3)
     return {name: {"median_ms": statistics.median(v), "min_ms": min(v), "max_ms": max(v), "repeats": repeats}
             for name, v in ts.items()}
+
+
+def floor_bytes(px: int) -> dict[str, int]:
+    """Bytes the reprojection ops must read + write for ``px`` destination pixels: float32 images, bool valid,
+    uint8 reason; ``... fp16``: float16 colour, normals and history length (the colour output float16 too), depths
+    and the output history length float32."""
+    return {"stereo": px * 4 * (3 + 1 + 3 + 1 + 3 + 3) + px * 2,
+            "temporal": px * 4 * (3 + 1 + 3 + 1 + 3 + 3 + 1 + 3 + 1) + px * 1,
+            "stereo fp16": px * 2 * (3 + 3 + 3 + 3) + px * 4 * 2 + px * 2,
+            "temporal fp16": px * 2 * (3 + 3 + 3 + 3 + 1 + 3) + px * 4 * (1 + 1 + 1) + px * 1}
+
+
+def copy_floor(n_bytes: int, device="cpu"):
+    """A copy of ``n_bytes`` on ``device`` (the bytes an op must read and write), as a callable to time."""
+    import torch
+
+    src = torch.empty(n_bytes // 4, dtype=torch.float32, device=device).uniform_()
+    dst = torch.empty_like(src)
+    return lambda: dst.copy_(src)
 
 
 def _status_bytes(key: str) -> int:

@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import re
 import shlex
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -32,7 +31,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _common  # noqa: E402
-from _common import header, save  # noqa: E402
+from _common import copy_floor, floor_bytes, header, save, time_interleaved  # noqa: E402
 
 from stereorepro import StereoReprojection, TemporalReprojection, export_onnx  # noqa: E402
 from stereorepro.io.onnx import example_inputs  # noqa: E402
@@ -50,12 +49,6 @@ def parse_size(s: str) -> tuple[str, int, int]:
     if not m or int(m[1]) < 1 or int(m[2]) < 1:
         raise argparse.ArgumentTypeError(f"size must be one of {', '.join(SIZES)} or WxH, got {s!r}")
     return (s, int(m[1]), int(m[2]))
-
-
-def floor_bytes(px: int) -> dict[str, int]:
-    """Bytes an op must read + write per frame (float32 images, bool valid, uint8 reason; bench/reproject.py's)."""
-    return {"stereo": px * 4 * (3 + 1 + 3 + 1 + 3 + 3) + px * 2,
-            "temporal": px * 4 * (3 + 1 + 3 + 1 + 3 + 3 + 1 + 3 + 1) + px * 1}
 
 
 def no_cuda_reason() -> str | None:
@@ -96,39 +89,13 @@ def run_tests(timeout_s: float) -> dict:
     summary = lines[-1] if lines else ""
     counts = {k: int(n) for n, k in re.findall(r"(\d+) (passed|failed|skipped|errors?|deselected)", summary)}
     ok = rc == 0 or rc == 5 and not counts.get("failed")  # 5: nothing selected (no cuda-parametrised tests)
-    return {"command": shlex.join(["python", *cmd[1:]]), "returncode": rc, "timed_out": timed_out, "ok": bool(ok and not timed_out),
+    return {"command": shlex.join(["python", *cmd[1:]]), "returncode": rc, "timed_out": timed_out,
+            "ok": bool(ok and not timed_out),
             "summary": summary, "counts": counts, "seconds": time.perf_counter() - t0,
             "failures": [ln for ln in lines if ln.startswith(("FAILED", "ERROR"))][:20]}
 
 
 # --------------------------------------------------------------------------------------------------- timing
-def time_round_robin(fns: dict, device: torch.device, repeats: int, warmup: int) -> dict:
-    """name -> {median_ms, min_ms, max_ms, repeats}: one call of each per round, the device synchronised before
-    and after every call (so a call's time is its own kernels, not the queue before it)."""
-    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
-    for _ in range(warmup):
-        for fn in fns.values():
-            fn()
-    sync()
-    ts: dict = {k: [] for k in fns}
-    for _ in range(repeats):
-        for k, fn in fns.items():
-            sync()
-            t0 = time.perf_counter()
-            fn()
-            sync()
-            ts[k].append((time.perf_counter() - t0) * 1e3)
-    return {k: {"median_ms": statistics.median(v), "min_ms": min(v), "max_ms": max(v), "repeats": repeats}
-            for k, v in ts.items()}
-
-
-def copy_floor(n_bytes: int, device: torch.device):
-    """A copy of ``n_bytes`` on ``device`` (device to device), as a callable to time."""
-    src = torch.empty(n_bytes // 4, dtype=torch.float32, device=device).uniform_()
-    dst = torch.empty_like(src)
-    return lambda: dst.copy_(src)
-
-
 def case_inputs(width: int, height: int) -> dict:
     """Inputs of the three rows (CPU): the stereo modules' and the temporal module's, from two raycasts."""
     st_names, tp_names = StereoReprojection.input_names, TemporalReprojection.input_names
@@ -218,7 +185,8 @@ def bench_size(label: str, W: int, H: int, device: torch.device, args, ort_runne
         for impl, fns in impls.items():
             group = {("floor", k): f for k, f in floors.items()}
             group.update({("op", op): f for op, f in fns.items()})
-            times = time_round_robin(group, device, args.repeats, args.warmup)
+            times = time_interleaved(group, args.repeats, args.warmup,
+                                     torch.cuda.synchronize if device.type == "cuda" else None)
             for op in fns:
                 t, fl = times[("op", op)], times[("floor", floor_of[op])]
                 rows.append({"size": label, "resolution": f"{W}x{H}", "op": op, "impl": impl, **t,

@@ -18,7 +18,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import header, peak_rss_delta, save, time_interleaved  # noqa: E402
+from _common import copy_floor, floor_bytes, header, peak_rss_delta, save, time_interleaved  # noqa: E402
 
 from stereorepro import StereoReprojection, TemporalReprojection, export_onnx  # noqa: E402
 from stereorepro.io.onnx import example_inputs  # noqa: E402
@@ -93,13 +93,6 @@ def memory_rows(H: int, W: int, impls) -> list[dict]:
     return rows
 
 
-def copy_floor(n_bytes: int):
-    """A copy of ``n_bytes`` (the bytes an op must read and write), as a callable to time."""
-    src = torch.empty(n_bytes // 4, dtype=torch.float32).uniform_()
-    dst = torch.empty_like(src)
-    return lambda: dst.copy_(src)
-
-
 #: The images a real-time engine keeps in float16 (RGBA16F colour, normals, history length); depths stay float32.
 HALF_INPUTS = {"src_color", "src_normal", "dst_normal", "current_color", "normal", "history_color", "history_len",
                "prev_normal"}
@@ -133,17 +126,10 @@ def main(argv=None) -> int:
         print(json.dumps(memory_child(*args.memory_child, H, W)))
         return 0
     px = H * W
-    # bytes the op must read + write per pixel (float32 images, bool valid, uint8 reason)
-    bytes_stereo = px * 4 * (3 + 1 + 3 + 1 + 3 + 3) + px * 2
-    bytes_temporal = px * 4 * (3 + 1 + 3 + 1 + 3 + 3 + 1 + 3 + 1) + px * 1
-    # the same with float16 colour, normals and history length (HALF_INPUTS; the colour output float16 too), depths
-    # and the output history length float32
-    bytes_stereo16 = px * 2 * (3 + 3 + 3 + 3) + px * 4 * 2 + px * 2
-    bytes_temporal16 = px * 2 * (3 + 3 + 3 + 3 + 1 + 3) + px * 4 * (1 + 1 + 1) + px * 1
+    nbytes = floor_bytes(px)  # float32, and float16 colour, normals and history length (HALF_INPUTS)
     cases = CASES
-    fns = {("stereo", "copy floor"): copy_floor(bytes_stereo), ("temporal", "copy floor"): copy_floor(bytes_temporal),
-           ("stereo", "copy floor fp16"): copy_floor(bytes_stereo16),
-           ("temporal", "copy floor fp16"): copy_floor(bytes_temporal16)}
+    fns = {(op, "copy floor" + suffix): copy_floor(nbytes[op + suffix])
+           for op in ("stereo", "temporal") for suffix in ("", " fp16")}
     floor_of = {}
     tmp = tempfile.TemporaryDirectory()
     for name, cls, kw, motion, floor in cases:
@@ -218,8 +204,7 @@ def main(argv=None) -> int:
     mem = [] if args.no_memory else memory_rows(H, W, ["torch", "native", "onnxruntime"] if not args.no_onnx
                                                 else ["torch", "native"])
     record = {**header(), "resolution": f"{W}x{H}", "rows": rows, "memory": mem,
-              "floor_bytes": {"stereo": bytes_stereo, "temporal": bytes_temporal, "stereo fp16": bytes_stereo16,
-                              "temporal fp16": bytes_temporal16}}
+              "floor_bytes": nbytes}
     lines = ["| op | implementation | median ms | min ms | × copy floor | × torch eager |",
              "|---|---|---:|---:|---:|---:|"]
     for r in rows:
