@@ -15,6 +15,7 @@ from stereorepro.io.onnx import example_inputs, onnx_input_dims
 from stereorepro.reproject import _general, _lean, functional
 
 from base import BaseTester
+from test_reproject import ARGS, plane_pair  # tests/reproject/ is on sys.path
 
 THR = (0.05, 0.3)
 
@@ -90,18 +91,11 @@ class TestLeanReproject(BaseTester):
         assert not bool(got[1].any())
 
 
-def plane_inputs(H=6, W=8, shift_px=1.0, depth=2.0, f=64.0):
-    """A fronto-parallel plane seen by two cameras ``shift_px`` pixels apart (exact in binary floating point), in
-    the order of StereoReprojection.input_names: every tap lands on an exact pixel (fractions 0)."""
-    K = torch.tensor([[[f, 0.0, W / 2], [0.0, f, H / 2], [0.0, 0.0, 1.0]]])
-    T_dst = torch.eye(4)[None]
-    T_src = T_dst.clone()
-    T_src[:, 0, 3] = -shift_px * depth / f
-    d = torch.full((1, 1, H, W), depth)
-    n = torch.zeros(1, 3, H, W)
-    n[:, 2] = -1.0
-    c = torch.rand(1, 3, H, W, generator=torch.Generator().manual_seed(0))
-    return [c, d.clone(), n.clone(), K, T_src, d.clone(), n.clone(), K.clone(), T_dst]
+def plane_inputs(shift_px=1.0):
+    """test_reproject's fronto-parallel plane pair (taps on exact pixels: fractions 0) as a list in the order of
+    StereoReprojection.input_names."""
+    inp = plane_pair(shift_px=shift_px)
+    return [inp[a] for a in ARGS]
 
 
 class TestLeanTies(BaseTester):
