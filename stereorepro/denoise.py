@@ -57,6 +57,7 @@ from ._checks import check_shape, tracing
 from .camera import has_surface
 from .errors import ShapeError
 from .reproject import StereoReprojection, TemporalReprojection, stereo_reproject, temporal_reproject
+from .reproject._general import finite_or_zero
 
 __all__ = ["FEATURES", "STEREO_FEATURES", "OTHER_NAMES", "feature_channels", "denoise_features",
            "reprojection_features", "reproject_denoise",
@@ -79,10 +80,6 @@ def feature_channels(stereo: bool = False) -> int:
 
 def _log1p_color(c: Tensor) -> Tensor:
     return torch.log1p(c.clamp_min(0.0))
-
-
-def _finite_or_zero(x: Tensor) -> Tensor:
-    return torch.where(torch.isfinite(x), x, torch.zeros((), dtype=x.dtype, device=x.device))
 
 
 def denoise_features(color: Tensor, history_len: Tensor, valid: Tensor, depth: Tensor, normal: Tensor,
@@ -115,7 +112,7 @@ def denoise_features(color: Tensor, history_len: Tensor, valid: Tensor, depth: T
                                                                                     device=depth.device)),
                             torch.zeros((), dtype=depth.dtype, device=depth.device))
     feats = [_log1p_color(color), (history_len / float(max_history)).to(dt), valid.to(dt), inv_depth.to(dt),
-             _finite_or_zero(normal).to(dt)]
+             finite_or_zero(normal).to(dt)]
     if stereo_color is not None:
         check_shape(stereo_color, ["B", "3", "H", "W"], "stereo_color", bind)
         check_shape(stereo_valid, ["B", "1", "H", "W"], "stereo_valid", bind)
