@@ -19,6 +19,9 @@ def add_arguments(p: argparse.ArgumentParser, defaults: dict | None = None) -> N
     p.add_argument("--resolution", type=parse_resolution, default=d.get("resolution", (320, 180)), help="WxH")
     p.add_argument("--reference-spp", type=positive_int, default=d.get("reference_spp", 256))
     p.add_argument("--ladder-spp", type=positive_int, default=d.get("ladder_spp", 16), help=">= 2")
+    p.add_argument("--reference-chunk-spp", type=positive_int, default=None,
+                   help="samples per reference render task (divides --reference-spp; default: one task); the ladder "
+                        "is also scored against the power-of-two chunk prefixes (a reference-spp study for free)")
     p.add_argument("--out", default=d.get("out"), required="out" not in d)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--alphas", type=alpha_list, default=(0.1, 0.5),
@@ -30,6 +33,10 @@ def add_arguments(p: argparse.ArgumentParser, defaults: dict | None = None) -> N
     p.add_argument("--force", action="store_true", help="recompute cached renders")
     p.add_argument("--cache-dir", default=None, help="render cache (default: OUT/cache); runs may share one")
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--no-flip", action="store_true", help="skip the FLIP scores (seconds per image at 720p)")
+    p.add_argument("--scheduler", default=None,
+                   help="render on Dask: 'local:N' (N worker processes here) or 'tcp://HOST:PORT' (a running "
+                        "scheduler whose workers share --cache-dir); default: in this process")
     p.add_argument("--metric", choices=("hdr", "ldr"), default="ldr",
                    help="RMSE on linear radiance (hdr) or on values clamped to [0, 1] (ldr, display-referred)")
     p.add_argument("--renderer-version", default=None,
@@ -42,7 +49,9 @@ def config_from_args(args) -> ExperimentConfig:
                             reference_spp=args.reference_spp, ladder_spp=args.ladder_spp, seed=args.seed,
                             alphas=tuple(args.alphas), threshold_scale=args.threshold_scale, workers=args.workers,
                             exr=args.exr, force=args.force, progress=not args.no_progress,
-                            renderer_version=args.renderer_version, cache_dir=args.cache_dir, metric=args.metric)
+                            renderer_version=args.renderer_version, cache_dir=args.cache_dir, metric=args.metric,
+                            reference_chunk_spp=args.reference_chunk_spp, flip=not args.no_flip,
+                            scheduler=args.scheduler)
 
 
 def run_command(args) -> int:

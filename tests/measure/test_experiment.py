@@ -73,9 +73,10 @@ class TestExperiment:
         cfg = dict(SMALL, frames=2)
         part = run_experiment(ExperimentConfig(out=str(tmp_path), **cfg))
         full = run_experiment(ExperimentConfig(out=str(tmp_path), **dict(SMALL)))
-        per_frame = (SMALL["ladder_spp"] + 2) * 2  # ladder rungs + gbuffer + reference, both eyes
+        per_frame = 3 * 2  # gbuffer + reference + lean ladder, both eyes
         assert part["cache"]["misses"] == 2 * per_frame
-        assert full["cache"]["misses"] == per_frame and full["cache"]["hits"] == 2 * per_frame
+        # the new frame's reference is read back once per eye after its ladder was scored against it
+        assert full["cache"]["misses"] == per_frame and full["cache"]["hits"] == 2 * per_frame + 2
 
     def test_force_recomputes(self, tmp_path):
         cfg = dict(SMALL, frames=1)
@@ -188,3 +189,103 @@ class TestExperimentMovingObjects:
 
         # three panels (stereo, temporal with cameras, temporal with motion vectors) instead of two
         assert aspect(run[0] / "fig1_discards.png") > 1.3 * aspect(first_run[0] / "fig1_discards.png")
+
+
+class TestRenderTasks:
+    """The render tasks behind the experiment (:mod:`stereorepro.measure.experiment.inputs`): the lean ladder, the
+    chunked reference and the cache footprint."""
+
+    @staticmethod
+    def ctx(tmp_path, **kw):
+        from stereorepro.measure.experiment.inputs import RenderContext, RenderSpec
+
+        spec = dict(scene="living_room", width=40, height=24, seed=3, ladder_spp=5, reference_spp=8,
+                    reference_chunk_spp=8, base_key=json.dumps({"t": 1}), cache_dir=str(tmp_path))
+        spec.update(kw)
+        return RenderContext(RenderSpec(**spec))
+
+    def test_lean_ladder_equals_the_rungs(self, tmp_path):
+        """The lean entry holds exactly what the analysis used to compute from every cached 1-spp rung."""
+        import torch
+
+        from stereorepro.measure.experiment.config import METRICS, metric_image
+        from stereorepro.measure.experiment.inputs import ladder_task, reference
+        from stereorepro.measure.metrics import ladder_rmse
+
+        ctx = self.ctx(tmp_path)
+        lad, meta = ladder_task(ctx, 1, 0)
+        cam, _ = ctx.camera(1, 0)
+        total, rungs = None, []
+        for s in range(5):  # the old layout: one 1-spp render per rung, prefix means in float64
+            x = ctx.tracer.render(cam, 1, 1, sample_offset=s, eye=0, gbuffers=False).radiance.double()
+            total = x if total is None else total + x
+            rungs.append((total / (s + 1)).float())
+        ref = reference(ctx, 1, 0)[0]
+        for m in METRICS:
+            old = ladder_rmse([metric_image(r, m) for r in rungs], metric_image(ref, m))[0].tolist()
+            assert lad[f"rmse_{m}"][-1].tolist() == old  # bit for bit
+        assert torch.equal(torch.from_numpy(lad["first"]), rungs[0])
+        assert torch.equal(torch.from_numpy(lad["top"]), rungs[-1])
+        assert meta["ms_per_spp"] > 0
+
+    def test_chunked_reference(self, tmp_path):
+        """The reference is the mean of its chunk means in chunk order; its prefixes score the ladder too."""
+        import torch
+
+        from stereorepro.measure.experiment.config import REFERENCE_OFFSET
+        from stereorepro.measure.experiment.inputs import ladder_task, reference, reference_prefixes
+
+        ctx = self.ctx(tmp_path, reference_spp=8, reference_chunk_spp=2)
+        assert reference_prefixes(ctx.spec) == [2, 4, 8]
+        cam, _ = ctx.camera(0, 1)
+        chunks = [ctx.tracer.render(cam, 0, 2, sample_offset=REFERENCE_OFFSET + 2 * i, eye=1,
+                                    gbuffers=False).radiance for i in range(4)]
+        want = ((chunks[0].double() + chunks[1].double() + chunks[2].double() + chunks[3].double()) / 4).float()
+        got, _ = reference(ctx, 0, 1)
+        assert torch.equal(got, want)
+        assert torch.equal(reference(ctx, 0, 1, 4)[0], ((chunks[0].double() + chunks[1].double()) / 2).float())
+        # one chunk is the renderer's own reference render, under the same value
+        one = self.ctx(tmp_path / "one")
+        full = one.tracer.render(cam, 0, 8, sample_offset=REFERENCE_OFFSET, eye=1, gbuffers=False).radiance
+        assert torch.equal(reference(one, 0, 1)[0], full)
+        assert not torch.equal(full, got)  # chunking changes the value at rounding level: it is in the key
+        assert (full - got).abs().max() < 1e-5
+        lad, _ = ladder_task(ctx, 0, 1)
+        assert lad["prefix_spp"].tolist() == [2, 4, 8] and lad["rmse_ldr"].shape == (3, 5)
+
+    def test_reference_study_and_footprint(self, tmp_path):
+        res = run_experiment(ExperimentConfig(out=str(tmp_path), **dict(SMALL, reference_chunk_spp=4, frames=2)))
+        study = res["reference_study"]
+        assert list(study) == ["4", "8", "16"]
+        assert set(study["4"]) == {"stereo", "temporal", "stereo_temporal"}
+        assert study["16"]["temporal"] == res["table2"]["temporal"]
+        for p in ("4", "8"):
+            assert all(v["avg"] > 0 for v in study[p].values())
+        # the same run without chunking: another reference value (another key), the same kind of tables
+        plain = run_experiment(ExperimentConfig(out=str(tmp_path / "plain"), cache_dir=str(tmp_path / "cache"),
+                                                **dict(SMALL, frames=2)))
+        assert plain["reference_study"] is None and plain["cache"]["misses"] > 0
+        fp = res["cache"]
+        H, W = SMALL["height"], SMALL["width"]
+        images = 1 + 3 + 4 * 3 + 2 * 3  # depth, normal, 4 reference chunks, first + top rungs (float32 planes)
+        assert images * 4 * H * W < fp["bytes_per_eye_frame"] < images * 4 * H * W + 12_000
+
+    def test_disk_space_warning(self, tmp_path, monkeypatch):
+        import shutil
+        from collections import namedtuple
+
+        usage = namedtuple("usage", "total used free")
+        monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(10, 10, 1000))
+        logged = []
+        run_experiment(ExperimentConfig(out=str(tmp_path), **dict(SMALL, frames=1)), log=logged.append)
+        warn = [m for m in logged if m.startswith("warning: the render cache needs")]
+        assert len(warn) == 1 and "MiB per eye and frame" in warn[0]
+
+    def test_chunk_and_scheduler_exceptions(self, tmp_path):
+        for bad, match in ((dict(reference_chunk_spp=3), "reference_chunk_spp"),
+                           (dict(reference_chunk_spp=0), "reference_chunk_spp"),
+                           (dict(scheduler="local:0"), "scheduler"), (dict(scheduler="udp://x:1"), "scheduler"),
+                           (dict(scheduler="tcp://host"), "scheduler")):
+            with pytest.raises(ValueError, match=match):
+                run_experiment(ExperimentConfig(out=str(tmp_path / "x"), **dict(SMALL, **bad)))
+            assert not (tmp_path / "x").exists()

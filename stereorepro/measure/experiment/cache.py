@@ -74,20 +74,27 @@ def scene_fingerprint(scene) -> str:
 class RenderCache:
     """npz files keyed by a hash of what determines a render; atomic writes.
 
-    On start the temporaries that killed runs left behind are swept (:func:`~stereorepro.io.atomic.sweep`). An
+    On start the temporaries that killed runs left behind are swept (:func:`~stereorepro.io.atomic.sweep`; Dask
+    workers open the cache with ``sweep_on_start=False``: only the client sweeps, as process ids mean nothing on
+    another machine). Two processes making one entry at once both write a complete temporary and rename it over
+    the same name: one valid entry remains (atomic rename). An
     entry that cannot be read back (zero bytes, truncated, corrupt, missing its metadata) is recomputed and
     rewritten; ``corrupt`` lists those entries' file names and ``log`` (when given) reports each one.
     """
 
-    def __init__(self, root: Path, force: bool = False, log=None):
+    def __init__(self, root: Path, force: bool = False, log=None, sweep_on_start: bool = True):
         self.root = Path(root)
         self.root.mkdir(parents=True, exist_ok=True)
-        self.swept = sweep(self.root)
+        self.swept = sweep(self.root) if sweep_on_start else []
         self.force = force
         self.log = log
         self.hits = 0
         self.misses = 0
         self.corrupt: list[str] = []
+
+    def path(self, key: dict) -> Path:
+        """The entry's file (it may not exist yet)."""
+        return self._path(key)
 
     def _path(self, key: dict) -> Path:
         return self.root / (_sha(json.dumps(key, sort_keys=True).encode())[:32] + ".npz")

@@ -8,12 +8,20 @@ from pathlib import Path
 
 from ...scenes import THRESHOLD_ROWS
 
-__all__ = ["REFERENCE_OFFSET", "THRESHOLD_ROWS", "LEFT", "RIGHT", "Scheme", "SCHEMES", "MOTION_SCHEMES",
-           "ExperimentConfig", "schemes", "validate_config"]
+__all__ = ["REFERENCE_OFFSET", "THRESHOLD_ROWS", "LEFT", "RIGHT", "METRICS", "Scheme", "SCHEMES", "MOTION_SCHEMES",
+           "ExperimentConfig", "schemes", "validate_config", "metric_image"]
 
 #: First sample index of reference renders (ladders use 0..L-1: disjoint streams).
 REFERENCE_OFFSET = 1 << 24
 LEFT, RIGHT = 0, 1
+
+#: The experiment's image metrics: ``"ldr"`` scores images clamped to [0, 1], ``"hdr"`` linear radiance.
+METRICS = ("ldr", "hdr")
+
+
+def metric_image(x, metric: str):
+    """The image the metric scores: ``x`` clamped to [0, 1] for ``"ldr"``, ``x`` itself for ``"hdr"``."""
+    return x.clamp(0.0, 1.0) if metric == "ldr" else x
 
 
 @dataclass(frozen=True)
@@ -49,6 +57,10 @@ class ExperimentConfig:
     height: int = 180
     reference_spp: int = 256
     ladder_spp: int = 16
+    #: Samples per reference chunk (a render task of its own; distributed runs spread the chunks over workers);
+    #: None = one chunk of ``reference_spp``. Must divide ``reference_spp``; see :mod:`.inputs` for how chunking
+    #: enters the reference's value and the cache key.
+    reference_chunk_spp: int | None = None
     seed: int = 0
     alphas: tuple[float, ...] = (0.1, 0.5)  #: extra EMA weights measured beside the paper's 0.2
     threshold_scale: float | None = None  #: None = auto: stereorepro.scenes.threshold_scale(height)
@@ -66,6 +78,9 @@ class ExperimentConfig:
     #: Also report the mean LDR FLIP per scheme and frame (when ``flip-evaluator`` is installed; see
     #: :func:`stereorepro.measure.metrics.flip`). Effective spp stays MSE-based.
     flip: bool = True
+    #: Where renders run: None = in this process; ``"local:N"`` = a Dask LocalCluster of N worker processes;
+    #: ``"tcp://HOST:PORT"`` = a running Dask scheduler (workers must share ``cache_dir``). See :mod:`.distributed`.
+    scheduler: str | None = None
 
 
 #: Variants of scenes with moving objects: the temporal steps read the history through the motion vectors.
@@ -101,6 +116,12 @@ def validate_config(cfg: ExperimentConfig) -> None:
     need(is_int(cfg.ladder_spp) and cfg.ladder_spp >= 2, f"ladder_spp must be an integer >= 2, got {cfg.ladder_spp}")
     need(is_int(cfg.reference_spp) and cfg.reference_spp >= cfg.ladder_spp,
          f"reference_spp must be an integer >= ladder_spp ({cfg.ladder_spp}), got {cfg.reference_spp}")
+    need(cfg.reference_chunk_spp is None or (is_int(cfg.reference_chunk_spp) and cfg.reference_chunk_spp >= 1
+                                             and cfg.reference_spp % cfg.reference_chunk_spp == 0),
+         f"reference_chunk_spp must be a positive integer dividing reference_spp ({cfg.reference_spp}), "
+         f"got {cfg.reference_chunk_spp}")
+    need(cfg.scheduler is None or (isinstance(cfg.scheduler, str) and _scheduler_ok(cfg.scheduler)),
+         f"scheduler must be 'local:N' (N >= 1) or 'tcp://HOST:PORT', got {cfg.scheduler!r}")
     need(cfg.frames is None or (is_int(cfg.frames) and cfg.frames >= 1),
          f"frames must be an integer >= 1, got {cfg.frames}")
     need(cfg.workers is None or (is_int(cfg.workers) and cfg.workers >= 1),
@@ -115,3 +136,13 @@ def validate_config(cfg: ExperimentConfig) -> None:
         if value is not None:
             p = Path(value)
             need(not p.exists() or p.is_dir(), f"{name}: {p} exists and is not a directory")
+
+
+def _scheduler_ok(s: str) -> bool:
+    if s.startswith("local:"):
+        n = s[len("local:"):]
+        return n.isdigit() and int(n) >= 1
+    if s.startswith("tcp://"):
+        host, _, port = s[len("tcp://"):].rpartition(":")
+        return bool(host) and port.isdigit()
+    return False

@@ -1,27 +1,279 @@
-"""One frame's inputs to the experiment, per eye: G-buffer, the ladder of 1..L-spp prefix means and the reference,
-each rendered once and cached (:class:`~.cache.RenderCache`)."""
+"""One frame's inputs to the experiment, per eye, as **render tasks** whose results live in the render cache
+(:class:`~.cache.RenderCache`).
+
+Per frame and eye there are three kinds of task, each a function of a :class:`RenderSpec` (small and picklable:
+what a Dask worker needs to rebuild the scene and the tracer) and of the frame and eye:
+
+* :func:`gbuffer_task`: depth and normal (and, for scenes with moving objects, the motion to the previous frame and
+  the objects' ids), from one centre ray per pixel;
+* :func:`reference_chunk_task` ``i``: the mean of the samples ``[REFERENCE_OFFSET + i·c, REFERENCE_OFFSET + (i+1)·c)``,
+  ``c = reference_chunk_spp``. The reference at ``n`` spp is the mean of its first ``n / c`` chunk means, summed in
+  chunk order in float64 (:func:`reference`). **How chunking enters the cache key**: a chunk's key names its sample
+  range (``spp = c``, ``offset``); the ladder's key names ``(reference_spp, reference_chunk_spp)``. Chunking changes
+  the reference at rounding level (a sum of chunk means is not the renderer's own sum of samples), so a run is
+  bit-identical to another run with the same chunking, on one machine or many. One chunk (the default,
+  ``c = reference_spp``) is the renderer's own ``reference_spp`` render, under the same key as before chunking.
+* :func:`ladder_task`: the plain path-traced prefixes at 1..L spp of samples 0..L-1, rendered one sample at a time
+  and kept **lean**: the 1-spp image (the schemes' input), the top rung (the figures), and every rung's RMSE
+  against the reference and against each of its power-of-two chunk prefixes (:func:`reference_prefixes`), under
+  both metrics. The rungs themselves are not stored: measured at 1280×720, an eye-frame's cache is 48 MB
+  (G-buffer 15, ladder 22, reference 11) instead of 367 MB with one entry per 1-spp sample (34 × 10.8 MB), with
+  bit-identical tables (tests/measure/test_experiment.py).
+
+In-process runs call the tasks directly (:func:`render_eye` returns the frame's :class:`EyeData`); distributed runs
+submit them to a Dask cluster first (:mod:`.distributed`) and then read the same entries.
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import functools
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import torch
 
+from ..metrics import rmse
 from .cache import RenderCache
-from .config import REFERENCE_OFFSET, ExperimentConfig
+from .config import METRICS, REFERENCE_OFFSET, metric_image
 
-__all__ = ["EyeData", "render_eye"]
+__all__ = ["EyeData", "RenderSpec", "RenderContext", "render_eye", "gbuffer_task", "reference_chunk_task",
+           "ladder_task", "reference", "reference_prefixes", "eye_tasks", "worker_context", "estimate_cache_bytes",
+           "cache_footprint"]
+
+
+@dataclass(frozen=True)
+class RenderSpec:
+    """What determines one run's renders; small and picklable (sent to Dask workers with every task).
+
+    ``base_key`` is the JSON of the cache key's common part (scene fingerprint, renderer code, seed, resolution),
+    computed once by the client so that every worker files its entries under the same keys.
+    """
+
+    scene: str
+    width: int
+    height: int
+    seed: int
+    ladder_spp: int
+    reference_spp: int
+    reference_chunk_spp: int
+    base_key: str
+    cache_dir: str
+    workers: int | None = None
+    moving: bool = False
+    #: code_version() of the client's renderer: a worker whose own differs refuses the task (:mod:`.distributed`).
+    client_code: str = ""
+
+    @property
+    def chunks(self) -> int:
+        return self.reference_spp // self.reference_chunk_spp
+
+
+def reference_prefixes(spec: RenderSpec) -> list[int]:
+    """Reference sample counts every ladder is scored against: the chunk size times 1, 2, 4, ... below the
+    reference's count, and the reference's count itself (a free reference-spp study on every chunked run)."""
+    out, n = [], 1
+    while n < spec.chunks:
+        out.append(n * spec.reference_chunk_spp)
+        n *= 2
+    return out + [spec.reference_spp]
+
+
+@dataclass
+class RenderContext:
+    """A spec with the objects that render it: the scene, its tracer and the cache (built lazily)."""
+
+    spec: RenderSpec
+    cache: RenderCache | None = None
+    scene: object = None
+    tracer: object = None
+    _cameras: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        if self.scene is None:
+            from ...scenes import load_scene
+
+            self.scene = load_scene(self.spec.scene)
+        if self.tracer is None:
+            from ...render import PathTracer
+
+            self.tracer = PathTracer(self.scene, seed=self.spec.seed, workers=self.spec.workers)
+        if self.cache is None:
+            self.cache = RenderCache(Path(self.spec.cache_dir), sweep_on_start=False)
+
+    def key(self, frame: int, eye: int, **kw) -> dict:
+        return dict(json.loads(self.spec.base_key), frame=frame, eye=eye, **kw)
+
+    def camera(self, frame: int, eye: int):
+        """(camera, previous frame's camera or None): the previous one only for scenes with moving objects."""
+        k = (frame, eye)
+        if k not in self._cameras:
+            W, H = self.spec.width, self.spec.height
+            cam = self.scene.stereo_cameras(frame, W, H)[eye]
+            prev = self.scene.stereo_cameras(frame - 1, W, H)[eye] if self.spec.moving and frame > 0 else None
+            self._cameras[k] = (cam, prev)
+        return self._cameras[k]
+
+
+@functools.lru_cache(maxsize=4)
+def worker_context(spec: RenderSpec) -> RenderContext:
+    """The context a worker process renders ``spec`` with (one scene and tracer per spec and process)."""
+    return RenderContext(spec)
+
+
+def _gbuffer_key(ctx: RenderContext, frame: int, eye: int) -> dict:
+    _, prev = ctx.camera(frame, eye)
+    if ctx.spec.moving:
+        return ctx.key(frame, eye, kind="gbuffer_motion", prev=prev is not None)
+    return ctx.key(frame, eye, kind="gbuffer")
+
+
+def gbuffer_task(ctx: RenderContext, frame: int, eye: int):
+    """Ensure the G-buffer entry of (frame, eye) is in the cache; returns (data, meta)."""
+    cam, prev = ctx.camera(frame, eye)
+
+    def make():
+        r = ctx.tracer.gbuffer(cam, frame, prev_camera=prev)
+        out = {"depth": r.depth.numpy(), "normal": r.normal.numpy()}
+        for name in ("motion", "motion_world", "object_id"):
+            if getattr(r, name) is not None:
+                out[name] = getattr(r, name).numpy()
+        return out, {"ms": r.time_s * 1e3, "rays": r.ray_counts}
+
+    return ctx.cache.get_or_make(_gbuffer_key(ctx, frame, eye), make)
+
+
+def _chunk_key(ctx: RenderContext, frame: int, eye: int, i: int) -> dict:
+    c = ctx.spec.reference_chunk_spp
+    return ctx.key(frame, eye, kind="spp", spp=c, offset=REFERENCE_OFFSET + i * c)
+
+
+def reference_chunk_task(ctx: RenderContext, frame: int, eye: int, i: int):
+    """Ensure reference chunk ``i`` of (frame, eye) is in the cache; returns (data, meta)."""
+    cam, _ = ctx.camera(frame, eye)
+    c = ctx.spec.reference_chunk_spp
+
+    def make():
+        r = ctx.tracer.render(cam, frame, c, sample_offset=REFERENCE_OFFSET + i * c, eye=eye, gbuffers=False,
+                              progress=False)
+        return {"radiance": r.radiance.numpy()}, {"ms": r.time_s * 1e3, "rays": r.ray_counts}
+
+    return ctx.cache.get_or_make(_chunk_key(ctx, frame, eye, i), make)
+
+
+def reference(ctx: RenderContext, frame: int, eye: int, spp: int | None = None) -> tuple[torch.Tensor, float]:
+    """The (1, 3, H, W) reference of (frame, eye) at ``spp`` (a multiple of the chunk size; default the run's) and
+    its render time in ms: the mean of its chunk means, summed in chunk order in float64."""
+    n = (spp or ctx.spec.reference_spp) // ctx.spec.reference_chunk_spp
+    total, ms = None, 0.0
+    for i in range(n):
+        d, meta = reference_chunk_task(ctx, frame, eye, i)
+        x = torch.from_numpy(d["radiance"])
+        if n == 1:  # the renderer's own reference, as it is
+            return x, meta["ms"]
+        total = x.double() if total is None else total + x.double()
+        ms += meta["ms"]
+    return (total / n).float(), ms
+
+
+def _ladder_key(ctx: RenderContext, frame: int, eye: int) -> dict:
+    s = ctx.spec
+    return ctx.key(frame, eye, kind="ladder", ladder_spp=s.ladder_spp, reference_spp=s.reference_spp,
+                   reference_chunk_spp=s.reference_chunk_spp)
+
+
+def ladder_task(ctx: RenderContext, frame: int, eye: int):
+    """Ensure the lean ladder entry of (frame, eye) is in the cache (rendering the reference's chunks first when
+    they are missing); returns (data, meta). ``data``: ``first`` and ``top`` (1, 3, H, W) float32, ``prefix_spp``
+    (P,) and ``rmse_ldr`` / ``rmse_hdr`` (P, L) float64: row p scores rungs 1..L against the reference at
+    ``prefix_spp[p]`` spp."""
+    cam, _ = ctx.camera(frame, eye)
+    L = ctx.spec.ladder_spp
+
+    def make():
+        prefixes = reference_prefixes(ctx.spec)
+        refs = [reference(ctx, frame, eye, n)[0] for n in prefixes]
+        scored = {m: [metric_image(r, m) for r in refs] for m in METRICS}
+        err = {m: np.zeros((len(prefixes), L)) for m in METRICS}
+        total, times, first, rung = None, [], None, None
+        for s in range(L):
+            r = ctx.tracer.render(cam, frame, 1, sample_offset=s, eye=eye, gbuffers=False)
+            times.append(r.time_s * 1e3)
+            x = r.radiance.double()
+            total = x if total is None else total + x
+            rung = (total / (s + 1)).float()
+            if s == 0:
+                first = rung
+            for m in METRICS:
+                img = metric_image(rung, m)
+                for p, ref in enumerate(scored[m]):
+                    err[m][p, s] = float(rmse(img, ref)[0])
+        data = {"first": first.numpy(), "top": rung.numpy(), "prefix_spp": np.asarray(prefixes, np.int64),
+                **{f"rmse_{m}": err[m] for m in METRICS}}
+        return data, {"ms": float(np.sum(times)), "ms_per_spp": float(np.mean(times))}
+
+    return ctx.cache.get_or_make(_ladder_key(ctx, frame, eye), make)
+
+
+def eye_tasks(spec: RenderSpec, frame: int, eye: int) -> list[tuple[str, tuple, dict]]:
+    """The render tasks of one (frame, eye) in dependency order: (function name, args, cache key)."""
+    ctx_free = _KeyOnly(spec)
+    tasks = [("gbuffer_task", (frame, eye), _gbuffer_key(ctx_free, frame, eye))]
+    tasks += [("reference_chunk_task", (frame, eye, i), _chunk_key(ctx_free, frame, eye, i))
+              for i in range(spec.chunks)]
+    tasks.append(("ladder_task", (frame, eye), _ladder_key(ctx_free, frame, eye)))
+    return tasks
+
+
+def estimate_cache_bytes(spec: RenderSpec, frames: int) -> int:
+    """Upper estimate of the cache bytes a run of ``frames`` frames writes (both eyes; npz overhead included):
+    per eye-frame the G-buffer (depth, normal; motion, world motion and ids for moving objects), the reference's
+    chunks and the lean ladder (two images), all float32."""
+    px = spec.width * spec.height
+    planes = 1 + 3 + (2 + 3 + 1 if spec.moving else 0) + 3 * spec.chunks + 2 * 3
+    return 2 * frames * (4 * px * planes + 8 * 1024)
+
+
+def cache_footprint(ctx: RenderContext, frames: int) -> dict:
+    """Measured bytes of this run's cache entries: total and per eye-frame (what ``--cache-dir`` holds per
+    frame and eye)."""
+    total, n = 0, 0
+    for f in range(frames):
+        for eye in (0, 1):
+            for _, _, key in eye_tasks(ctx.spec, f, eye):
+                p = ctx.cache.path(key)
+                total += p.stat().st_size if p.exists() else 0
+            n += 1
+    return {"bytes": total, "bytes_per_eye_frame": total / max(n, 1)}
+
+
+class _KeyOnly:
+    """The key-making part of a context (no scene or tracer): the client names tasks without rendering."""
+
+    def __init__(self, spec: RenderSpec):
+        self.spec = spec
+
+    key = RenderContext.key
+
+    def camera(self, frame: int, eye: int):
+        return None, (object() if self.spec.moving and frame > 0 else None)
 
 
 @dataclass
 class EyeData:
+    """One eye's inputs at one frame (all tensors batch 1)."""
+
     depth: torch.Tensor  # (1, 1, H, W)
     normal: torch.Tensor  # (1, 3, H, W)
     K: torch.Tensor  # (1, 3, 3)
     cam_from_world: torch.Tensor  # (1, 4, 4)
-    ladder: list[torch.Tensor]  # prefix means at 1..L spp, each (1, 3, H, W)
+    sample: torch.Tensor  # (1, 3, H, W): the 1-spp input of the schemes (the ladder's first rung)
+    top: torch.Tensor  # (1, 3, H, W): the ladder's top rung (figures)
+    ladder_rmse: dict  # metric -> list of L floats: rungs 1..L against the reference
     reference: torch.Tensor  # (1, 3, H, W)
+    prefix_spp: list  # reference sample counts the ladder was also scored against (the last is the reference)
+    prefix_ladder_rmse: dict  # metric -> (P, L) float64 array
     ms_gbuffer: float
     ms_per_spp: float  # mean wall time of one 1-spp full-frame render
     ms_reference: float
@@ -31,43 +283,15 @@ class EyeData:
     object_id: torch.Tensor | None = None  # (1, 1, H, W) int32, -1 static (moving objects)
 
 
-def render_eye(tracer, cache: RenderCache, base_key: dict, camera, frame: int, eye: int, cfg: ExperimentConfig,
-               prev_camera=None) -> EyeData:
-    """One eye's inputs; with ``prev_camera`` (scenes with moving objects, frame > 0) the G-buffer includes the
-    motion to the previous frame and the moving objects' ids (cached under their own key)."""
-    key = dict(base_key, frame=frame, eye=eye)
-    motion = prev_camera is not None or getattr(tracer, "moving_objects", False)
-
-    def gbuf():
-        r = tracer.gbuffer(camera, frame, prev_camera=prev_camera)
-        out = {"depth": r.depth.numpy(), "normal": r.normal.numpy()}
-        for name in ("motion", "motion_world", "object_id"):
-            if getattr(r, name) is not None:
-                out[name] = getattr(r, name).numpy()
-        return out, {"ms": r.time_s * 1e3, "rays": r.ray_counts}
-
-    g, gmeta = cache.get_or_make(dict(key, kind="gbuffer_motion" if motion else "gbuffer",
-                                      **({"prev": prev_camera is not None} if motion else {})), gbuf)
-    rungs, times = [], []
-    total = None
-    for s in range(cfg.ladder_spp):
-        def one(s=s):
-            r = tracer.render(camera, frame, 1, sample_offset=s, eye=eye, gbuffers=False)
-            return {"radiance": r.radiance.numpy()}, {"ms": r.time_s * 1e3, "rays": r.ray_counts}
-
-        d, meta = cache.get_or_make(dict(key, kind="spp", spp=1, offset=s), one)
-        x = torch.from_numpy(d["radiance"]).double()
-        total = x if total is None else total + x
-        rungs.append((total / (s + 1)).float())
-        times.append(meta["ms"])
-
-    def ref():
-        r = tracer.render(camera, frame, cfg.reference_spp, sample_offset=REFERENCE_OFFSET, eye=eye, gbuffers=False,
-                          progress=False)
-        return {"radiance": r.radiance.numpy()}, {"ms": r.time_s * 1e3, "rays": r.ray_counts}
-
-    rd, rmeta = cache.get_or_make(dict(key, kind="spp", spp=cfg.reference_spp, offset=REFERENCE_OFFSET), ref)
+def render_eye(ctx: RenderContext, frame: int, eye: int) -> EyeData:
+    """One eye's inputs, from the cache or rendered now (G-buffer, reference chunks, lean ladder)."""
+    cam, _ = ctx.camera(frame, eye)
+    g, gmeta = gbuffer_task(ctx, frame, eye)
+    lad, lmeta = ladder_task(ctx, frame, eye)
+    ref, ms_ref = reference(ctx, frame, eye)
     opt = {k: torch.from_numpy(g[k]) for k in ("motion", "motion_world", "object_id") if k in g}
-    return EyeData(torch.from_numpy(g["depth"]), torch.from_numpy(g["normal"]), camera.K.float(),
-                   camera.cam_from_world.double(), rungs, torch.from_numpy(rd["radiance"]), gmeta["ms"],
-                   float(np.mean(times)), rmeta["ms"], camera, **opt)
+    return EyeData(torch.from_numpy(g["depth"]), torch.from_numpy(g["normal"]), cam.K.float(),
+                   cam.cam_from_world.double(), torch.from_numpy(lad["first"]), torch.from_numpy(lad["top"]),
+                   {m: lad[f"rmse_{m}"][-1].tolist() for m in METRICS}, ref, lad["prefix_spp"].tolist(),
+                   {m: lad[f"rmse_{m}"] for m in METRICS}, gmeta["ms"], lmeta["ms_per_spp"], ms_ref, cam, **opt)
+

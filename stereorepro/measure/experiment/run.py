@@ -3,7 +3,9 @@ the same 1-spp inputs, and measure it against the reference as effective spp."""
 
 from __future__ import annotations
 
+import json
 import math
+import shutil
 import time
 from pathlib import Path
 
@@ -13,25 +15,29 @@ import torch
 from ... import __version__
 from ...accumulate import SpatiotemporalReprojection
 from ...camera import has_surface
-from ..metrics import effective_spp_many, flip, flip_available, ladder_rmse, rmse
+from ..metrics import effective_spp_many, flip, flip_available, rmse
 from .cache import RenderCache, code_version, scene_fingerprint
-from .config import LEFT, RIGHT, ExperimentConfig, validate_config
+from .config import LEFT, RIGHT, ExperimentConfig, metric_image, validate_config
 from .config import schemes as all_schemes
-from .inputs import render_eye
+from .inputs import RenderContext, RenderSpec, cache_footprint, estimate_cache_bytes, reference, render_eye
 from .report import write_frame_exr, write_outputs
 
 __all__ = ["run_experiment"]
 
 
+#: Frames before this one are the warm-up: every statistic is also reported over the frames from it on
+#: (``avg_after_warmup``), where the histories have filled (an EMA at 20 % holds ~90 % of its weight in 10 frames).
+WARMUP_FRAMES = 10
+
+
 def _stats(xs) -> dict:
+    warm = [x for x in xs[WARMUP_FRAMES:] if x is not None and math.isfinite(x)]
     xs = [x for x in xs if x is not None and math.isfinite(x)]
     if not xs:
-        return {"avg": None, "min": None, "max": None, "n": 0}
-    return {"avg": float(np.mean(xs)), "min": float(np.min(xs)), "max": float(np.max(xs)), "n": len(xs)}
+        return {"avg": None, "min": None, "max": None, "n": 0, "avg_after_warmup": None}
+    return {"avg": float(np.mean(xs)), "min": float(np.min(xs)), "max": float(np.max(xs)), "n": len(xs),
+            "avg_after_warmup": float(np.mean(warm)) if warm else None}
 
-
-def _metric_image(x: torch.Tensor, metric: str) -> torch.Tensor:
-    return x.clamp(0.0, 1.0) if metric == "ldr" else x
 
 
 def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
@@ -51,11 +57,28 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
     W, H = cfg.width, cfg.height
     scale = cfg.threshold_scale if cfg.threshold_scale is not None else threshold_scale(H)
     pos_thr, nrm_thr = scene.thresholds(H, scale)
-    tracer = PathTracer(scene, seed=cfg.seed, workers=cfg.workers)
-    cache = RenderCache(Path(cfg.cache_dir) if cfg.cache_dir else out / "cache", force=cfg.force, log=log)
+    cache_dir = Path(cfg.cache_dir) if cfg.cache_dir else out / "cache"
+    cache = RenderCache(cache_dir, force=cfg.force, log=log)
     code = cfg.renderer_version or code_version()
     base_key = {"scene": scene_fingerprint(scene), "code": code, "seed": cfg.seed, "w": W, "h": H}
     moving = "moving_objects" in scene.effects
+    spec = RenderSpec(scene=cfg.scene, width=W, height=H, seed=cfg.seed, ladder_spp=cfg.ladder_spp,
+                      reference_spp=cfg.reference_spp,
+                      reference_chunk_spp=cfg.reference_chunk_spp or cfg.reference_spp,
+                      base_key=json.dumps(base_key, sort_keys=True), cache_dir=str(cache_dir.resolve()),
+                      workers=cfg.workers, moving=moving, client_code=code_version())
+    need, free = estimate_cache_bytes(spec, frames), shutil.disk_usage(cache_dir).free
+    if need > free:  # a warning, not an error: the cache may already hold most of it
+        log(f"warning: the render cache needs up to {need / 2**30:.1f} GiB for {frames} frames "
+            f"({need / (2 * frames) / 2**20:.0f} MiB per eye and frame) and {cache_dir} has {free / 2**30:.1f} GiB free")
+    distributed = None
+    if cfg.scheduler:  # every render runs on the cluster first; the loop below then reads the cache
+        from .distributed import render_all
+
+        distributed = render_all(spec, range(frames), cfg.scheduler, force=cfg.force, progress=cfg.progress,
+                                 log=log)
+        cache = RenderCache(cache_dir, log=log, sweep_on_start=False)  # the entries are made: no recomputing
+    ctx = RenderContext(spec, cache=cache, scene=scene, tracer=PathTracer(scene, seed=cfg.seed, workers=cfg.workers))
     use_flip = bool(cfg.flip) and flip_available()
     schemes = all_schemes(cfg, moving)
     drivers = {s.name: SpatiotemporalReprojection(pos_thr, nrm_thr, alpha=s.alpha, sampling=s.sampling,
@@ -72,25 +95,23 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
     t_start = time.perf_counter()
     bar = tqdm(range(frames), desc=f"{scene.name} {W}x{H}", unit="frame", disable=not cfg.progress)
     for f in bar:
-        left_cam, right_cam = scene.stereo_cameras(f, W, H)
-        prev = scene.stereo_cameras(f - 1, W, H) if moving and f > 0 else (None, None)
-        eyes = {LEFT: render_eye(tracer, cache, base_key, left_cam, f, LEFT, cfg, prev[LEFT]),
-                RIGHT: render_eye(tracer, cache, base_key, right_cam, f, RIGHT, cfg, prev[RIGHT])}
+        eyes = {LEFT: render_eye(ctx, f, LEFT), RIGHT: render_eye(ctx, f, RIGHT)}
         L, R = eyes[LEFT], eyes[RIGHT]
         timing["trace_1spp_ms"] += [L.ms_per_spp, R.ms_per_spp]
         timing["gbuffer_ms"] += [L.ms_gbuffer, R.ms_gbuffer]
         timing["reference_ms"] += [L.ms_reference, R.ms_reference]
         surface = {e: has_surface(d.depth) for e, d in eyes.items()}
         row = {"frame": f, "discard_pct": {}, "rmse": {}, "effective_spp": {}, "flags": {},
-               "ladder_rmse": {}, "no_surface_pct": {}, "rmse_noise_free": {}, "flip": {}}
+               "ladder_rmse": {}, "no_surface_pct": {}, "rmse_noise_free": {}, "flip": {}, "reference_study": {}}
         if moving:
             row.update(discard_pct_moving={}, discard_pct_static={}, moving_pct=100.0 * float(
                 ((R.object_id >= 0) & surface[RIGHT]).float().mean()))
         ladder_spp = list(range(1, cfg.ladder_spp + 1))
         ladder_err = {}
+        prefixes = eyes[LEFT].prefix_spp[:-1]  # smaller references for the reference-spp study (chunked runs)
+        prefix_refs = {e: {p: metric_image(reference(ctx, f, e, p)[0], cfg.metric) for p in prefixes} for e in eyes}
         for e, d in eyes.items():
-            errs = ladder_rmse([_metric_image(x, cfg.metric) for x in d.ladder],
-                               _metric_image(d.reference, cfg.metric))[0].tolist()
+            errs = d.ladder_rmse[cfg.metric]
             ladder_err[e] = errs
             row["ladder_rmse"]["left" if e == LEFT else "right"] = errs
             row["no_surface_pct"]["left" if e == LEFT else "right"] = 100.0 * float((~surface[e]).float().mean())
@@ -99,16 +120,16 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
             mv_r = (R.motion, R.motion_world) if s.motion else (None, None)
             mv_l = (L.motion, L.motion_world) if s.motion else (None, None)
             t0 = time.perf_counter()
-            right_out = drv.right(R.ladder[0], R.depth, R.normal, R.K, R.cam_from_world, *mv_r)
+            right_out = drv.right(R.sample, R.depth, R.normal, R.K, R.cam_from_world, *mv_r)
             t1 = time.perf_counter()
             mask = drv.left_trace_mask(L.depth, L.normal, L.K, L.cam_from_world, *mv_l)
-            left_out = drv.left(L.ladder[0])  # the left 1-spp samples; only masked pixels are read
+            left_out = drv.left(L.sample)  # the left 1-spp samples; only masked pixels are read
             t2 = time.perf_counter()
             # per-eye accounting: a stereo scheme's left eye pays for its own steps, the right eye for its own
             timing[f"reproject_{s.name}_ms"].append((t2 - t1) * 1e3 if s.stereo else (t1 - t0) * 1e3)
             img = left_out if s.eye == LEFT else right_out
             d = eyes[s.eye]
-            err = float(rmse(_metric_image(img, cfg.metric), _metric_image(d.reference, cfg.metric))[0])
+            err = float(rmse(metric_image(img, cfg.metric), metric_image(d.reference, cfg.metric))[0])
             spp, flags = effective_spp_many(torch.tensor([err]), torch.tensor(ladder_spp, dtype=torch.float64),
                                             torch.tensor(ladder_err[s.eye], dtype=torch.float64))
             row["rmse"][s.name] = err
@@ -119,10 +140,16 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
                 c_right = c.right(R.reference, R.depth, R.normal, R.K, R.cam_from_world, *mv_r)
                 c.left_trace_mask(L.depth, L.normal, L.K, L.cam_from_world, *mv_l)
                 c_left = c.left(L.reference)
-                row["rmse_noise_free"][s.name] = float(rmse(_metric_image(c_left if s.eye == LEFT else c_right,
+                row["rmse_noise_free"][s.name] = float(rmse(metric_image(c_left if s.eye == LEFT else c_right,
                                                                           cfg.metric),
-                                                            _metric_image(d.reference, cfg.metric))[0])
+                                                            metric_image(d.reference, cfg.metric))[0])
             row["effective_spp"][s.name] = float(spp[0])
+            if s.paper and prefixes:  # the same image scored against each smaller reference and its own ladder
+                lad = torch.as_tensor(d.prefix_ladder_rmse[cfg.metric], dtype=torch.float64)
+                for i, p in enumerate(prefixes):
+                    e_p = rmse(metric_image(img, cfg.metric), prefix_refs[s.eye][p])
+                    spp_p, _ = effective_spp_many(e_p, torch.tensor(ladder_spp, dtype=torch.float64), lad[i:i + 1])
+                    row["reference_study"].setdefault(str(p), {})[s.name] = float(spp_p[0])
             row["flags"][s.name] = flags[0]
             if s.name == "stereo":
                 surf = surface[LEFT]
@@ -130,11 +157,11 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
                 if f == fig1_frame:
                     keep["fig1_stereo"] = drv.stereo_reason.clone()
                     # the masked trace the paper counts, timed for real (same samples as the full 1-spp render)
-                    r = tracer.render(L.camera, f, 1, sample_offset=0, eye=LEFT, gbuffers=False,
+                    r = ctx.tracer.render(L.camera, f, 1, sample_offset=0, eye=LEFT, gbuffers=False,
                                       pixel_mask=mask[0, 0])
                     timing["trace_left_discards_ms"].append(r.time_s * 1e3)
                     row["masked_trace_matches"] = bool(torch.equal(torch.where(mask, r.radiance, 0.0),
-                                                                   torch.where(mask, L.ladder[0], 0.0)))
+                                                                   torch.where(mask, L.sample, 0.0)))
             if s.name in ("temporal", "temporal_mv") and drv.right_valid is not None:
                 surf = surface[RIGHT]
                 row["discard_pct"][s.name] = 100.0 * float((~drv.right_valid & surf).sum()
@@ -147,8 +174,8 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
                 if f == fig1_frame:
                     keep["fig1_" + s.name] = drv.right_reason.clone()
             if s.name == "stereo_temporal" and f == frames - 1:
-                keep["fig4"] = {"method": left_out.clone(), "one": L.ladder[0].clone(), "ref": L.reference.clone(),
-                                "top": L.ladder[-1].clone(), "spp": row["effective_spp"][s.name]}
+                keep["fig4"] = {"method": left_out.clone(), "one": L.sample.clone(), "ref": L.reference.clone(),
+                                "top": L.top.clone(), "spp": row["effective_spp"][s.name]}
         if cfg.exr:
             write_frame_exr(out / "exr", f, eyes, drivers)
         per_frame.append(row)
@@ -169,9 +196,15 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
                 "bias_share_of_mse": _stats([(r["rmse_noise_free"][k] / r["rmse"][k]) ** 2 for r in per_frame
                                              if r["rmse"][k] > 0])} for k in clean}
     bias["ladder_top_rmse"] = _stats([r["ladder_rmse"]["left"][-1] for r in per_frame])
+    study = {p: {k: _stats([r["reference_study"][p][k] for r in per_frame]) for k in _study_schemes(per_frame, p)}
+             for p in per_frame[0]["reference_study"]}
+    if study:  # the run's own reference last, for comparison
+        study[str(cfg.reference_spp)] = {k: table2[k] for k in next(iter(study.values()))}
     results = {
         "scene": scene.name, "effects": sorted(scene.effects), "frames": frames, "resolution": f"{W}x{H}",
-        "reference_spp": cfg.reference_spp, "ladder_spp": cfg.ladder_spp, "seed": cfg.seed, "metric": cfg.metric,
+        "reference_spp": cfg.reference_spp, "reference_chunk_spp": spec.reference_chunk_spp,
+        "ladder_spp": cfg.ladder_spp, "warmup_frames": WARMUP_FRAMES, "reference_study": study or None,
+        "seed": cfg.seed, "metric": cfg.metric,
         "thresholds": {"position": pos_thr, "normal": nrm_thr, "position_scene": float(scene.position_threshold),
                        "scale": scale},
         "table1": table1,
@@ -181,11 +214,17 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
         "table2_variants": {k: v for k, v in table2.items() if k not in ("stereo", "temporal", "stereo_temporal")},
         "timing_ms": timing_ms, "cost": cost, "bias": bias, "per_frame": per_frame,
         "flags": _flag_counts(per_frame), "cache": {"hits": cache.hits, "misses": cache.misses,
-                                                     "recomputed_corrupt": cache.corrupt},
+                                                     "recomputed_corrupt": cache.corrupt,
+                                                     "dir": str(cache_dir), **cache_footprint(ctx, frames)},
+        "distributed": distributed,
         "wall_s": wall, "version": __version__, "code": code,
     }
     write_outputs(out, results, per_frame, keep, cfg)
     return results
+
+
+def _study_schemes(per_frame, p: str) -> list[str]:
+    return list(per_frame[0]["reference_study"][p])
 
 
 def _flag_counts(per_frame) -> dict:
