@@ -17,6 +17,14 @@ Conventions
 * **Motion vectors** point to the previous frame: ``prev_pixel = pixel + motion`` (pixels, these axes and pixel
   centres), ``P_prev = P + motion_world`` (world units); NaN where there is no surface (:func:`camera_motion`
   gives the motion of static geometry).
+* **Sub-pixel jitter** (TAA-style, off unless asked for): frame ``f`` of a sequence uses the offset
+  :func:`jitter_offset` ``(dx, dy) = (halton(i, 2) - 0.5, halton(i, 3) - 0.5)`` with ``i = f % length + 1`` (index 0,
+  the offset (-0.5, -0.5), is skipped), the same for both eyes. The jittered camera (:func:`jitter_intrinsics`,
+  :meth:`PinholeCamera.jittered`) has its principal point moved by ``-(dx, dy)`` (``cx' = cx - dx``,
+  ``cy' = cy - dy``): its pixel centre ``(x + 0.5, y + 0.5)`` looks along the unjittered camera's ray through the
+  image point ``(x + 0.5 + dx, y + 0.5 + dy)``, i.e. a world point at ``uv`` in the unjittered image is at
+  ``uv - (dx, dy)`` in the jittered one. Everything downstream (G-buffers, reprojection, motion) simply uses the
+  jittered camera's ``K``; pixel centres stay at +0.5.
 * **World positions** derived from depth are never formed in world space inside the reprojection: points are
   compared in the source camera's frame, so precision depends on distance from the camera, not from the
   world origin. Pass camera matrices as float64 when the scene lies far (≥ 1e3 units) from the origin: a
@@ -29,13 +37,14 @@ Shapes: B batch, H height, W width. Every function here is a pure tensor functio
 from __future__ import annotations
 
 import math
+import operator
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
-from ._checks import check_camera, check_shape, tracing
+from ._checks import check_camera, check_scalar, check_shape, tracing
 
 __all__ = [
     "rectify_warp",
@@ -50,6 +59,9 @@ __all__ = [
     "Warp",
     "compose_warp",
     "camera_motion",
+    "halton",
+    "jitter_offset",
+    "jitter_intrinsics",
     "PinholeCamera",
     "StereoRig",
 ]
@@ -347,6 +359,111 @@ def camera_motion(depth: Tensor, K: Tensor, cam_from_world: Tensor, prev_K: Tens
     return torch.where(keep, motion, torch.full((), float("nan"), dtype=d.dtype, device=d.device)).to(depth.dtype)
 
 
+def _integer(value, name: str) -> int:
+    """``value`` as a Python int (ints and numpy / torch integer scalars; not bools, not floats), else TypeError."""
+    if isinstance(value, bool):
+        raise TypeError(f"{name}: expected an integer, got a bool ({value!r})")
+    try:
+        return operator.index(value)
+    except TypeError:
+        raise TypeError(f"{name}: expected an integer, got {type(value).__name__} ({value!r})") from None
+
+
+def halton(index: int, base: int) -> float:
+    """The radical inverse of ``index`` in ``base`` (the ``index``-th point of the Halton sequence of that base).
+
+    The base-``b`` digits of ``index`` are mirrored about the radix point: ``index = sum d_k b^k`` gives
+    ``sum d_k b^-(k+1)``. Base 2: 0, 0.5, 0.25, 0.75, 0.125, ... for ``index`` = 0, 1, 2, 3, 4; base 3: 0, 1/3, 2/3,
+    1/9, 4/9, ... Computed exactly in integers and rounded once (to nearest), so the value is the float nearest
+    the exact fraction (base 2: exact for index < 2**53), never 1.0.
+
+    Args:
+        index: integer >= 0.
+        base: integer >= 2.
+
+    Returns:
+        float in [0, 1); 0 only for ``index = 0``.
+
+    Raises:
+        TypeError: a non-integer index or base (bools and floats included). ValueError: index < 0 or base < 2.
+
+    >>> [halton(i, 2) for i in range(1, 5)]
+    [0.5, 0.25, 0.75, 0.125]
+    """
+    i, b = _integer(index, "halton: index"), _integer(base, "halton: base")
+    if i < 0:
+        raise ValueError(f"halton: index must be >= 0, got {i}")
+    if b < 2:
+        raise ValueError(f"halton: base must be >= 2, got {b}")
+    num, den = 0, 1
+    while i > 0:
+        i, digit = divmod(i, b)
+        num = num * b + digit
+        den *= b
+    return min(num / den, math.nextafter(1.0, 0.0))  # < 1 exactly; rounding could reach 1.0 only for den > 2^53
+
+
+def jitter_offset(frame: int, length: int = 16) -> tuple[float, float]:
+    """The TAA sub-pixel offset (dx, dy) of ``frame``, in pixels, from the Halton (2, 3) sequence.
+
+    ``i = frame % length + 1`` (Python's modulo: non-negative for any integer ``frame``), ``dx = halton(i, 2) -
+    0.5``, ``dy = halton(i, 3) - 0.5``: the sequence starts at index 1 (index 0 would be the pixel's corner,
+    (-0.5, -0.5)) and repeats every ``length`` frames. Frame 0: (0.0, -1/6); frame 1: (-0.25, 1/6); frame 2:
+    (0.25, -7/18). Both eyes of a stereo frame use the same offset. Pass it to :func:`jitter_intrinsics` /
+    :meth:`PinholeCamera.jittered` (its sign convention is there).
+
+    Args:
+        frame: integer frame index.
+        length: period of the sequence, integer >= 1 (16 = a common TAA choice; 8 is another).
+
+    Returns:
+        (dx, dy), floats in [-0.5, 0.5) (in fact in (-0.5, 0.5)): the offset from the pixel centre, x right, y down.
+
+    Raises:
+        TypeError: a non-integer frame or length. ValueError: length < 1.
+
+    >>> jitter_offset(0), jitter_offset(1)
+    ((0.0, -0.16666666666666669), (-0.25, 0.16666666666666663))
+    """
+    f, n = _integer(frame, "jitter_offset: frame"), _integer(length, "jitter_offset: length")
+    if n < 1:
+        raise ValueError(f"jitter_offset: length must be >= 1, got {n}")
+    i = f % n + 1
+    return halton(i, 2) - 0.5, halton(i, 3) - 0.5
+
+
+def jitter_intrinsics(K: Tensor, dx, dy) -> Tensor:
+    """Intrinsics of a camera jittered by (dx, dy) pixels: the principal point moved to ``(cx - dx, cy - dy)``.
+
+    Sign convention: the jittered camera's pixel centre ``(x + 0.5, y + 0.5)`` looks along the ray of the
+    unjittered camera's image point ``(x + 0.5 + dx, y + 0.5 + dy)``; equivalently a camera-space point that
+    projects to ``uv`` with ``K`` projects to ``uv - (dx, dy)`` with the result (skew included). So tracing the
+    jittered camera's pixel centres samples the unjittered image at the centres + (dx, dy), which is what
+    :meth:`PinholeCamera.ray_directions` with ``jitter = (dx, dy)`` does for the unjittered camera.
+
+    The subtraction is done in ``K``'s dtype (float32 K: ``cx - dx`` rounds to ~1e-5 px at cx ~ 1000; pass float64
+    intrinsics for an exact shift). Differentiable with respect to ``K``.
+
+    Args:
+        K: (B, 3, 3) intrinsics.
+        dx, dy: the offset in pixels (x right, y down): finite numbers or one-element tensors, e.g. from
+            :func:`jitter_offset`; any finite value is accepted (whole pixels shift the image).
+
+    Returns:
+        (B, 3, 3), a new tensor (``K`` is not modified).
+
+    Raises:
+        ValueError: non-finite dx or dy. TypeError: dx or dy not a number.
+    """
+    check_shape(K, ["B", "3", "3"], "K")
+    check_scalar(dx, "jitter: dx (pixels)", tracing=False)
+    check_scalar(dy, "jitter: dy (pixels)", tracing=False)
+    shift = torch.zeros(3, 3, dtype=K.dtype, device=K.device)
+    shift[0, 2] = float(dx)
+    shift[1, 2] = float(dy)
+    return K - shift  # x - 0 is x: every other entry is kept bit for bit
+
+
 @dataclass(frozen=True)
 class PinholeCamera:
     """A batch of pinhole cameras sharing one image size.
@@ -388,6 +505,19 @@ class PinholeCamera:
     def __getitem__(self, i) -> "PinholeCamera":
         sl = slice(i, i + 1) if isinstance(i, int) else i
         return PinholeCamera(self.K[sl], self.cam_from_world[sl], self.height, self.width)
+
+    def jittered(self, dx, dy) -> "PinholeCamera":
+        """This camera moved by a sub-pixel offset (dx, dy) in pixels (TAA jitter; see :func:`jitter_intrinsics`).
+
+        The result's pixel centre ``(x + 0.5, y + 0.5)`` looks along this camera's ray through
+        ``(x + 0.5 + dx, y + 0.5 + dy)``: a world point at ``uv`` in this camera's image is at ``uv - (dx, dy)`` in
+        the jittered one. Only the principal point changes (``cx - dx``, ``cy - dy``); the pose is the same. Use the
+        same (dx, dy) for both eyes (:func:`jitter_offset`).
+
+        Raises:
+            ValueError: non-finite dx or dy.
+        """
+        return PinholeCamera(jitter_intrinsics(self.K, dx, dy), self.cam_from_world, self.height, self.width)
 
     def unproject(self, depth: Tensor) -> Tensor:
         """World points of every pixel at ``depth`` (B, 1, H, W) → (B, 3, H, W)."""

@@ -94,3 +94,104 @@ class TestStereoRig:
             StereoRig().cameras(_head(), torch.eye(3), 4, 4)
         with pytest.raises(ValueError, match="cam_from_world"):
             PinholeCamera(torch.eye(3)[None], torch.eye(3)[None], 4, 4)
+
+
+class TestJitter:
+    """Halton (2, 3) sub-pixel jitter and the jittered camera's sign convention (stereorepro.camera)."""
+
+    def test_halton_known_values(self):
+        from fractions import Fraction
+
+        from stereorepro.camera import halton
+
+        assert [halton(i, 2) for i in range(8)] == [0.0, 0.5, 0.25, 0.75, 0.125, 0.625, 0.375, 0.875]
+        third = [Fraction(k, 3) for k in (0, 1, 2)] + [Fraction(k, 9) for k in (1, 4, 7, 2, 5, 8)]
+        assert [halton(i, 3) for i in range(9)] == [float(f) for f in third]  # the nearest floats, exactly
+        assert halton(5, 10) == 0.5 and halton(123, 10) == float(Fraction(321, 1000))
+        assert halton(2**60 - 1, 2) < 1.0 and halton(3**40 - 1, 3) < 1.0  # never 1.0, however large the index
+        assert halton(2**60, 2) == 2.0**-61
+
+    def test_jitter_offset_range_period_and_values(self):
+        from stereorepro.camera import halton, jitter_offset
+
+        assert jitter_offset(0) == (0.0, float(1 / 3) - 0.5)
+        assert jitter_offset(1) == (-0.25, 2 / 3 - 0.5) and jitter_offset(2) == (0.25, halton(3, 3) - 0.5)
+        for length in (1, 2, 8, 16, 17):
+            offs = [jitter_offset(f, length) for f in range(-length, 3 * length)]
+            assert all(-0.5 <= v < 0.5 for o in offs for v in o)
+            assert offs[:length] == offs[length:2 * length] == offs[2 * length:3 * length]  # period, negative too
+            assert len(set(offs[:length])) == length
+        seq = torch.tensor([jitter_offset(f) for f in range(16)], dtype=torch.float64)
+        assert seq.mean(0).abs().max() < 0.05  # well spread about the pixel centre
+        assert jitter_offset(torch.tensor(3)) == jitter_offset(3)  # integer tensors and numpy ints are integers
+
+    @pytest.mark.parametrize("dx, dy", [(0.25, -1 / 6), (-0.49, 0.3), (0.0, 0.0), (2.0, -3.5)])
+    def test_jittered_projection_convention(self, dx, dy):
+        """A world point at uv in the camera is at uv - (dx, dy) in the jittered one (skew included), and the
+        jittered pixel centres look along the camera's rays through centres + (dx, dy)."""
+        K = torch.tensor([[[300.0, 1.5, 33.0], [0.0, 280.0, 21.0], [0.0, 0.0, 1.0]]], dtype=torch.float64)
+        cam = PinholeCamera(K, _head(), 40, 64)
+        jit = cam.jittered(dx, dy)
+        pts = cam.unproject(torch.rand(1, 1, 40, 64, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+                            * 5 + 0.5)
+        uv, z = cam.project(pts)
+        uv_j, z_j = jit.project(pts)
+        shift = torch.tensor([dx, dy], dtype=torch.float64).view(1, 2, 1, 1)
+        assert torch.allclose(uv_j, uv - shift, atol=1e-9, rtol=0) and torch.equal(z_j, z)
+        want = cam.ray_directions(jitter=shift.expand(1, 2, 40, 64))
+        assert torch.allclose(jit.ray_directions(), want, atol=1e-12, rtol=0)
+        assert torch.equal(jit.cam_from_world, cam.cam_from_world)
+        keep = torch.ones(3, 3, dtype=torch.bool)
+        keep[0, 2] = keep[1, 2] = False
+        assert torch.equal(jit.K[0][keep], K[0][keep])  # only the principal point moves
+        assert jit.K[0, 0, 2] == 33.0 - dx and jit.K[0, 1, 2] == 21.0 - dy and K[0, 0, 2] == 33.0  # K not modified
+
+    def test_jittered_stereo_pair_stays_rectified(self):
+        from stereorepro.camera import compose_warp, jitter_offset, rectify_warp
+
+        K = intrinsics_from_fov(60.0, 64, 48, dtype=torch.float64)
+        left, right = StereoRig(0.065).cameras(_head(), K, 48, 64)
+        d = jitter_offset(5)
+        jl, jr = left.jittered(*d), right.jittered(*d)  # both eyes alike
+        warp = compose_warp(jr.K, jr.cam_from_world, jl.K, jl.cam_from_world, torch.float64)
+        rectify_warp(warp, 48, 64)  # raises CameraError for a pair that is not rectified
+        assert torch.equal(warp.P[0, 1:], torch.eye(3, dtype=torch.float64)[1:])
+
+    def test_jitter_gradients_reach_K(self):
+        from stereorepro.camera import jitter_intrinsics
+
+        K = intrinsics_from_fov(60.0, 8, 6, dtype=torch.float64).requires_grad_()
+        jitter_intrinsics(K, 0.25, -0.125).sum().backward()
+        assert torch.equal(K.grad, torch.ones_like(K))
+
+    def test_jitter_exceptions(self):
+        from stereorepro.camera import halton, jitter_intrinsics, jitter_offset
+
+        cam = PinholeCamera(intrinsics_from_fov(60.0, 8, 6), _head(torch.float32), 6, 8)
+        for bad in (float("nan"), float("inf"), -float("inf"), torch.tensor(float("nan"))):
+            with pytest.raises(ValueError, match=r"jitter: dx \(pixels\): expected a finite number"):
+                cam.jittered(bad, 0.0)
+            with pytest.raises(ValueError, match=r"jitter: dy \(pixels\): expected a finite number"):
+                jitter_intrinsics(cam.K, 0.0, bad)
+        for bad in ("0.5", None, [0.5], True):
+            with pytest.raises(TypeError, match="dx"):
+                cam.jittered(bad, 0.0)
+        with pytest.raises(ValueError, match="dx"):
+            cam.jittered(torch.tensor([0.1, 0.2]), 0.0)
+        with pytest.raises(ValueError, match="K"):
+            jitter_intrinsics(torch.eye(3), 0.1, 0.1)
+        with pytest.raises(ValueError, match="index must be >= 0"):
+            halton(-1, 2)
+        with pytest.raises(ValueError, match="base must be >= 2"):
+            halton(1, 1)
+        for bad in (1.0, True, "1", None):
+            with pytest.raises(TypeError, match="halton: index"):
+                halton(bad, 2)
+            with pytest.raises(TypeError, match="jitter_offset: frame"):
+                jitter_offset(bad)
+        with pytest.raises(TypeError, match="halton: base"):
+            halton(1, 2.0)
+        with pytest.raises(ValueError, match="length must be >= 1"):
+            jitter_offset(0, 0)
+        with pytest.raises(TypeError, match="jitter_offset: length"):
+            jitter_offset(0, 16.0)
