@@ -2,7 +2,10 @@
 
 Per sample (the paper's "one primary ray, one secondary ray, and two shadow rays"):
 
-1. **generate** - a primary ray through a uniformly jittered position inside the pixel;
+1. **generate** - a primary ray through a uniformly jittered position inside the pixel (``pixel_sampling="box"``,
+   the default: box-filter antialiasing), or through the pixel centre, exactly the G-buffer's ray
+   (``pixel_sampling="center"``: TAA's one sample per frame at the camera's jittered position, see
+   :meth:`PathTracer.render`);
 2. **intersect** - closest hit ``x1``; emitted radiance of ``x1`` is added (emitters seen directly);
 3. **shade + NEE** - one light sample at ``x1`` (a shadow ray), MIS-weighted (balance heuristic) against BSDF
    sampling for area lights;
@@ -89,9 +92,11 @@ except ImportError:  # pragma: no cover - depends on the build
     _core = None
 
 __all__ = ["PathTracer", "RenderResult", "ray_epsilon", "native_available", "resolve_backend", "BACKENDS",
-           "ENV_VAR"]
+           "ENV_VAR", "PIXEL_SAMPLINGS"]
 
 BACKENDS = ("auto", "numpy", "native", "torch")
+#: ``PathTracer.render(pixel_sampling=...)``: a uniform position in the pixel per sample, or the pixel centre.
+PIXEL_SAMPLINGS = ("box", "center")
 ENV_VAR = _backend.ENV_VAR
 
 
@@ -206,6 +211,7 @@ class _Frame:
     shader: object = None       # _core.TracerShader of the frame's lights (native backend)
     M32: np.ndarray | None = None  # (9,) float32 dir_from_pix, as _camera_dirs rounds it
     geom: "_Geometry" = None    # the frame's triangles (moving objects placed)
+    center_rays: bool = False   # pixel_sampling="center": primary rays are the G-buffer's rays (see _center_primary)
 
 
 @dataclass(frozen=True)
@@ -417,7 +423,7 @@ class PathTracer:
     def render(self, camera: PinholeCamera, frame: int, spp: int, sample_offset: int = 0,
                pixel_mask: Tensor | None = None, eye: int = 0, gbuffers: bool = True,
                progress: bool = False, prev_camera: PinholeCamera | None = None,
-               prev_frame: int | None = None) -> RenderResult:
+               prev_frame: int | None = None, pixel_sampling: str = "box") -> RenderResult:
         """Render radiance (and G-buffers) of one camera.
 
         Args:
@@ -433,6 +439,13 @@ class PathTracer:
             prev_camera: the same eye's camera at the previous frame: the G-buffers then include ``motion`` and
                 ``motion_world`` (see :class:`RenderResult`).
             prev_frame: the frame ``motion`` refers to (default ``max(frame - 1, 0)``).
+            pixel_sampling: where in its pixel each sample's primary ray goes. ``"box"`` (default): a uniformly
+                random position in [x, x+1) × [y, y+1) per sample (box-filter antialiasing; the renders of previous
+                versions, bit for bit). ``"center"``: the pixel centre, with exactly the G-buffer's ray (same origin
+                and direction handed to embree, then normalised), so every sample's first hit is the G-buffer's
+                surface; the samples of a pixel differ only after the first hit. With a jittered camera
+                (:meth:`~stereorepro.camera.PinholeCamera.jittered`, :func:`~stereorepro.camera.jitter_offset`) this
+                is TAA's one sample per frame at the jittered position, consistent with that camera's G-buffer.
 
         Returns:
             :class:`RenderResult` with (1, C, H, W) tensors.
@@ -442,7 +455,10 @@ class PathTracer:
             raise ValueError(f"render: spp must be >= 1, got {spp}")
         if int(sample_offset) < 0:
             raise ValueError(f"render: sample_offset must be >= 0, got {sample_offset}")
+        if not (isinstance(pixel_sampling, str) and pixel_sampling in PIXEL_SAMPLINGS):
+            raise ValueError(f"render: pixel_sampling must be one of {PIXEL_SAMPLINGS}, got {pixel_sampling!r}")
         fr, pixels, H, W = self._setup(camera, frame, pixel_mask, eye)
+        fr.center_rays = pixel_sampling == "center"
         counts = {"primary": 0, "secondary": 0, "shadow": 0, "gbuffer": 0}
         rad = np.zeros((3, H * W), np.float32)  # planar, the layout of the output tensor
         # spp = 1: the one sample is the pixel value (0 + x / 1 in float64 and back is x, but for -0 -> +0, hence the
@@ -616,6 +632,25 @@ class PathTracer:
             d[:, r] = M[r, 0] * px + M[r, 1] * py + M[r, 2]
         return d
 
+    def _center_primary(self, fr: _Frame, pix: np.ndarray):
+        """Primary rays of ``pixel_sampling="center"`` and their hits: the G-buffer's ray of each pixel (origin the
+        camera centre, direction with camera z = 1 through the pixel centre, as :meth:`_gbuffer` and
+        ``_core.tracer_gbuffer_rays`` form it) is intersected as it is, so the first hit is the G-buffer's; then
+        the direction is normalised and ``t`` rescaled to it (``t * |d|``), as the shading stages expect. One
+        numpy function for both backends, so they hand embree the same rays and shade the same values.
+
+        Returns:
+            o (N, 3) (a broadcast view), unit d (N, 3), t (N,), prim (N,) (-1: a miss); float32 / int32.
+        """
+        px = (pix % fr.width).astype(np.float32) + np.float32(0.5)
+        py = (pix // fr.width).astype(np.float32) + np.float32(0.5)
+        d = self._camera_dirs(fr, px, py)
+        o = np.broadcast_to(fr.center, d.shape)
+        t, prim = fr.geom.bvh.intersect(o, d)
+        n = np.sqrt(_dot(d, d))
+        n = np.where(n > 0, n, np.float32(1))
+        return o, d / n[:, None], np.asarray(t, np.float32) * n, prim
+
     def _surface(self, fr: _Frame, prim, d):
         """Material ids (N,) and shading normals (N, 3) of hits ``prim`` (N,) facing against directions ``d``."""
         fn = fr.geom.face_normal[prim]
@@ -737,16 +772,21 @@ class PathTracer:
         tm = self._stage_times
         t0 = time.perf_counter() if tm is not None else 0.0
         keys = path_keys(fr.key, pix, samp)
-        # --- generate
-        px = (pix % fr.width).astype(np.float32) + uniform(keys, DIM["jitter_x"])
-        py = (pix // fr.width).astype(np.float32) + uniform(keys, DIM["jitter_y"])
-        d = _normalize(self._camera_dirs(fr, px, py))
-        o = np.broadcast_to(fr.center, d.shape)
-        t0 = _tick(tm, "generate", t0)
-        # --- intersect
-        t, prim = fr.geom.bvh.intersect(o, d)
-        counts["primary"] += N
-        t0 = _tick(tm, "intersect_primary", t0)
+        if fr.center_rays:  # --- generate + intersect: the G-buffer's rays
+            o, d, t, prim = self._center_primary(fr, pix)
+            counts["primary"] += N
+            t0 = _tick(tm, "intersect_primary", t0)
+        else:
+            # --- generate
+            px = (pix % fr.width).astype(np.float32) + uniform(keys, DIM["jitter_x"])
+            py = (pix // fr.width).astype(np.float32) + uniform(keys, DIM["jitter_y"])
+            d = _normalize(self._camera_dirs(fr, px, py))
+            o = np.broadcast_to(fr.center, d.shape)
+            t0 = _tick(tm, "generate", t0)
+            # --- intersect
+            t, prim = fr.geom.bvh.intersect(o, d)
+            counts["primary"] += N
+            t0 = _tick(tm, "intersect_primary", t0)
         i1 = np.flatnonzero(prim >= 0)
         if len(i1) == 0:
             return L
@@ -857,9 +897,14 @@ class PathTracer:
         samp = np.ascontiguousarray(samp, np.int64)
         ws = self._workspace(N, ws)
         keys, o, d = ws["keys"][:N], ws["o"][:N], ws["d"][:N]
-        _core.tracer_generate(fr.key, fr.width, pix, samp, fr.M32, fr.center, keys, o, d)
-        t0 = _tick(tm, "generate", t0)
-        t, prim = fr.geom.bvh.intersect(o, d)
+        if fr.center_rays:  # the G-buffer's rays (the numpy path's function), keys from _core
+            _core.rng_path_keys(fr.key, pix, samp, keys)
+            _, d[:], t, prim = self._center_primary(fr, pix)
+            o[:] = fr.center
+        else:
+            _core.tracer_generate(fr.key, fr.width, pix, samp, fr.M32, fr.center, keys, o, d)
+            t0 = _tick(tm, "generate", t0)
+            t, prim = fr.geom.bvh.intersect(o, d)
         counts["primary"] += N
         t0 = _tick(tm, "intersect_primary", t0)
         t = np.ascontiguousarray(t, f32)
