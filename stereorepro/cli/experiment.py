@@ -61,6 +61,10 @@ def run_command(args) -> int:
         results = run_experiment(cfg)
     except (ValueError, FileNotFoundError) as e:  # SceneError and the config's checks are ValueErrors
         raise UserError(str(e)) from None
+    except RuntimeError as e:  # a cluster that cannot run it (distributed.ClusterError), named in one line
+        if type(e).__name__ != "ClusterError":
+            raise
+        raise UserError(str(e)) from None
     print(tables_markdown(results))
     print(f"report: {Path(cfg.out) / 'report.md'} (figures and results.json beside it); "
           f"wall {results['wall_s']:.0f} s")

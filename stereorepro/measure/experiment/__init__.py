@@ -31,8 +31,12 @@ written atomically, so a killed run resumes and a cached run reproduces the same
 Resolution and thresholds: scene thresholds (in scene units, like the paper's scene-specific limits) follow the
 package's one rule, :func:`stereorepro.scenes.threshold_scale` (scaled up below 180 rows, used as they are above).
 
+Renders can run on a Dask cluster (``scheduler="local:N"`` or ``"tcp://HOST:PORT"``, :mod:`.distributed`): every
+render is a task named by its cache entry, and the tables are identical to an in-process run's.
+
 Layout: :mod:`.config` (settings and schemes), :mod:`.cache` (the content-addressed render cache),
-:mod:`.inputs` (rendering one frame's G-buffers, ladder and reference), :mod:`.run` (the run loop),
+:mod:`.inputs` (the render tasks: one frame's G-buffers, lean ladder and reference chunks),
+:mod:`.distributed` (the same tasks on Dask), :mod:`.run` (the run loop),
 :mod:`.report` (tables, figures, report); the command line is :mod:`stereorepro.cli.experiment`.
 """
 

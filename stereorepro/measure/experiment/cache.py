@@ -32,7 +32,9 @@ def code_version() -> str:
     try:
         from ... import _core
 
-        h.update(repr(sorted(_core.build_info().items())).encode())
+        # what the build is, not how many threads this process may use (Dask workers run with OMP_NUM_THREADS=1;
+        # renders do not depend on the thread count)
+        h.update(repr(sorted((k, v) for k, v in _core.build_info().items() if k != "max_threads")).encode())
     except ImportError:
         h.update(b"no-core")
     return h.hexdigest()[:16]
@@ -91,6 +93,7 @@ class RenderCache:
         self.hits = 0
         self.misses = 0
         self.corrupt: list[str] = []
+        self._made: set[Path] = set()
 
     def path(self, key: dict) -> Path:
         """The entry's file (it may not exist yet)."""
@@ -110,7 +113,7 @@ class RenderCache:
 
     def get_or_make(self, key: dict, make):
         path = self._path(key)
-        if path.exists() and not self.force:
+        if path.exists() and not (self.force and path not in self._made):  # force: each entry once per cache
             try:
                 data, meta = self._read(path)
                 self.hits += 1
@@ -123,4 +126,5 @@ class RenderCache:
         with atomic_path(path) as tmp, open(tmp, "wb") as f:
             np.savez(f, __meta__=np.array(json.dumps(meta)), **data)
         self.misses += 1
+        self._made.add(path)
         return data, meta

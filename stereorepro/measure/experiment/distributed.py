@@ -1,0 +1,144 @@
+"""The experiment's renders on a Dask cluster (``stereorepro experiment --scheduler local:N | tcp://HOST:PORT``;
+needs the ``[distributed]`` extra).
+
+Every render of the run (each frame and eye's G-buffer, reference chunks and lean ladder: :func:`.inputs.eye_tasks`)
+becomes one Dask task whose key is its cache entry's name, so the same render is never submitted twice and Dask
+retries a task whose worker died. A worker renders into the shared, content-addressed cache (``cache_dir`` on a
+filesystem every worker and the client see) and returns only the entry's name; once every task is done, the client
+runs the analysis in process, reading the same entries as an in-process run would: **the tables are identical**
+whichever machine rendered what (tested with a LocalCluster and with a scheduler and workers started as separate
+processes).
+
+* **Code versions**: every task carries the client's renderer version (:func:`.cache.code_version`); a worker whose
+  own differs refuses it with an error naming the worker, and the client checks every connected worker first.
+* **Races**: two workers making one entry both write a complete temporary and rename it into place (atomic); one
+  valid entry remains.
+* **Resume**: a killed run (or worker) leaves only complete entries; the rerun submits every task again and the
+  ones already in the cache return at once.
+* ``force``: the client removes the run's entries before submitting (workers then render them anew).
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import socket
+import time
+from dataclasses import replace
+
+from .cache import RenderCache, code_version
+from .inputs import RenderSpec, eye_tasks, gbuffer_task, ladder_task, reference_chunk_task, worker_context
+
+__all__ = ["render_all", "run_task", "connect", "task_key", "ClusterError", "CONNECT_TIMEOUT"]
+
+#: How long the client waits for a ``tcp://`` scheduler.
+CONNECT_TIMEOUT = "30s"
+
+
+class ClusterError(RuntimeError):
+    """The cluster cannot run this experiment: the scheduler is unreachable, has no workers, or a worker runs
+    other renderer code (the command line reports it in one line, exit code 2)."""
+
+_TASKS = {"gbuffer_task": gbuffer_task, "reference_chunk_task": reference_chunk_task, "ladder_task": ladder_task}
+
+
+@functools.lru_cache(maxsize=1)
+def _own_code() -> str:
+    return code_version()
+
+
+def worker_code_version() -> str:
+    """This process's renderer version (run on every worker by :func:`render_all`)."""
+    return _own_code()
+
+
+def run_task(spec: RenderSpec, name: str, args: tuple, *deps) -> str:
+    """Run one render task on this worker (``deps``: the results of the tasks it must follow; unused) and
+    return the name of its cache entry."""
+    own = _own_code()
+    if spec.client_code and own != spec.client_code:
+        raise RuntimeError(f"worker {socket.gethostname()} (pid {os.getpid()}) runs renderer code {own}, the client "
+                           f"{spec.client_code}: install the same stereorepro version on every worker")
+    ctx = worker_context(spec)
+    _TASKS[name](ctx, *args)
+    return name
+
+
+def task_key(cache: RenderCache, name: str, key: dict) -> str:
+    """The Dask key of a render task: its kind and its cache entry's file name."""
+    return f"{name}-{cache.path(key).stem}"
+
+
+def connect(scheduler: str):
+    """A Dask client for ``"local:N"`` (a LocalCluster of N single-threaded worker processes, this machine) or
+    ``"tcp://HOST:PORT"`` (a running scheduler); returns (client, cluster or None)."""
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError as e:  # pragma: no cover - the extra is installed in CI
+        raise ImportError("--scheduler needs Dask: pip install 'stereorepro[distributed]'") from e
+    if scheduler.startswith("local:"):
+        cluster = LocalCluster(n_workers=int(scheduler.split(":", 1)[1]), threads_per_worker=1, processes=True,
+                               dashboard_address=None)
+        return Client(cluster), cluster
+    try:
+        return Client(scheduler, timeout=CONNECT_TIMEOUT), None
+    except OSError as e:
+        raise ClusterError(f"cannot reach the Dask scheduler at {scheduler} ({e})") from None
+
+
+def render_all(spec: RenderSpec, frames, scheduler: str, force: bool = False, progress: bool = True,
+               log=print) -> dict:
+    """Render every input of ``frames`` (both eyes) on the cluster ``scheduler`` into ``spec.cache_dir``.
+
+    Returns what the run's ``results.json`` records under ``"distributed"``: the scheduler, the number of workers
+    and of tasks, how many were already cached, and the wall time.
+    """
+    from distributed import as_completed
+    from tqdm.auto import tqdm
+
+    t0 = time.perf_counter()
+    client, cluster = connect(scheduler)
+    try:
+        versions = client.run(worker_code_version)
+        if not versions:
+            raise ClusterError(f"no Dask workers are connected to {scheduler}")
+        own = _own_code()
+        bad = {w: v for w, v in versions.items() if v != own}
+        if bad:
+            w, v = next(iter(bad.items()))
+            raise ClusterError(f"worker {w} runs renderer code {v}, this client {own}: install the same stereorepro "
+                               f"version on every worker ({len(bad)} of {len(versions)} differ)")
+        n_workers = len(versions)
+        if spec.workers is None and cluster is not None:  # share this machine's cores among the local workers
+            spec = replace(spec, workers=max(1, (os.cpu_count() or 1) // n_workers))
+        spec = replace(spec, client_code=own)
+        cache = RenderCache(spec.cache_dir, sweep_on_start=False)
+        futures, cached = [], 0
+        for f in frames:
+            for eye in (0, 1):
+                chunk_futures = []
+                for name, args, key in eye_tasks(spec, f, eye):
+                    path = cache.path(key)
+                    if force and path.exists():
+                        path.unlink()
+                    cached += path.exists()
+                    deps = chunk_futures if name == "ladder_task" else []
+                    fut = client.submit(run_task, spec, name, args, *deps, key=task_key(cache, name, key),
+                                        retries=3, pure=False)
+                    if name == "reference_chunk_task":
+                        chunk_futures.append(fut)
+                    futures.append(fut)
+        bar = tqdm(total=len(futures), desc=f"renders on {n_workers} workers", unit="task", disable=not progress)
+        for fut in as_completed(futures):
+            fut.result()  # raises the task's error (after Dask's retries)
+            bar.update(1)
+        bar.close()
+        wall = time.perf_counter() - t0
+        log(f"distributed: {len(futures)} render tasks ({cached} already cached) on {n_workers} workers "
+            f"in {wall:.1f} s")
+        return {"scheduler": scheduler, "workers": n_workers, "tasks": len(futures), "cached": cached,
+                "wall_s": wall}
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
