@@ -289,3 +289,26 @@ class TestRenderTasks:
             with pytest.raises(ValueError, match=match):
                 run_experiment(ExperimentConfig(out=str(tmp_path / "x"), **dict(SMALL, **bad)))
             assert not (tmp_path / "x").exists()
+
+    def test_jitter(self, first_run, tmp_path):
+        """With jitter the schemes read the jittered cameras' G-buffers and centre samples; ladders and references
+        are the unjittered run's (shared cache entries)."""
+        out, res = first_run
+        jit = run_experiment(ExperimentConfig(out=str(tmp_path), cache_dir=str(out / "cache"), jitter=True,
+                                              **SMALL))
+        n = SMALL["frames"] * 2
+        assert jit["cache"]["misses"] == 2 * n  # only the jittered G-buffer and sample of each eye-frame are new
+        assert jit["jitter"] and not res["jitter"]
+        f0, j0 = res["per_frame"][0], jit["per_frame"][0]
+        assert j0["ladder_rmse"] == f0["ladder_rmse"]
+        assert j0["rmse"]["stereo"] != f0["rmse"]["stereo"]
+        mid = [r for r in jit["per_frame"] if "masked_trace_matches" in r]
+        assert mid and all(r["masked_trace_matches"] for r in mid)  # the left fill traces the jittered centres
+        from stereorepro.measure.experiment.inputs import RenderSpec, eye_tasks
+
+        spec = RenderSpec(scene="x", width=8, height=8, seed=0, ladder_spp=2, reference_spp=4, reference_chunk_spp=2,
+                          base_key="{}", cache_dir=str(tmp_path), jitter=True)
+        assert [t[0] for t in eye_tasks(spec, 3, 1)] == ["gbuffer_task", "reference_chunk_task",
+                                                         "reference_chunk_task", "ladder_task", "jitter_gbuffer_task",
+                                                         "jitter_sample_task"]
+        assert eye_tasks(spec, 3, 1)[-1][2]["jitter"] != eye_tasks(spec, 4, 1)[-1][2]["jitter"]

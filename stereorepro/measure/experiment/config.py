@@ -81,6 +81,10 @@ class ExperimentConfig:
     #: Where renders run: None = in this process; ``"local:N"`` = a Dask LocalCluster of N worker processes;
     #: ``"tcp://HOST:PORT"`` = a running Dask scheduler (workers must share ``cache_dir``). See :mod:`.distributed`.
     scheduler: str | None = None
+    #: TAA-style sub-pixel camera jitter of the schemes' inputs (Halton(2, 3) per frame, both eyes alike,
+    #: :func:`stereorepro.camera.jitter_offset`): their G-buffers and 1-spp samples come from the jittered cameras,
+    #: one sample through each pixel centre; the ladders and the references stay unjittered (box-filtered pixels).
+    jitter: bool = False
 
 
 #: Variants of scenes with moving objects: the temporal steps read the history through the motion vectors.

@@ -27,7 +27,8 @@ import time
 from dataclasses import replace
 
 from .cache import RenderCache, code_version
-from .inputs import RenderSpec, eye_tasks, gbuffer_task, ladder_task, reference_chunk_task, worker_context
+from .inputs import (RenderSpec, eye_tasks, gbuffer_task, jitter_gbuffer_task, jitter_sample_task, ladder_task,
+                     reference_chunk_task, worker_context)
 
 __all__ = ["render_all", "run_task", "connect", "task_key", "ClusterError", "CONNECT_TIMEOUT"]
 
@@ -39,7 +40,8 @@ class ClusterError(RuntimeError):
     """The cluster cannot run this experiment: the scheduler is unreachable, has no workers, or a worker runs
     other renderer code (the command line reports it in one line, exit code 2)."""
 
-_TASKS = {"gbuffer_task": gbuffer_task, "reference_chunk_task": reference_chunk_task, "ladder_task": ladder_task}
+_TASKS = {"gbuffer_task": gbuffer_task, "reference_chunk_task": reference_chunk_task, "ladder_task": ladder_task,
+          "jitter_gbuffer_task": jitter_gbuffer_task, "jitter_sample_task": jitter_sample_task}
 
 
 @functools.lru_cache(maxsize=1)

@@ -39,7 +39,8 @@ from .cache import RenderCache
 from .config import METRICS, REFERENCE_OFFSET, metric_image
 
 __all__ = ["EyeData", "RenderSpec", "RenderContext", "render_eye", "gbuffer_task", "reference_chunk_task",
-           "ladder_task", "reference", "reference_prefixes", "eye_tasks", "worker_context", "estimate_cache_bytes",
+           "ladder_task", "jitter_gbuffer_task", "jitter_sample_task", "reference", "reference_prefixes", "eye_tasks",
+           "worker_context", "estimate_cache_bytes",
            "cache_footprint"]
 
 
@@ -64,6 +65,8 @@ class RenderSpec:
     moving: bool = False
     #: code_version() of the client's renderer: a worker whose own differs refuses the task (:mod:`.distributed`).
     client_code: str = ""
+    #: TAA-style sub-pixel jitter of the schemes' inputs (:func:`jitter_gbuffer_task`, :func:`jitter_sample_task`).
+    jitter: bool = False
 
     @property
     def chunks(self) -> int:
@@ -105,13 +108,19 @@ class RenderContext:
     def key(self, frame: int, eye: int, **kw) -> dict:
         return dict(json.loads(self.spec.base_key), frame=frame, eye=eye, **kw)
 
-    def camera(self, frame: int, eye: int):
-        """(camera, previous frame's camera or None): the previous one only for scenes with moving objects."""
-        k = (frame, eye)
+    def camera(self, frame: int, eye: int, jittered: bool = False):
+        """(camera, previous frame's camera or None): the previous one only for scenes with moving objects.
+        ``jittered``: both shifted by their frame's :func:`~stereorepro.camera.jitter_offset` (both eyes alike)."""
+        k = (frame, eye, jittered)
         if k not in self._cameras:
+            from ...camera import jitter_offset
+
             W, H = self.spec.width, self.spec.height
             cam = self.scene.stereo_cameras(frame, W, H)[eye]
             prev = self.scene.stereo_cameras(frame - 1, W, H)[eye] if self.spec.moving and frame > 0 else None
+            if jittered:
+                cam = cam.jittered(*jitter_offset(frame))
+                prev = prev.jittered(*jitter_offset(frame - 1)) if prev is not None else None
             self._cameras[k] = (cam, prev)
         return self._cameras[k]
 
@@ -142,6 +151,40 @@ def gbuffer_task(ctx: RenderContext, frame: int, eye: int):
         return out, {"ms": r.time_s * 1e3, "rays": r.ray_counts}
 
     return ctx.cache.get_or_make(_gbuffer_key(ctx, frame, eye), make)
+
+
+def _jitter_key(ctx, frame: int, eye: int, kind: str) -> dict:
+    from ...camera import jitter_offset
+
+    return dict(_gbuffer_key(ctx, frame, eye), kind=kind, jitter=list(jitter_offset(frame)))
+
+
+def jitter_gbuffer_task(ctx: RenderContext, frame: int, eye: int):
+    """The G-buffer of (frame, eye) through the frame's jittered camera (motion: to the previous frame's jittered
+    camera, so the vectors include the change of jitter); returns (data, meta)."""
+    cam, prev = ctx.camera(frame, eye, jittered=True)
+
+    def make():
+        r = ctx.tracer.gbuffer(cam, frame, prev_camera=prev)
+        out = {"depth": r.depth.numpy(), "normal": r.normal.numpy()}
+        for name in ("motion", "motion_world", "object_id"):
+            if getattr(r, name) is not None:
+                out[name] = getattr(r, name).numpy()
+        return out, {"ms": r.time_s * 1e3, "rays": r.ray_counts}
+
+    return ctx.cache.get_or_make(_jitter_key(ctx, frame, eye, "gbuffer_jitter"), make)
+
+
+def jitter_sample_task(ctx: RenderContext, frame: int, eye: int):
+    """The schemes' 1-spp input of (frame, eye) with jitter: one sample per pixel through the jittered camera's
+    pixel centre (``pixel_sampling="center"``, the G-buffer's own ray), TAA's one sample per frame."""
+    cam, _ = ctx.camera(frame, eye, jittered=True)
+
+    def make():
+        r = ctx.tracer.render(cam, frame, 1, sample_offset=0, eye=eye, gbuffers=False, pixel_sampling="center")
+        return {"radiance": r.radiance.numpy()}, {"ms": r.time_s * 1e3, "rays": r.ray_counts}
+
+    return ctx.cache.get_or_make(_jitter_key(ctx, frame, eye, "sample_jitter"), make)
 
 
 def _chunk_key(ctx: RenderContext, frame: int, eye: int, i: int) -> dict:
@@ -223,6 +266,9 @@ def eye_tasks(spec: RenderSpec, frame: int, eye: int) -> list[tuple[str, tuple, 
     tasks += [("reference_chunk_task", (frame, eye, i), _chunk_key(ctx_free, frame, eye, i))
               for i in range(spec.chunks)]
     tasks.append(("ladder_task", (frame, eye), _ladder_key(ctx_free, frame, eye)))
+    if spec.jitter:
+        tasks += [(f"jitter_{k}_task", (frame, eye), _jitter_key(ctx_free, frame, eye, f"{k}_jitter"))
+                  for k in ("gbuffer", "sample")]
     return tasks
 
 
@@ -256,7 +302,7 @@ class _KeyOnly:
 
     key = RenderContext.key
 
-    def camera(self, frame: int, eye: int):
+    def camera(self, frame: int, eye: int, jittered: bool = False):
         return None, (object() if self.spec.moving and frame > 0 else None)
 
 
@@ -268,7 +314,8 @@ class EyeData:
     normal: torch.Tensor  # (1, 3, H, W)
     K: torch.Tensor  # (1, 3, 3)
     cam_from_world: torch.Tensor  # (1, 4, 4)
-    sample: torch.Tensor  # (1, 3, H, W): the 1-spp input of the schemes (the ladder's first rung)
+    sample: torch.Tensor  # (1, 3, H, W): the 1-spp input of the schemes (the ladder's first rung; with jitter
+    # its own centre-sampled render through the jittered camera)
     top: torch.Tensor  # (1, 3, H, W): the ladder's top rung (figures)
     ladder_rmse: dict  # metric -> list of L floats: rungs 1..L against the reference
     reference: torch.Tensor  # (1, 3, H, W)
@@ -277,21 +324,29 @@ class EyeData:
     ms_gbuffer: float
     ms_per_spp: float  # mean wall time of one 1-spp full-frame render
     ms_reference: float
-    camera: object = None
+    camera: object = None  # the camera of ``sample`` and the G-buffer (jittered with jitter)
+    pixel_sampling: str = "box"  # how ``sample`` was traced
     motion: torch.Tensor | None = None  # (1, 2, H, W) to the previous frame (moving objects, frame > 0)
     motion_world: torch.Tensor | None = None  # (1, 3, H, W)
     object_id: torch.Tensor | None = None  # (1, 1, H, W) int32, -1 static (moving objects)
 
 
 def render_eye(ctx: RenderContext, frame: int, eye: int) -> EyeData:
-    """One eye's inputs, from the cache or rendered now (G-buffer, reference chunks, lean ladder)."""
-    cam, _ = ctx.camera(frame, eye)
+    """One eye's inputs, from the cache or rendered now (G-buffer, reference chunks, lean ladder; with
+    ``spec.jitter`` the G-buffer and the 1-spp sample of the jittered camera)."""
+    jit = ctx.spec.jitter
+    cam, _ = ctx.camera(frame, eye, jittered=jit)
     g, gmeta = gbuffer_task(ctx, frame, eye)
     lad, lmeta = ladder_task(ctx, frame, eye)
     ref, ms_ref = reference(ctx, frame, eye)
+    sample = torch.from_numpy(lad["first"])
+    if jit:
+        g, gmeta = jitter_gbuffer_task(ctx, frame, eye)
+        sample = torch.from_numpy(jitter_sample_task(ctx, frame, eye)[0]["radiance"])
     opt = {k: torch.from_numpy(g[k]) for k in ("motion", "motion_world", "object_id") if k in g}
     return EyeData(torch.from_numpy(g["depth"]), torch.from_numpy(g["normal"]), cam.K.float(),
-                   cam.cam_from_world.double(), torch.from_numpy(lad["first"]), torch.from_numpy(lad["top"]),
+                   cam.cam_from_world.double(), sample, torch.from_numpy(lad["top"]),
                    {m: lad[f"rmse_{m}"][-1].tolist() for m in METRICS}, ref, lad["prefix_spp"].tolist(),
-                   {m: lad[f"rmse_{m}"] for m in METRICS}, gmeta["ms"], lmeta["ms_per_spp"], ms_ref, cam, **opt)
+                   {m: lad[f"rmse_{m}"] for m in METRICS}, gmeta["ms"], lmeta["ms_per_spp"], ms_ref, cam,
+                   "center" if jit else "box", **opt)
 

@@ -66,7 +66,7 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
                       reference_spp=cfg.reference_spp,
                       reference_chunk_spp=cfg.reference_chunk_spp or cfg.reference_spp,
                       base_key=json.dumps(base_key, sort_keys=True), cache_dir=str(cache_dir.resolve()),
-                      workers=cfg.workers, moving=moving, client_code=code_version())
+                      workers=cfg.workers, moving=moving, client_code=code_version(), jitter=bool(cfg.jitter))
     need, free = estimate_cache_bytes(spec, frames), shutil.disk_usage(cache_dir).free
     if need > free:  # a warning, not an error: the cache may already hold most of it
         log(f"warning: the render cache needs up to {need / 2**30:.1f} GiB for {frames} frames "
@@ -158,7 +158,7 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
                     keep["fig1_stereo"] = drv.stereo_reason.clone()
                     # the masked trace the paper counts, timed for real (same samples as the full 1-spp render)
                     r = ctx.tracer.render(L.camera, f, 1, sample_offset=0, eye=LEFT, gbuffers=False,
-                                      pixel_mask=mask[0, 0])
+                                          pixel_mask=mask[0, 0], pixel_sampling=L.pixel_sampling)
                     timing["trace_left_discards_ms"].append(r.time_s * 1e3)
                     row["masked_trace_matches"] = bool(torch.equal(torch.where(mask, r.radiance, 0.0),
                                                                    torch.where(mask, L.sample, 0.0)))
@@ -204,7 +204,7 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
         "scene": scene.name, "effects": sorted(scene.effects), "frames": frames, "resolution": f"{W}x{H}",
         "reference_spp": cfg.reference_spp, "reference_chunk_spp": spec.reference_chunk_spp,
         "ladder_spp": cfg.ladder_spp, "warmup_frames": WARMUP_FRAMES, "reference_study": study or None,
-        "seed": cfg.seed, "metric": cfg.metric,
+        "seed": cfg.seed, "metric": cfg.metric, "jitter": bool(cfg.jitter),
         "thresholds": {"position": pos_thr, "normal": nrm_thr, "position_scene": float(scene.position_threshold),
                        "scale": scale},
         "table1": table1,
