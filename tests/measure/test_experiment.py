@@ -82,7 +82,8 @@ class TestExperiment:
         cfg = dict(SMALL, frames=1)
         run_experiment(ExperimentConfig(out=str(tmp_path), **cfg))
         forced = run_experiment(ExperimentConfig(out=str(tmp_path), force=True, **cfg))
-        assert forced["cache"]["hits"] == 0
+        # every entry recomputed exactly once (G-buffer, reference, ladder per eye), then read back as made
+        assert forced["cache"]["misses"] == 3 * 2 and forced["cache"]["recomputed_corrupt"] == []
 
     @pytest.mark.parametrize("damage", ["garbage", "zero_bytes", "truncated", "no_meta"])
     def test_corrupt_cache_entry_is_recomputed(self, tmp_path, damage):
@@ -312,3 +313,14 @@ class TestRenderTasks:
                                                          "reference_chunk_task", "ladder_task", "jitter_gbuffer_task",
                                                          "jitter_sample_task"]
         assert eye_tasks(spec, 3, 1)[-1][2]["jitter"] != eye_tasks(spec, 4, 1)[-1][2]["jitter"]
+
+    def test_blend_and_alternate_schemes(self, first_run):
+        """The follow-up's schemes run on the same renders: on frame 0 the alternating scheme traces the right eye
+        like stereo+temporal (same images), from frame 1 on it traces the left eye every other frame."""
+        _, res = first_run
+        var = res["table2_variants"]
+        assert {"stereo_temporal_blend", "alternate", "alternate_blend"} <= set(var)
+        f0, f1 = res["per_frame"][0], res["per_frame"][1]
+        assert f0["rmse"]["alternate"] == f0["rmse"]["stereo_temporal"]
+        assert f1["rmse"]["alternate"] != f1["rmse"]["stereo_temporal"]
+        assert all(v["avg"] > 0 for v in var.values())

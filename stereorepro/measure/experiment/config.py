@@ -34,6 +34,13 @@ class Scheme:
     alpha: float = 0.2
     paper: bool = False  # one of the paper's three Table 2 columns
     motion: bool = False  # temporal steps through the tracer's motion vectors (scenes with moving objects)
+    #: The left eye's rule (:class:`~stereorepro.SpatiotemporalReprojection`): ``"fill"`` (the paper: the
+    #: reprojected right eye where accepted, the own history only under traced discards) or ``"blend"`` (the
+    #: follow-up: both histories blended at every pixel).
+    left_mode: str = "fill"
+    #: Trace the right eye in full on even frames and the left on odd ones, each reprojected into the other
+    #: (the ray budget of ``stereo_temporal``).
+    alternate: bool = False
 
 
 SCHEMES = (
@@ -43,6 +50,10 @@ SCHEMES = (
     Scheme("stereo_nearest", True, False, LEFT, "nearest"),
     Scheme("temporal_nearest", False, True, RIGHT, "nearest"),
     Scheme("stereo_temporal_nearest", True, True, LEFT, "nearest"),
+    # beyond the paper: its authors' follow-up (IEEE Access 2020) blends traced and stereo-reprojected data
+    Scheme("stereo_temporal_blend", True, True, LEFT, left_mode="blend"),
+    Scheme("alternate", True, True, LEFT, alternate=True),
+    Scheme("alternate_blend", True, True, LEFT, left_mode="blend", alternate=True),
 )
 
 

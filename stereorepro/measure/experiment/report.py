@@ -35,6 +35,21 @@ def tables_markdown(results: dict) -> str:
     for k in ("stereo", "temporal", "stereo_temporal"):
         cells += [_fmt(t2[k]["avg"]), _fmt(t2[k]["min"]), _fmt(t2[k]["max"])]
     lines.append(f"| {results['scene']} | " + " | ".join(cells) + " |")
+    warm = results.get("warmup_frames")
+    if warm is not None and t2["stereo"].get("avg_after_warmup") is not None:
+        lines += ["", f"After warm-up (frames {warm}..{results['frames'] - 1}): "
+                  + ", ".join(f"{k} {_fmt(t2[k]['avg_after_warmup'])}" for k in ("stereo", "temporal",
+                                                                             "stereo_temporal"))
+                  + "; discards " + ", ".join(f"{k} {_fmt(t1[k].get('avg_after_warmup'))} %"
+                                             for k in ("stereo", "temporal"))]
+    study = results.get("reference_study")
+    if study:
+        keys = list(next(iter(study.values())))
+        lines += ["", "**Reference spp** — the same images scored against references of fewer samples (prefixes of "
+                  "the run's reference) and ladders scored on each: effective spp (avg over frames)", "",
+                  "| reference spp | " + " | ".join(keys) + " |", "|---:|" + "---:|" * len(keys)]
+        for p, row in study.items():
+            lines.append(f"| {p} | " + " | ".join(_fmt(row[k]["avg"]) for k in keys) + " |")
     if "moving_objects" in results:
         lines += ["", moving_markdown(results)]
     return "\n".join(lines) + "\n"

@@ -82,7 +82,8 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
     use_flip = bool(cfg.flip) and flip_available()
     schemes = all_schemes(cfg, moving)
     drivers = {s.name: SpatiotemporalReprojection(pos_thr, nrm_thr, alpha=s.alpha, sampling=s.sampling,
-                                                  stereo=s.stereo, temporal=s.temporal) for s in schemes}
+                                                  stereo=s.stereo, temporal=s.temporal, left_mode=s.left_mode,
+                                                  alternate=s.alternate) for s in schemes}
     # The same schemes fed with the noise-free references: their error is the resampling bias alone (bilinear blur
     # compounded over frames, edges), the part of the error that more samples cannot remove.
     clean = {s.name: SpatiotemporalReprojection(pos_thr, nrm_thr, alpha=s.alpha, sampling=s.sampling,
@@ -119,12 +120,17 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
             drv = drivers[s.name]
             mv_r = (R.motion, R.motion_world) if s.motion else (None, None)
             mv_l = (L.motion, L.motion_world) if s.motion else (None, None)
+            # the fully traced eye (the right one, or every other frame the left one with ``alternate``) and the
+            # reprojected one, whose 1-spp samples are read only where the mask says "trace"
+            (F, mv_f), (O, mv_o) = ((R, mv_r), (L, mv_l)) if drv.fully_traced_eye() == "right" else ((L, mv_l),
+                                                                                                    (R, mv_r))
             t0 = time.perf_counter()
-            right_out = drv.right(R.sample, R.depth, R.normal, R.K, R.cam_from_world, *mv_r)
+            full_out = drv.full(F.sample, F.depth, F.normal, F.K, F.cam_from_world, *mv_f)
             t1 = time.perf_counter()
-            mask = drv.left_trace_mask(L.depth, L.normal, L.K, L.cam_from_world, *mv_l)
-            left_out = drv.left(L.sample)  # the left 1-spp samples; only masked pixels are read
+            mask = drv.other_trace_mask(O.depth, O.normal, O.K, O.cam_from_world, *mv_o)
+            other_out = drv.other(O.sample)
             t2 = time.perf_counter()
+            right_out, left_out = (full_out, other_out) if F is R else (other_out, full_out)
             # per-eye accounting: a stereo scheme's left eye pays for its own steps, the right eye for its own
             timing[f"reproject_{s.name}_ms"].append((t2 - t1) * 1e3 if s.stereo else (t1 - t0) * 1e3)
             img = left_out if s.eye == LEFT else right_out
