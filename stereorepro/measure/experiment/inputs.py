@@ -26,6 +26,7 @@ submit them to a Dask cluster first (:mod:`.distributed`) and then read the same
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 from dataclasses import dataclass, field
@@ -67,6 +68,10 @@ class RenderSpec:
     client_code: str = ""
     #: TAA-style sub-pixel jitter of the schemes' inputs (:func:`jitter_gbuffer_task`, :func:`jitter_sample_task`).
     jitter: bool = False
+    #: torch threads the ladder's RMSEs are reduced with: the client's count, on every worker. torch splits a large
+    #: float64 sum by its thread count, so the last bits of an RMSE depend on it (Dask workers run single-threaded);
+    #: None = this process's count.
+    torch_threads: int | None = None
 
     @property
     def chunks(self) -> int:
@@ -235,6 +240,10 @@ def ladder_task(ctx: RenderContext, frame: int, eye: int):
     L = ctx.spec.ladder_spp
 
     def make():
+        with _torch_threads(ctx.spec.torch_threads):
+            return score()
+
+    def score():
         prefixes = reference_prefixes(ctx.spec)
         refs = [reference(ctx, frame, eye, n)[0] for n in prefixes]
         scored = {m: [_Scored(metric_image(r, m)) for r in refs] for m in METRICS}
@@ -257,6 +266,18 @@ def ladder_task(ctx: RenderContext, frame: int, eye: int):
         return data, {"ms": float(np.sum(times)), "ms_per_spp": float(np.mean(times))}
 
     return ctx.cache.get_or_make(_ladder_key(ctx, frame, eye), make)
+
+
+@contextlib.contextmanager
+def _torch_threads(n: int | None):
+    old = torch.get_num_threads()
+    if n is not None and n != old:
+        torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        if torch.get_num_threads() != old:
+            torch.set_num_threads(old)
 
 
 class _Scored:

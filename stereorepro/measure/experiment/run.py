@@ -66,7 +66,8 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
                       reference_spp=cfg.reference_spp,
                       reference_chunk_spp=cfg.reference_chunk_spp or cfg.reference_spp,
                       base_key=json.dumps(base_key, sort_keys=True), cache_dir=str(cache_dir.resolve()),
-                      workers=cfg.workers, moving=moving, client_code=code_version(), jitter=bool(cfg.jitter))
+                      workers=cfg.workers, moving=moving, client_code=code_version(), jitter=bool(cfg.jitter),
+                      torch_threads=torch.get_num_threads())
     need, free = estimate_cache_bytes(spec, frames), shutil.disk_usage(cache_dir).free
     if need > free:  # a warning, not an error: the cache may already hold most of it
         log(f"warning: the render cache needs up to {need / 2**30:.1f} GiB for {frames} frames "
