@@ -41,7 +41,7 @@ from .config import METRICS, REFERENCE_OFFSET, metric_image
 
 __all__ = ["EyeData", "RenderSpec", "RenderContext", "render_eye", "gbuffer_task", "reference_chunk_task",
            "ladder_task", "jitter_gbuffer_task", "jitter_sample_task", "reference", "reference_prefixes", "eye_tasks",
-           "worker_context", "estimate_cache_bytes",
+           "worker_context", "estimate_cache_bytes", "spec_for",
            "cache_footprint"]
 
 
@@ -76,6 +76,21 @@ class RenderSpec:
     @property
     def chunks(self) -> int:
         return self.reference_spp // self.reference_chunk_spp
+
+
+def spec_for(cfg, scene, cache_dir: Path) -> RenderSpec:
+    """The :class:`RenderSpec` of an :class:`~.config.ExperimentConfig` on a loaded scene: its cache key's common
+    part (scene fingerprint, renderer version — ``cfg.renderer_version`` or the current one —, seed, resolution)."""
+    from .cache import code_version, scene_fingerprint
+
+    code = cfg.renderer_version or code_version()
+    base_key = {"scene": scene_fingerprint(scene), "code": code, "seed": cfg.seed, "w": cfg.width, "h": cfg.height}
+    return RenderSpec(scene=cfg.scene, width=cfg.width, height=cfg.height, seed=cfg.seed, ladder_spp=cfg.ladder_spp,
+                      reference_spp=cfg.reference_spp,
+                      reference_chunk_spp=cfg.reference_chunk_spp or cfg.reference_spp,
+                      base_key=json.dumps(base_key, sort_keys=True), cache_dir=str(Path(cache_dir).resolve()),
+                      workers=cfg.workers, moving="moving_objects" in scene.effects, client_code=code_version(),
+                      jitter=bool(cfg.jitter), torch_threads=torch.get_num_threads())
 
 
 def reference_prefixes(spec: RenderSpec) -> list[int]:

@@ -16,10 +16,10 @@ from ... import __version__
 from ...accumulate import SpatiotemporalReprojection
 from ...camera import has_surface
 from ..metrics import effective_spp_many, flip, flip_available, rmse
-from .cache import RenderCache, code_version, scene_fingerprint
+from .cache import RenderCache
 from .config import LEFT, RIGHT, ExperimentConfig, metric_image, validate_config
 from .config import schemes as all_schemes
-from .inputs import RenderContext, RenderSpec, cache_footprint, estimate_cache_bytes, reference, render_eye
+from .inputs import RenderContext, cache_footprint, estimate_cache_bytes, reference, render_eye, spec_for
 from .report import write_frame_exr, write_outputs
 
 __all__ = ["run_experiment"]
@@ -59,15 +59,8 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
     pos_thr, nrm_thr = scene.thresholds(H, scale)
     cache_dir = Path(cfg.cache_dir) if cfg.cache_dir else out / "cache"
     cache = RenderCache(cache_dir, force=cfg.force, log=log)
-    code = cfg.renderer_version or code_version()
-    base_key = {"scene": scene_fingerprint(scene), "code": code, "seed": cfg.seed, "w": W, "h": H}
-    moving = "moving_objects" in scene.effects
-    spec = RenderSpec(scene=cfg.scene, width=W, height=H, seed=cfg.seed, ladder_spp=cfg.ladder_spp,
-                      reference_spp=cfg.reference_spp,
-                      reference_chunk_spp=cfg.reference_chunk_spp or cfg.reference_spp,
-                      base_key=json.dumps(base_key, sort_keys=True), cache_dir=str(cache_dir.resolve()),
-                      workers=cfg.workers, moving=moving, client_code=code_version(), jitter=bool(cfg.jitter),
-                      torch_threads=torch.get_num_threads())
+    spec = spec_for(cfg, scene, cache_dir)
+    code, moving = json.loads(spec.base_key)["code"], spec.moving
     need, free = estimate_cache_bytes(spec, frames), shutil.disk_usage(cache_dir).free
     if need > free:  # a warning, not an error: the cache may already hold most of it
         log(f"warning: the render cache needs up to {need / 2**30:.1f} GiB for {frames} frames "
