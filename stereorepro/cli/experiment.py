@@ -36,6 +36,7 @@ def add_arguments(p: argparse.ArgumentParser, defaults: dict | None = None) -> N
     p.add_argument("--jitter", action="store_true",
                    help="TAA-style Halton(2,3) sub-pixel jitter of the schemes' inputs (both eyes alike)")
     p.add_argument("--no-flip", action="store_true", help="skip the FLIP scores (seconds per image at 720p)")
+    p.add_argument("--no-ssim", action="store_true", help="skip the SSIM scores (seconds per image at 720p)")
     p.add_argument("--scheduler", default=None,
                    help="render on Dask: 'local:N' (N worker processes here) or 'tcp://HOST:PORT' (a running "
                         "scheduler whose workers share --cache-dir); default: in this process")
@@ -52,7 +53,7 @@ def config_from_args(args) -> ExperimentConfig:
                             alphas=tuple(args.alphas), threshold_scale=args.threshold_scale, workers=args.workers,
                             exr=args.exr, force=args.force, progress=not args.no_progress,
                             renderer_version=args.renderer_version, cache_dir=args.cache_dir, metric=args.metric,
-                            reference_chunk_spp=args.reference_chunk_spp, flip=not args.no_flip,
+                            reference_chunk_spp=args.reference_chunk_spp, flip=not args.no_flip, ssim=not args.no_ssim,
                             scheduler=args.scheduler, jitter=args.jitter)
 
 

@@ -3,6 +3,7 @@
 import json
 
 import pytest
+import torch
 
 from stereorepro.cli import main
 from stereorepro.measure.experiment import ExperimentConfig, RenderCache, run_experiment, tables_markdown
@@ -61,6 +62,29 @@ class TestExperiment:
         off = run_experiment(ExperimentConfig(out=str(tmp_path), cache_dir=str(out / "cache"), flip=False,
                                               **dict(SMALL, frames=1)))
         assert off["flip"] is None and off["cache"]["misses"] == 0
+
+    def test_ssim_reported(self, first_run, tmp_path):
+        from stereorepro.measure.metrics import ssim
+
+        out, res = first_run
+        assert set(res["ssim"]) == {"stereo", "temporal", "stereo_temporal"}
+        assert all(0.0 < v["avg"] <= 1.0 for v in res["ssim"].values())
+        # frame 0's temporal output is the right eye's 1-spp image itself
+        f0 = res["per_frame"][0]["ssim"]["temporal"]
+        assert "## SSIM" in (out / "report.md").read_text()
+        off = run_experiment(ExperimentConfig(out=str(tmp_path), cache_dir=str(out / "cache"), ssim=False,
+                                              **dict(SMALL, frames=1)))
+        assert off["ssim"] is None and off["per_frame"][0]["ssim"] == {}
+        from stereorepro.measure.experiment.config import RIGHT
+        from stereorepro.measure.experiment.inputs import RenderContext, reference, spec_for
+        from stereorepro.scenes import load_scene
+
+        cfg = ExperimentConfig(out=str(out), **SMALL)
+        ctx = RenderContext(spec_for(cfg, load_scene(cfg.scene), out / "cache"))
+        from stereorepro.measure.experiment.inputs import ladder_task
+
+        one = torch.from_numpy(ladder_task(ctx, 0, RIGHT)[0]["first"])
+        assert f0 == float(ssim(one, reference(ctx, 0, RIGHT)[0], tonemap="clamp")[0])
 
     def test_cached_run_is_identical(self, first_run, tmp_path):
         out, res = first_run

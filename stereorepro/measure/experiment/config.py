@@ -89,6 +89,9 @@ class ExperimentConfig:
     #: Also report the mean LDR FLIP per scheme and frame (when ``flip-evaluator`` is installed; see
     #: :func:`stereorepro.measure.metrics.flip`). Effective spp stays MSE-based.
     flip: bool = True
+    #: Also report the mean LDR SSIM (:func:`stereorepro.measure.metrics.ssim`, clamp) of the paper's three schemes
+    #: per frame.
+    ssim: bool = True
     #: Where renders run: None = in this process; ``"local:N"`` = a Dask LocalCluster of N worker processes;
     #: ``"tcp://HOST:PORT"`` = a running Dask scheduler (workers must share ``cache_dir``). See :mod:`.distributed`.
     scheduler: str | None = None
