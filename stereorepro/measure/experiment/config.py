@@ -109,13 +109,14 @@ MOTION_SCHEMES = (
 
 
 def schemes(cfg: ExperimentConfig, moving_objects: bool = False) -> list[Scheme]:
-    """The paper's schemes and the variants, with an alpha variant for each extra ``cfg.alphas`` weight, and the
+    """The paper's schemes and the variants, with alpha variants (temporal, stereo+temporal, blended) for each extra ``cfg.alphas`` weight, and the
     motion-vector variants when the scene has moving objects."""
     out = list(SCHEMES) + (list(MOTION_SCHEMES) if moving_objects else [])
     for a in cfg.alphas:
         if abs(a - 0.2) > 1e-12:
             out.append(Scheme(f"temporal_alpha{a:g}", False, True, RIGHT, alpha=a))
             out.append(Scheme(f"stereo_temporal_alpha{a:g}", True, True, LEFT, alpha=a))
+            out.append(Scheme(f"stereo_temporal_blend_alpha{a:g}", True, True, LEFT, alpha=a, left_mode="blend"))
     return out
 
 
