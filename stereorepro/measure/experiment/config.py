@@ -109,8 +109,8 @@ MOTION_SCHEMES = (
 
 
 def schemes(cfg: ExperimentConfig, moving_objects: bool = False) -> list[Scheme]:
-    """The paper's schemes and the variants, with alpha variants (temporal, stereo+temporal, blended) for each extra ``cfg.alphas`` weight, and the
-    motion-vector variants when the scene has moving objects."""
+    """The paper's schemes and the variants, with alpha variants (temporal, stereo+temporal, blended) for each
+    extra ``cfg.alphas`` weight, and the motion-vector variants when the scene has moving objects."""
     out = list(SCHEMES) + (list(MOTION_SCHEMES) if moving_objects else [])
     for a in cfg.alphas:
         if abs(a - 0.2) > 1e-12:
