@@ -6,8 +6,8 @@ what a Dask worker needs to rebuild the scene and the tracer) and of the frame a
 
 * :func:`gbuffer_task`: depth and normal (and, for scenes with moving objects, the motion to the previous frame and
   the objects' ids), from one centre ray per pixel;
-* :func:`reference_chunk_task` ``i``: the mean of the samples ``[REFERENCE_OFFSET + i·c, REFERENCE_OFFSET + (i+1)·c)``,
-  ``c = reference_chunk_spp``. The reference at ``n`` spp is the mean of its first ``n / c`` chunk means, summed in
+* :func:`reference_chunk_task` ``i``: the mean of the samples ``[REFERENCE_OFFSET + i·c, REFERENCE_OFFSET +
+  (i+1)·c)``, ``c = reference_chunk_spp``. The reference at ``n`` spp is the mean of its first ``n / c`` chunk means, summed in
   chunk order in float64 (:func:`reference`). **How chunking enters the cache key**: a chunk's key names its sample
   range (``spp = c``, ``offset``); the ladder's key names ``(reference_spp, reference_chunk_spp)``. Chunking changes
   the reference at rounding level (a sum of chunk means is not the renderer's own sum of samples), so a run is

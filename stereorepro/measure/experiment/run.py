@@ -64,7 +64,8 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
     need, free = estimate_cache_bytes(spec, frames), shutil.disk_usage(cache_dir).free
     if need > free:  # a warning, not an error: the cache may already hold most of it
         log(f"warning: the render cache needs up to {need / 2**30:.1f} GiB for {frames} frames "
-            f"({need / (2 * frames) / 2**20:.0f} MiB per eye and frame) and {cache_dir} has {free / 2**30:.1f} GiB free")
+            f"({need / (2 * frames) / 2**20:.0f} MiB per eye and frame) and {cache_dir} has "
+            f"{free / 2**30:.1f} GiB free")
     distributed = None
     if cfg.scheduler:  # every render runs on the cluster first; the loop below then reads the cache
         from .distributed import render_all
