@@ -80,7 +80,7 @@ def connect(scheduler: str):
         raise ImportError("--scheduler needs Dask: pip install 'stereorepro[distributed]'") from e
     if scheduler.startswith("local:"):
         cluster = LocalCluster(n_workers=int(scheduler.split(":", 1)[1]), threads_per_worker=1, processes=True,
-                               dashboard_address=None)
+                               dashboard_address=":0")
         return Client(cluster), cluster
     try:
         return Client(scheduler, timeout=CONNECT_TIMEOUT), None

@@ -66,6 +66,7 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
         log(f"warning: the render cache needs up to {need / 2**30:.1f} GiB for {frames} frames "
             f"({need / (2 * frames) / 2**20:.0f} MiB per eye and frame) and {cache_dir} has "
             f"{free / 2**30:.1f} GiB free")
+    t_start = time.perf_counter()  # the wall time includes a cluster's renders
     distributed = None
     if cfg.scheduler:  # every render runs on the cluster first; the loop below then reads the cache
         from .distributed import render_all
@@ -88,7 +89,6 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
     timing.update({f"reproject_{s.name}_ms": [] for s in schemes})
     keep = {}  # frames kept for figures
     fig1_frame = frames // 2
-    t_start = time.perf_counter()
     bar = tqdm(range(frames), desc=f"{scene.name} {W}x{H}", unit="frame", disable=not cfg.progress)
     for f in bar:
         eyes = {LEFT: render_eye(ctx, f, LEFT), RIGHT: render_eye(ctx, f, RIGHT)}
