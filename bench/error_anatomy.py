@@ -71,6 +71,9 @@ def main() -> None:
     ap.add_argument("--cache-dir", default=str(RESULTS.parent / ".cache"))
     ap.add_argument("--renderer-version", default=None)
     ap.add_argument("--figure-frame", type=int, default=None, help="default: the last frame")
+    ap.add_argument("--normal-scale", type=float, default=1.0,
+                    help="multiply the scene's normal threshold (what looser tests would keep)")
+    ap.add_argument("--position-scale", type=float, default=1.0, help="multiply the scene's position threshold")
     args = ap.parse_args()
     W, H = (int(v) for v in args.resolution.split("x"))
     cfg = ExperimentConfig(scene=args.scene, out=".", frames=args.frames, width=W, height=H,
@@ -79,6 +82,7 @@ def main() -> None:
     scene = load_scene(args.scene)
     ctx = RenderContext(spec_for(cfg, scene, Path(args.cache_dir)), scene=scene)
     pos_thr, nrm_thr = scene.thresholds(H, threshold_scale(H))
+    pos_thr, nrm_thr = pos_thr * args.position_scale, nrm_thr * args.normal_scale
     alphas = [float(a) for a in args.alphas.split(",")]
     drv = {a: SpatiotemporalReprojection(pos_thr, nrm_thr, alpha=a, stereo=False) for a in alphas}
     clean = {a: SpatiotemporalReprojection(pos_thr, nrm_thr, alpha=a, stereo=False) for a in alphas}
@@ -142,10 +146,12 @@ def main() -> None:
         report[str(a)] = {"regions": rows, "concentration": {k: float(np.mean([c[k] for c in conc[a]]))
                                                              for k in conc[a][0]}}
     rec = {**header(), "scene": args.scene, "resolution": f"{W}x{H}", "frames": args.frames,
+           "thresholds": {"position": pos_thr, "normal": nrm_thr},
            "after_warmup_from": WARMUP_FRAMES, "reference_spp": args.reference_spp, "ladder_spp": L,
            "alphas": report, "figure_frame": {"frame": fig_frame, "regions": fig_shares, "concentration": fig_conc}}
     lines = [f"Error anatomy of the temporal scheme, {args.scene} {W}×{H}, frames {WARMUP_FRAMES}..{args.frames - 1} "
-             f"(LDR squared error; reference {args.reference_spp} spp; two-rung ladder 1 and {L} spp)", ""]
+             f"(LDR squared error; reference {args.reference_spp} spp; two-rung ladder 1 and {L} spp; thresholds: "
+             f"position {pos_thr:g}, normal {nrm_thr:g})", ""]
     for a in alphas:
         r = report[str(a)]
         lines += [f"**alpha = {a}**: the worst 1 % of pixels hold {r['concentration']['top_1pct']:.0f} % of the "
@@ -158,7 +164,9 @@ def main() -> None:
                          f"{'–' if b is None else f'{b:.0f}'} | {'–' if e is None else f'{e:.1f}'} |")
         lines.append("")
     name = f"error_anatomy_{args.scene}_{W}x{H}"
-    save(name, rec, "\n".join(lines) + "\n")
+    if args.normal_scale != 1.0 or args.position_scale != 1.0:
+        name += f"_pos{args.position_scale:g}_nrm{args.normal_scale:g}"
+    save(name, rec, "\n".join(lines) + "\n", script="error_anatomy.py")
     if fig is not None:
         _figure(fig, RESULTS / f"{name}.png", f"{args.scene} {W}x{H}, frame {fig_frame}, alpha {alphas[0]}")
     print("\n".join(lines))
