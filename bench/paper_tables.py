@@ -38,7 +38,7 @@ def tables(runs: dict[str, dict]) -> str:
              "**Table 1** — discarded pixels (%)", "",
              "| scene | stereo, ours | paper | temporal, ours | paper |", "|---|---|---:|---|---:|"]
     for scene, r in runs.items():
-        t1 = PAPER_T1.get(PAPER_NAME.get(scene, "").split(" (")[0], {})
+        t1 = PAPER_T1.get(PAPER_NAME.get(r["scene"], "").split(" (")[0], {})
         cells = [scene]
         for k in ("stereo", "temporal"):
             p = t1.get(k)
@@ -48,7 +48,7 @@ def tables(runs: dict[str, dict]) -> str:
               "| scene | stereo, ours | paper | temporal, ours | paper | stereo+temporal, ours | paper |",
               "|---|---|---:|---|---:|---|---:|"]
     for scene, r in runs.items():
-        t2 = PAPER_T2.get(PAPER_NAME.get(scene, ""))
+        t2 = PAPER_T2.get(PAPER_NAME.get(r["scene"], ""))
         cells = [scene]
         for i, k in enumerate(("stereo", "temporal", "stereo_temporal")):
             cells += [_cell(r["table2"][k]), f"{t2[i][0]:.2f} ({t2[i][2]:.2f})" if t2 else "–"]
@@ -81,11 +81,11 @@ def main(argv=None) -> int:
     runs = {}
     for d in args.runs:
         r = json.loads((Path(d) / "results.json").read_text())
-        runs[r["scene"]] = {k: r.get(k) for k in ("table1", "table2", "table2_variants", "reference_study", "frames",
+        runs[Path(d).name] = {k: r.get(k) for k in ("table1", "table2", "table2_variants", "reference_study", "frames",
                                                   "resolution", "reference_spp", "reference_chunk_spp", "ladder_spp",
                                                   "warmup_frames", "metric", "code", "jitter", "cost", "timing_ms",
                                                   "bias", "cache", "wall_s", "thresholds", "flags")}
-        runs[r["scene"]]["path"] = str(d)
+        runs[Path(d).name].update(path=str(d), scene=r["scene"])
     md = tables(runs)
     save(args.name, {**header(), "runs": runs, "paper_table1": PAPER_T1, "paper_table2": PAPER_T2}, md)
     print(md)
