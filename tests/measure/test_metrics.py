@@ -529,9 +529,11 @@ class TestEffectiveSppLadder:
 
 class TestSuggestReferenceSpp:
     def test_smoke(self):
-        assert suggest_reference_spp(16) == 256
+        assert suggest_reference_spp(16) == 16  # the study: inside the ladder a reference at its top is enough
+        assert suggest_reference_spp(32) == 32
         assert suggest_reference_spp(16, ratio=8) == 128
-        assert suggest_reference_spp(10) == 256  # 160 rounded up to a power of two
+        assert suggest_reference_spp(10, ratio=16) == 256  # 160 rounded up to a power of two
+        assert suggest_reference_spp(10) == 16
         assert suggest_reference_spp(0.1, ratio=1) == 1
 
     def test_exceptions(self):
