@@ -158,9 +158,8 @@ def _gbuffer_key(ctx: RenderContext, frame: int, eye: int) -> dict:
     return ctx.key(frame, eye, kind="gbuffer")
 
 
-def gbuffer_task(ctx: RenderContext, frame: int, eye: int):
-    """Ensure the G-buffer entry of (frame, eye) is in the cache; returns (data, meta)."""
-    cam, prev = ctx.camera(frame, eye)
+def _gbuffer_entry(ctx: RenderContext, key: dict, frame: int, cam, prev):
+    """The cache entry ``key`` holding the G-buffer of ``cam`` (with motion to ``prev``): (data, meta)."""
 
     def make():
         r = ctx.tracer.gbuffer(cam, frame, prev_camera=prev)
@@ -170,7 +169,12 @@ def gbuffer_task(ctx: RenderContext, frame: int, eye: int):
                 out[name] = getattr(r, name).numpy()
         return out, {"ms": r.time_s * 1e3, "rays": r.ray_counts}
 
-    return ctx.cache.get_or_make(_gbuffer_key(ctx, frame, eye), make)
+    return ctx.cache.get_or_make(key, make)
+
+
+def gbuffer_task(ctx: RenderContext, frame: int, eye: int):
+    """Ensure the G-buffer entry of (frame, eye) is in the cache; returns (data, meta)."""
+    return _gbuffer_entry(ctx, _gbuffer_key(ctx, frame, eye), frame, *ctx.camera(frame, eye))
 
 
 def _jitter_key(ctx, frame: int, eye: int, kind: str) -> dict:
@@ -182,17 +186,8 @@ def _jitter_key(ctx, frame: int, eye: int, kind: str) -> dict:
 def jitter_gbuffer_task(ctx: RenderContext, frame: int, eye: int):
     """The G-buffer of (frame, eye) through the frame's jittered camera (motion: to the previous frame's jittered
     camera, so the vectors include the change of jitter); returns (data, meta)."""
-    cam, prev = ctx.camera(frame, eye, jittered=True)
-
-    def make():
-        r = ctx.tracer.gbuffer(cam, frame, prev_camera=prev)
-        out = {"depth": r.depth.numpy(), "normal": r.normal.numpy()}
-        for name in ("motion", "motion_world", "object_id"):
-            if getattr(r, name) is not None:
-                out[name] = getattr(r, name).numpy()
-        return out, {"ms": r.time_s * 1e3, "rays": r.ray_counts}
-
-    return ctx.cache.get_or_make(_jitter_key(ctx, frame, eye, "gbuffer_jitter"), make)
+    return _gbuffer_entry(ctx, _jitter_key(ctx, frame, eye, "gbuffer_jitter"), frame,
+                          *ctx.camera(frame, eye, jittered=True))
 
 
 def jitter_sample_task(ctx: RenderContext, frame: int, eye: int):
