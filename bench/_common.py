@@ -64,6 +64,25 @@ def time_interleaved(fns: dict, repeats: int = 7, warmup: int = 2, sync=None) ->
 
     ``sync``: called before and after every timed call (e.g. ``torch.cuda.synchronize``, so that a call's time is
     its own kernels, not the queue before it)."""
+    ts = time_rounds(fns, repeats, warmup, sync)
+    return {name: {"median_ms": statistics.median(v), "min_ms": min(v), "max_ms": max(v), "repeats": repeats}
+            for name, v in ts.items()}
+
+
+def paired_ratio(fn_a, fn_b, repeats: int = 7, warmup: int = 2) -> dict:
+    """Time ``fn_a`` and ``fn_b`` in alternation and return the ratio b / a of each round (the two calls back to
+    back see the same load): {median, min, max, q1, q3, rounds, a_median_ms, b_median_ms}. A ratio of medians
+    of separately timed groups moves with the load between the groups; this one only with the load within a
+    round."""
+    ts = time_rounds({"a": fn_a, "b": fn_b}, repeats, warmup)
+    r = sorted(b / a for a, b in zip(ts["a"], ts["b"]))
+    q = statistics.quantiles(r, n=4) if len(r) > 1 else [r[0]] * 3
+    return {"median": statistics.median(r), "min": r[0], "max": r[-1], "q1": q[0], "q3": q[2], "rounds": repeats,
+            "a_median_ms": statistics.median(ts["a"]), "b_median_ms": statistics.median(ts["b"])}
+
+
+def time_rounds(fns: dict, repeats: int = 7, warmup: int = 2, sync=None) -> dict:
+    """The round-robin of :func:`time_interleaved`: name -> the ``repeats`` times in ms, in round order."""
     sync = sync or (lambda: None)
     for _ in range(warmup):
         for fn in fns.values():
@@ -77,8 +96,7 @@ def time_interleaved(fns: dict, repeats: int = 7, warmup: int = 2, sync=None) ->
             fn()
             sync()
             ts[name].append((time.perf_counter() - t0) * 1e3)
-    return {name: {"median_ms": statistics.median(v), "min_ms": min(v), "max_ms": max(v), "repeats": repeats}
-            for name, v in ts.items()}
+    return ts
 
 
 def floor_bytes(px: int) -> dict[str, int]:

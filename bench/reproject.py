@@ -18,7 +18,8 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import copy_floor, floor_bytes, header, peak_rss_delta, save, time_interleaved  # noqa: E402
+from _common import (copy_floor, floor_bytes, header, paired_ratio, peak_rss_delta, save,  # noqa: E402
+                     time_interleaved)
 
 from stereorepro import StereoReprojection, TemporalReprojection, export_onnx  # noqa: E402
 from stereorepro.io.onnx import example_inputs  # noqa: E402
@@ -117,6 +118,8 @@ def main(argv=None) -> int:
     ap.add_argument("--height", type=int, default=720)
     ap.add_argument("--width", type=int, default=1280)
     ap.add_argument("--repeats", type=int, default=7)
+    ap.add_argument("--paired-repeats", type=int, default=21,
+                    help="rounds of the paired onnxruntime / torch eager timing")
     ap.add_argument("--no-onnx", action="store_true")
     ap.add_argument("--no-memory", action="store_true")
     ap.add_argument("--memory-child", nargs=2, metavar=("CASE", "IMPL"), help=argparse.SUPPRESS)
@@ -201,16 +204,33 @@ def main(argv=None) -> int:
     for r in rows:  # ratio to torch eager on the same op, in this run
         t = next((x["median_ms"] for x in rows if x["op"] == r["op"] and x["impl"] == "torch eager"), None)
         r["x_torch_eager"] = r["median_ms"] / t if t else None
+    # onnxruntime against torch eager, paired: the two called in alternation, the ratio taken per round (the groups
+    # above are timed one after the other, so their ratio also carries the change of load between groups). Both
+    # run ~60-120 ms, against which the other's spinning threads (< 1 ms) do not count.
+    paired = []
+    with torch.inference_mode():
+        for name, *_ in cases:
+            if (name, "torch eager") in fns and (name, "onnxruntime") in fns:
+                paired.append({"op": name, **paired_ratio(fns[(name, "torch eager")], fns[(name, "onnxruntime")],
+                                                          args.paired_repeats)})
     mem = [] if args.no_memory else memory_rows(H, W, ["torch", "native", "onnxruntime"] if not args.no_onnx
                                                 else ["torch", "native"])
-    record = {**header(), "resolution": f"{W}x{H}", "rows": rows, "memory": mem,
-              "floor_bytes": nbytes}
+    record = {**header(), "resolution": f"{W}x{H}", "rows": rows, "paired_onnxruntime_torch": paired,
+              "memory": mem, "floor_bytes": nbytes}
     lines = ["| op | implementation | median ms | min ms | × copy floor | × torch eager |",
              "|---|---|---:|---:|---:|---:|"]
     for r in rows:
         xt = "" if r["x_torch_eager"] is None else f"{r['x_torch_eager']:.2f}"
         lines.append(f"| {r['op']} | {r['impl']} | {r['median_ms']:.1f} | {r['min_ms']:.1f} | {r['x_floor']:.1f} "
                      f"| {xt} |")
+    if paired:
+        lines += ["", f"onnxruntime / torch eager, paired (the two called in alternation, {args.paired_repeats} "
+                  "rounds after warm-up; the ratio of each round):", "",
+                  "| op | median | quartiles | min – max | torch eager ms | onnxruntime ms |",
+                  "|---|---:|---:|---:|---:|---:|"]
+        for r in paired:
+            lines.append(f"| {r['op']} | **{r['median']:.2f}** | {r['q1']:.2f} – {r['q3']:.2f} | {r['min']:.2f} – "
+                         f"{r['max']:.2f} | {r['a_median_ms']:.1f} | {r['b_median_ms']:.1f} |")
     if mem:
         lines += ["", "Peak memory of one call (the first, in a fresh process, inputs built and session created: the "
                   "rise of VmHWM over VmRSS), against the bytes of its inputs and outputs:", "",
