@@ -42,7 +42,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from ..camera import Warp, has_surface
-from ._general import as_scalar, finite_or_zero
+from ._general import as_scalar, compute_dtype, finite_or_zero
 from .reason import Reason
 
 #: Border of the tables: coordinates clamped to [-4, W + 4] give taps -5 .. W + 4.
@@ -342,3 +342,35 @@ def lean_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, ds
     if values.dtype != src_values.dtype:  # (a same-dtype .to() is exported as a Cast: a copy of the image)
         values = values.to(src_values.dtype)
     return values, valid, reason, den
+
+
+def lean_blend(current_color: Tensor, history_color: Tensor, history_len: Tensor, valid: Tensor, alpha, warmup: bool,
+               max_history) -> tuple[Tensor, Tensor]:
+    """:func:`~stereorepro.reproject.temporal_blend` with hard tests in the export formulation, for the history
+    :func:`lean_reproject` warps (finite everywhere: its values are sums of finite table entries), with arithmetic
+    where the general blend has ``Where`` (about 11 ms of a 720p temporal call in onnxruntime).
+
+    The current frame's weight ``a`` is raised to 1 where the history is discarded, so one expression,
+    ``(1 − a)·history + a·current``, gives the blend where the history is kept (the same operations as
+    :func:`temporal_blend`) and ``0·history + current`` elsewhere and where ``a`` reaches 1: the current sample
+    (a zero's sign aside), non-finite ones included. The new count is ``n_next·v + (1 − v)``: ``n_next`` or 1.
+
+    Args:
+        current_color: (B, 3, H, W); history_color: (B, 3, H, W) and history_len: (B, 1, H, W) as warped by
+            :func:`lean_reproject`; valid: (B, 1, H, W) bool; alpha, warmup, max_history: as ``temporal_blend``.
+
+    Returns:
+        color (B, 3, H, W) in the dtype of ``current_color``, history_len (B, 1, H, W) in the compute dtype.
+    """
+    wdt = compute_dtype(current_color, history_color)
+    cur, hist = current_color.to(wdt), history_color.to(wdt)
+    n = torch.relu(history_len.to(wdt))  # finite here: max(n, 0) is temporal_blend's "negative: no history"
+    v = valid.to(wdt)
+    a_min = as_scalar(alpha, n).clamp(0.0, 1.0)
+    a = torch.maximum(1.0 / (n + 1.0), a_min) if warmup else a_min
+    a = torch.maximum(a, 1.0 - v)  # 1 where the history is discarded
+    out = (1.0 - a) * hist + a * cur
+    n_out = torch.minimum(n + 1.0, as_scalar(max_history, n)) * v + (1.0 - v)
+    if out.dtype != current_color.dtype:
+        out = out.to(current_color.dtype)
+    return out, n_out

@@ -202,6 +202,12 @@ def backward_reproject(
                            motion, motion_world, rectified)
 
 
+def _exporting_lean(soft: bool, motion) -> bool:
+    """Whether this call is being exported in the export formulation (:mod:`._lean`): hard tests, no motion
+    vectors, :data:`EXPORT_LEAN`."""
+    return EXPORT_LEAN and not soft and motion is None and torch.onnx.is_in_onnx_export()
+
+
 def _warp(src_K, src_cam_from_world, dst_K, dst_cam_from_world, dtype, dst_depth, rectified: bool):
     """The composed warp (:func:`compose_warp`), rectified when the caller declares a rectified pair."""
     warp = compose_warp(src_K, src_cam_from_world, dst_K, dst_cam_from_world, dtype)
@@ -215,7 +221,7 @@ def _torch_backward(src_values, src_depth, src_normal, src_K, src_cam_from_world
     the export formulation (:mod:`._lean`) while exporting to ONNX with hard tests."""
     wdt = compute_dtype(src_values, src_depth, src_normal, dst_depth, dst_normal)
     warp = _warp(src_K, src_cam_from_world, dst_K, dst_cam_from_world, wdt, dst_depth, rectified)
-    if EXPORT_LEAN and not soft and motion is None and torch.onnx.is_in_onnx_export():
+    if _exporting_lean(soft, motion):
         return _lean.lean_reproject(src_values, src_depth, src_normal, dst_depth, dst_normal, warp,
                                     position_threshold, normal_threshold, sampling, rectified)
     inference = inference_only((src_values, src_depth, src_normal, dst_depth, dst_normal, src_K, dst_K,
@@ -502,5 +508,9 @@ def temporal_reproject(
     else:
         warped, valid, reason, den = _torch_backward(*args, soft, temperature, motion, motion_world)
         confidence = den if soft else valid
+        if _exporting_lean(soft, motion):  # the blend in the export formulation too (its warped history is finite)
+            color, n = _lean.lean_blend(current_color, warped[:, :3], warped[:, 3:4], valid, alpha, warmup,
+                                        max_history)
+            return (color, n, valid, reason) if return_reason else (color, n, valid)
     color, n = temporal_blend(current_color, warped[:, :3], warped[:, 3:4], confidence, alpha, warmup, max_history)
     return (color, n, valid, reason) if return_reason else (color, n, valid)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from stereorepro import StereoReprojection, TemporalReprojection, export_onnx, stereo_reproject
+from stereorepro import StereoReprojection, TemporalReprojection, export_onnx, stereo_reproject, temporal_blend
 from stereorepro.camera import compose_warp, rectify_warp
 from stereorepro.errors import CameraError
 from stereorepro.io.onnx import example_inputs, onnx_input_dims
@@ -166,6 +166,48 @@ class TestRectified(BaseTester):
             assert torch.equal(a, b)
 
 
+class TestLeanBlend(BaseTester):
+    """The blend in the export formulation (``_lean.lean_blend``, arithmetic instead of Where) against
+    temporal_blend, on what it is given: finite warped histories, hard masks; hostile current samples."""
+
+    @staticmethod
+    def case(seed=0, B=2, H=9, W=11):
+        g = torch.Generator().manual_seed(seed)
+        cur = torch.rand(B, 3, H, W, generator=g) * 4
+        flat = cur.view(-1)
+        pick = torch.randint(0, flat.numel(), (12,), generator=g)
+        flat[pick] = torch.tensor([float("nan"), float("inf"), -float("inf"), 1e30, -0.0, 0.0] * 2)
+        hist = torch.randn(B, 3, H, W, generator=g) * 3
+        n = torch.tensor([-5.0, -0.0, 0.0, 0.5, 1.0, 7.0, 300.0])[torch.randint(0, 7, (B, 1, H, W), generator=g)]
+        valid = torch.rand(B, 1, H, W, generator=g) < 0.6
+        return cur, hist, n, valid
+
+    def test_smoke(self):
+        cur, hist, n, valid = self.case()
+        out, n_out = _lean.lean_blend(cur, hist, n, valid, 0.2, True, 255.0)
+        assert out.shape == cur.shape and n_out.shape == n.shape and out.dtype == cur.dtype
+
+    @pytest.mark.parametrize("warmup", [True, False])
+    @pytest.mark.parametrize("alpha", [0.2, 1.0, 1e-6])
+    @pytest.mark.parametrize("max_history", [1.0, 8.0, float("inf")])
+    def test_equals_temporal_blend(self, warmup, alpha, max_history):
+        """Values equal to temporal_blend's (a zero's sign aside), NaN where it has NaN; counts identical."""
+        for seed in range(3):
+            cur, hist, n, valid = self.case(seed)
+            ref = temporal_blend(cur, hist, n, valid, alpha, warmup, max_history)
+            got = _lean.lean_blend(cur, hist, n, valid, alpha, warmup, max_history)
+            torch.testing.assert_close(got[0], ref[0], atol=0, rtol=0, equal_nan=True)
+            assert torch.equal(got[1], ref[1])
+
+    def test_hard_cases(self):
+        """Discarded history: the current sample exactly, non-finite ones included, whatever the weight."""
+        cur, hist, n, _ = self.case(5)
+        none = torch.zeros_like(n, dtype=torch.bool)
+        out, n_out = _lean.lean_blend(cur, hist, n, none, 0.2, False, 255.0)
+        torch.testing.assert_close(out, cur, atol=0, rtol=0, equal_nan=True)
+        assert bool((n_out == 1).all())
+
+
 def _ort_session(path):
     ort = pytest.importorskip("onnxruntime")
     return ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
@@ -187,6 +229,7 @@ MODULES = {
     "stereo_nearest": lambda: StereoReprojection(*THR, sampling="nearest"),
     "stereo_rectified": lambda: StereoReprojection(*THR, rectified=True),
     "temporal": lambda: TemporalReprojection(*THR),
+    "temporal_fixed_alpha": lambda: TemporalReprojection(*THR, warmup=False),
 }
 
 
@@ -256,9 +299,11 @@ class TestExportedGraph:
                                 if any("GatherElements" in c for c in n.output)}
         assert "NonZero" not in ops and ops.count("GatherElements") >= 4 * 8
         # Where with a computed (not constant) value operand costs ~1 ns per element in onnxruntime: only the
-        # camera composition's snapping (3 x 3 matrices) and the two coordinates sent to the border keep one
+        # camera composition's snapping (3 x 3 matrices) keeps one; none on an image, in the temporal blend neither
         computed = _computed_where(model)
-        assert len(computed) <= 5, computed
+        assert len(computed) <= 3, computed
+        temporal = onnx.load(str(export_onnx(TemporalReprojection(*THR), tmp_path / "temporal.onnx")))
+        assert len(_computed_where(temporal)) <= len(computed), _computed_where(temporal)
         # the general formulation, still available, is what the benchmark compares against
         functional.EXPORT_LEAN = False
         try:
