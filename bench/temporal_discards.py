@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from _common import header, save
 
-from stereorepro.camera import has_surface
+from stereorepro.camera import camera_motion, has_surface
 from stereorepro.measure.experiment.config import RIGHT
 from stereorepro.render import PathTracer
 from stereorepro.reproject import Reason, backward_reproject
@@ -43,13 +43,11 @@ def slowed(scene, k: int):
     return out
 
 
-def pose_change(a: torch.Tensor, b: torch.Tensor) -> tuple[float, float]:
-    """(translation of the camera centre, rotation angle in degrees) from cam_from_world ``a`` to ``b`` (1, 4, 4)."""
-    ca = -a[0, :3, :3].T @ a[0, :3, 3]
-    cb = -b[0, :3, :3].T @ b[0, :3, 3]
-    r = a[0, :3, :3] @ b[0, :3, :3].T
+def pose_change(a, b) -> tuple[float, float]:
+    """(distance between the camera centres, rotation angle in degrees) from PinholeCamera ``a`` to ``b``."""
+    r = a.cam_from_world[0, :3, :3].double() @ b.cam_from_world[0, :3, :3].double().T
     cos = float(((torch.trace(r) - 1) / 2).clamp(-1, 1))
-    return float(torch.linalg.norm(ca - cb)), math.degrees(math.acos(cos))
+    return float(torch.linalg.norm(a.center_world.double() - b.center_world.double())), math.degrees(math.acos(cos))
 
 
 def measure(scene_name: str, W: int, H: int, frames: int, k: int) -> dict:
@@ -62,12 +60,20 @@ def measure(scene_name: str, W: int, H: int, frames: int, k: int) -> dict:
     counts = {r.name.lower(): 0 for r in Reason if r != Reason.KEPT}
     surf_total = disc_total = 0
     per_frame, trans, rot, flow_mean, flow_p95 = [], [], [], [], []
+    views = {}  # frame -> (camera, G-buffer); at k = 1 a pair's current frame is the next pair's previous one
+
+    def view(fr: int):
+        if fr not in views:
+            cam = scene.stereo_cameras(fr, W, H)[RIGHT]
+            views[fr] = (cam, tracer.gbuffer(cam, fr))
+        return views[fr]
+
     for f in range(1, frames):
         cur_f, prev_f = k * f, k * f - 1
-        cam = scene.stereo_cameras(cur_f, W, H)[RIGHT]
-        prev = scene.stereo_cameras(prev_f, W, H)[RIGHT]
-        g = tracer.gbuffer(cam, cur_f, prev_camera=prev, prev_frame=prev_f)
-        gp = tracer.gbuffer(prev, prev_f)
+        for old in [x for x in views if x < prev_f]:
+            del views[old]
+        prev, gp = view(prev_f)
+        cam, g = view(cur_f)
         _, valid, reason, _ = backward_reproject(
             torch.zeros(1, 3, H, W), gp.depth, gp.normal, prev.K.float(), prev.cam_from_world.double(),
             g.depth, g.normal, cam.K.float(), cam.cam_from_world.double(), thr_p, thr_n)
@@ -78,10 +84,12 @@ def measure(scene_name: str, W: int, H: int, frames: int, k: int) -> dict:
         for r in counts:
             counts[r] += int(((reason == int(Reason[r.upper()])) & surf).sum())
         per_frame.append(100.0 * float(disc.sum()) / max(int(surf.sum()), 1))
-        t, a = pose_change(prev.cam_from_world.double(), cam.cam_from_world.double())
+        t, a = pose_change(prev, cam)
         trans.append(t)
         rot.append(a)
-        m = g.motion[0].norm(dim=0)[surf[0, 0]].double() * (720.0 / H)  # pixels of a 720-row image
+        motion = camera_motion(g.depth, cam.K, cam.cam_from_world, prev.K, prev.cam_from_world)  # static scenes
+        m = motion[0].double().norm(dim=0)[surf[0, 0]]
+        m = m[torch.isfinite(m)] * (720.0 / H)  # pixels of a 720-row image (NaN: behind the previous camera)
         flow_mean.append(float(m.mean()))
         flow_p95.append(float(torch.quantile(m[:: max(1, m.numel() // 200_000)], 0.95)))
     pct = lambda n: 100.0 * n / max(surf_total, 1)  # noqa: E731
