@@ -67,11 +67,12 @@ and in the fit, the estimate depends on ``MSE - b``, so ``b`` must stay small co
 variance ``a / n_last`` or the flat region swallows the resolvable range: with
 ``N_ref = k * n_last`` the last rung carries ``b / MSE_last = 1 / (k + 1)`` of its error as floor. For
 ``"extrapolated_high"`` estimates use ``k >= 8``; the paper's 4096 spp reference leaves ``b`` at < 0.4 % of the
-16-spp rung's error. Inside the ladder the cancellation holds in practice down to ``k = 1/2``: measured on the Living
-Room at 1280×720 with a 1..32-spp ladder (``experiment --reference-chunk-spp``: every ladder scored against the
-reference's prefixes), the three schemes' effective spp moved by at most 1.3 % between references of 16, 32, 64,
-128 and 256 spp (3 frames, 1.5–3.8 spp), and by at most 0.7 % between 16 and 32 spp over 30 frames (1.5–13.7
-spp). Hence :func:`suggest_reference_spp`'s default ``k = 1``.
+16-spp rung's error. Inside the ladder the cancellation holds in practice down to ``k = 1/2``: measured on the three
+real scenes at 1280×720 with a 1..32-spp ladder (``experiment --reference-chunk-spp``: every ladder scored against
+the reference's prefixes; README, Tables 1–2, item 4), the three schemes' average effective spp moved by at most
+0.9 / 0.6 / 1.6 % (Living Room / Classroom / Sponza) between references of 16, 32, 64, 128 and 256 spp (3 frames),
+and by at most 0.7 / 1.2 / 0.3 % between 16 and 32 spp over 30 frames. Hence :func:`suggest_reference_spp`'s
+default ``k = 1``.
 
 Shapes: B batch, C channels, H height, W width, N ladder rungs, F frames (one effective spp per frame).
 """

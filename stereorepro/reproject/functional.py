@@ -508,9 +508,7 @@ def temporal_reproject(
     else:
         warped, valid, reason, den = _torch_backward(*args, soft, temperature, motion, motion_world)
         confidence = den if soft else valid
-        if _exporting_lean(soft, motion):  # the blend in the export formulation too (its warped history is finite)
-            color, n = _lean.lean_blend(current_color, warped[:, :3], warped[:, 3:4], valid, alpha, warmup,
-                                        max_history)
-            return (color, n, valid, reason) if return_reason else (color, n, valid)
-    color, n = temporal_blend(current_color, warped[:, :3], warped[:, 3:4], confidence, alpha, warmup, max_history)
+    # exporting the reprojection's export formulation: its blend too (the history it warps is finite)
+    blend = _lean.lean_blend if not native and _exporting_lean(soft, motion) else temporal_blend
+    color, n = blend(current_color, warped[:, :3], warped[:, 3:4], confidence, alpha, warmup, max_history)
     return (color, n, valid, reason) if return_reason else (color, n, valid)
