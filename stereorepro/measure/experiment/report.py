@@ -188,21 +188,18 @@ def _write_outputs(out: Path, results: dict, per_frame, keep, cfg) -> None:
                           f"{_fmt(100 * b[kk]['bias_share_of_mse']['avg'], 1)} % |")
     report += ["", f"For scale: the left eye's {results['ladder_spp']}-spp RMSE averages "
                f"{_fmt(b['ladder_top_rmse']['avg'], 4)}.", ""]
-    if results.get("flip"):
-        report += ["", "## FLIP", "",
-                   "Mean LDR FLIP (NVIDIA's perceptual error, 0 = identical; radiance clamped to [0, 1]) against the "
-                   "reference, averaged over frames. Effective spp above stays MSE-based: it rests on the 1/n decay "
-                   "of an unbiased estimator's MSE, which FLIP does not have.", "",
-                   "| scheme | FLIP (avg) | Min | Max |", "|---|---:|---:|---:|"]
-        for kk, v in results["flip"].items():
-            report.append(f"| {kk} | {_fmt(v['avg'], 4)} | {_fmt(v['min'], 4)} | {_fmt(v['max'], 4)} |")
-    if results.get("ssim"):
-        report += ["", "## SSIM", "",
-                   "Mean LDR SSIM (Gaussian window 11, sigma 1.5, radiance clamped to [0, 1]; 1 = identical) of the "
-                   "paper's schemes against the reference, averaged over frames.", "",
-                   "| scheme | SSIM (avg) | Min | Max |", "|---|---:|---:|---:|"]
-        for kk, v in results["ssim"].items():
-            report.append(f"| {kk} | {_fmt(v['avg'], 4)} | {_fmt(v['min'], 4)} | {_fmt(v['max'], 4)} |")
+    for metric, about in (
+            ("FLIP", "Mean LDR FLIP (NVIDIA's perceptual error, 0 = identical; radiance clamped to [0, 1]) against the "
+                     "reference, averaged over frames. Effective spp above stays MSE-based: it rests on the 1/n decay "
+                     "of an unbiased estimator's MSE, which FLIP does not have."),
+            ("SSIM", "Mean LDR SSIM (Gaussian window 11, sigma 1.5, radiance clamped to [0, 1]; 1 = identical) of the "
+                     "paper's schemes against the reference, averaged over frames.")):
+        stats = results.get(metric.lower())
+        if stats:
+            report += ["", f"## {metric}", "", about, "",
+                       f"| scheme | {metric} (avg) | Min | Max |", "|---|---:|---:|---:|"]
+            report += [f"| {kk} | {_fmt(v['avg'], 4)} | {_fmt(v['min'], 4)} | {_fmt(v['max'], 4)} |"
+                       for kk, v in stats.items()]
     report += ["", "## What accuracy costs in time", "",
                f"Median per frame: 1-spp trace of one eye {_fmt(t['trace_1spp_ms'], 1)} ms, G-buffer "
                f"{_fmt(t['gbuffer_ms'], 1)} ms, tracing only the left eye's discarded pixels "
