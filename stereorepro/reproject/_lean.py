@@ -21,8 +21,8 @@ channels) and some forty whole-image ``Where`` / ``Cast`` nodes for the per-tap 
   (``OUT_OF_FRAME`` off the image, ``NO_SURFACE_SRC``, ``NONFINITE``) from the tables and the padded depth, and
   the tests repeated with the real depth; the rest follows from the depth and the projection in arithmetic
   (exact small integers);
-* non-finite normals are zeroed by ``ThresholdedRelu(alpha=-inf)`` twice with ``Neg`` (a comparison
-  ``x > -inf``, spec-defined for NaN and ±inf) instead of ``Where``; values (which a rejected tap multiplies by
+* non-finite normals are zeroed by ``ThresholdedRelu(alpha=-inf)`` (a comparison ``x > -inf``, spec-defined
+  for NaN and ±inf) of ``x − (x − x)`` (NaN where ``x`` is not finite) instead of ``Where``; values (which a rejected tap multiplies by
   0) only need to be finite: one ``ThresholdedRelu`` and a ``Clip``;
 * **rectified** (the caller declares a parallel rig at one instant, :func:`~stereorepro.camera.rectify_warp`):
   the vertical fraction of every tap is 0, so only the two taps of row y0 are read; the y0 + 1 taps have weight 0
@@ -56,6 +56,11 @@ def _const(value, wdt: torch.dtype, dev) -> Tensor:
     return torch.full((), float(value), dtype=wdt, device=dev)
 
 
+def _column(values, dtype: torch.dtype, dev) -> Tensor:
+    """A (T, 1) constant (``torch.full`` pieces: ``torch.tensor`` of a list warns while tracing)."""
+    return torch.cat([torch.full((1, 1), v, dtype=dtype, device=dev) for v in values])
+
+
 def _finite(x: Tensor) -> Tensor:
     """``isfinite(x)`` as ``|x| < inf`` (NaN compares false): two cheap nodes, where the exporter writes
     ``isfinite`` as a cast to double, IsInf, IsNaN, Or and Not."""
@@ -63,10 +68,10 @@ def _finite(x: Tensor) -> Tensor:
 
 
 class _ZeroNonFinite(torch.autograd.Function):
-    """``x`` with NaN and ±inf replaced by 0 (``finite_or_zero``). Exported as ``-TR(-TR(x))`` with
-    ``TR = ThresholdedRelu(alpha=-inf)`` (``x if x > -inf else 0``: NaN and -inf to 0, then +inf through the
-    negation): four streaming nodes instead of a mask and a ``Where``. onnxruntime has ThresholdedRelu in float32
-    only, so float64 graphs keep ``Where``."""
+    """``x`` with NaN and ±inf replaced by 0 (``finite_or_zero``). Exported as ``TR(x − (x − x))`` with
+    ``TR = ThresholdedRelu(alpha=-inf)`` (``x if x > -inf else 0``): ``x − x`` is 0 where ``x`` is finite and NaN
+    elsewhere, so ``x − (x − x)`` is ``x`` or NaN, which TR makes 0: three streaming nodes instead of a mask and a
+    ``Where``. onnxruntime has ThresholdedRelu in float32 only, so float64 graphs keep ``Where``."""
 
     @staticmethod
     def forward(ctx, x: Tensor) -> Tensor:  # noqa: D102 (what eager runs: the same values)
@@ -74,9 +79,7 @@ class _ZeroNonFinite(torch.autograd.Function):
 
     @staticmethod
     def symbolic(g, x):  # noqa: D102
-        for _ in range(2):
-            x = g.op("Neg", g.op("ThresholdedRelu", x, alpha_f=-math.inf))
-        return x
+        return g.op("ThresholdedRelu", g.op("Sub", x, g.op("Sub", x, x)), alpha_f=-math.inf)
 
 
 class _Pick(torch.autograd.Function):
@@ -173,16 +176,24 @@ class _TapGeometry:
         self.thr_p2, self.thr_n2 = thr_p2, thr_n2
         self._kx, self._ky, self._g = {}, {}, {}
 
-    def position_ok(self, z: Tensor, dx: int, dy: int) -> Tensor:
+    def position_ok(self, z: Tensor, dx, dy) -> Tensor:
         """|P_src − q|² <= thr² of tap (x0 + dx, y0 + dy) of depth z: px = z·((ki0·ut + ki1·vt) + ki2),
-        py = z·(ki4·vt + ki5) with ut = x + 0.5, vt = y + 0.5 of the tap (warp_pixels' order)."""
+        py = z·(ki4·vt + ki5) with ut = x + 0.5, vt = y + 0.5 of the tap (warp_pixels' order). ``dx``, ``dy``:
+        ints (the terms of each are cached), or (T, 1) float tensors of stacked taps."""
         ki = self.ki
-        if dx not in self._kx:
-            self._kx[dx] = ki[0] * (self.x0 + (dx + 0.5))
-        if dy not in self._ky:
+        if isinstance(dx, Tensor) or dx not in self._kx:
+            kx = ki[0] * (self.x0 + (dx + 0.5))
+            if isinstance(dx, int):
+                self._kx[dx] = kx
+        else:
+            kx = self._kx[dx]
+        if isinstance(dy, Tensor) or dy not in self._ky:
             vt = self.y0 + (dy + 0.5)
-            self._ky[dy] = (ki[1] * vt, ki[4] * vt + ki[5])
-        kx, (ky, ky_p) = self._kx[dx], self._ky[dy]
+            ky, ky_p = ki[1] * vt, ki[4] * vt + ki[5]
+            if isinstance(dy, int):
+                self._ky[dy] = ky, ky_p
+        else:
+            ky, ky_p = self._ky[dy]
         px = z * (kx + ky + ki[2])
         py = z * ky_p
         q = self.q
@@ -289,7 +300,6 @@ def lean_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, ds
     valid = den > 0
     inval = 1.0 - valid.to(wdt)
     den_safe = den + inval  # den where valid, 1 elsewhere (where num = 0)
-    values = torch.stack([x / den_safe for x in num], 1)
 
     # --- reasons: NO_SURFACE_DST (1) / BEHIND_CAMERA (2) from the projection, 0 where valid, and the taps' codes
     # for the pixels that have a surface in front of the source camera but accepted nothing
@@ -305,40 +315,57 @@ def lean_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, ds
             return None
         return torch.gather(x.reshape(-1), 0, batch if per_batch else pick)
 
-    geo_k = _TapGeometry(*(sel(x) for x in (x0, y0, fx, fy)), [sel(k, True) for k in ki], [sel(x) for x in q],
-                         [sel(x) for x in nd], thr_p2, thr_n2)
+    # the taps stacked: (T, K) tensors, one node per step for all taps (T, K-element nodes cost their launch more
+    # than their elements); the arithmetic of each element is that of the tap it stands for
+    T = len(taps)
+    dxi = _column([dx for dx, _ in taps], torch.int64, dev)  # (T, 1): constants ...
+    dyi = _column([dy for _, dy in taps], torch.int64, dev)
+    offsets = dyi * Wp + dxi  # ... and Wp a traced size (a Python int here would be baked into the graph)
+    dxs, dys = dxi.to(wdt), dyi.to(wdt)
+    x0_k, y0_k = sel(x0).unsqueeze(0), sel(y0).unsqueeze(0)  # (1, K)
+
+    def row(x: Tensor | None) -> Tensor | None:
+        return None if x is None else x.unsqueeze(0)
+
+    geo_k = _TapGeometry(x0_k, y0_k, None, None, [row(sel(k, True)) for k in ki], [row(sel(x)) for x in q],
+                         [row(sel(x)) for x in nd], thr_p2, thr_n2)
     # each tap's destination-independent code, from what the tables hold: OUT_OF_FRAME off the source image, else
     # _OK where z is acceptable, NONFINITE where the pixel has a surface (its values are not finite), NO_SURFACE_SRC
     depth_table = F.pad(src_depth.to(wdt), (PAD,) * 4, value=math.nan).reshape(-1)
     z_table = tap_tables[C].reshape(-1)
     normal_tables = [tab.reshape(-1) for tab in tap_tables[C + 1:]]
-    corner_k = sel(corner).to(torch.int64) + batch * tap_tables[0].shape[1]
+    index = (sel(corner).to(torch.int64) + batch * tap_tables[0].shape[1]).unsqueeze(0) + offsets  # (T, K)
+
+    def tap_gather(table: Tensor) -> Tensor:  # (T, -1): an exported 0 (K = 0) would mean "keep that dimension"
+        return torch.gather(table, 0, index.reshape(-1)).reshape(T, -1)
+
+    xt, yt = x0_k + dxs, y0_k + dys
+    in_frame = (xt >= 0) & (xt <= Ws - 1) & (yt >= 0) & (yt <= Hs - 1)
+    z_raw = tap_gather(depth_table)
+    # in exact small-integer arithmetic: 4 or 7 (surface), 8 where acceptable, 3 off the image
+    code = has_surface(z_raw).to(wdt) * 3.0 + float(Reason.NO_SURFACE_SRC)
+    code = code + _finite(tap_gather(z_table)).to(wdt) * (_OK - code)
+    code = (code - float(Reason.OUT_OF_FRAME)) * in_frame.to(wdt) + float(Reason.OUT_OF_FRAME)
+    pos_ok = geo_k.position_ok(z_raw, dxs, dys)
+    nrm_ok = geo_k.normal_ok([tap_gather(tab) for tab in normal_tables])
     c_ok = _const(_OK, wdt, dev)
-    code_max = None
-    for dx, dy in taps:
-        index = corner_k + (dy * Wp + dx) if (dx or dy) else corner_k
-        xt, yt = geo_k.x0 + dx, geo_k.y0 + dy
-        in_frame = (xt >= 0) & (xt <= Ws - 1) & (yt >= 0) & (yt <= Hs - 1)
-        z_raw = torch.gather(depth_table, 0, index)
-        # in exact small-integer arithmetic: 4 or 7 (surface), 8 where acceptable, 3 off the image
-        code = has_surface(z_raw).to(wdt) * 3.0 + float(Reason.NO_SURFACE_SRC)
-        code = code + _finite(torch.gather(z_table, 0, index)).to(wdt) * (_OK - code)
-        code = (code - float(Reason.OUT_OF_FRAME)) * in_frame.to(wdt) + float(Reason.OUT_OF_FRAME)
-        pos_ok = geo_k.position_ok(z_raw, dx, dy)
-        nrm_ok = geo_k.normal_ok([torch.gather(tab, 0, index) for tab in normal_tables])
-        code = torch.minimum(torch.minimum(code, torch.where(pos_ok, c_ok, float(Reason.POSITION))),
-                             torch.where(nrm_ok, c_ok, float(Reason.NORMAL)))
-        if dx or dy:  # taps of weight 0 do not report a reason
-            code = code * (geo_k.weight(dx, dy) > 0).to(wdt)
-        code_max = code if code_max is None else torch.maximum(code_max, code)
+    code = torch.minimum(torch.minimum(code, torch.where(pos_ok, c_ok, float(Reason.POSITION))),
+                         torch.where(nrm_ok, c_ok, float(Reason.NORMAL)))
+    if T > 1:  # taps of weight 0 do not report a reason (tap (0, 0) always does)
+        fx_k, fy_k = sel(fx), sel(fy)
+        gx, gy = 1 - fx_k, 1 - fy_k  # the weight of each tap: (1 - fx | fx)·(1 - fy | fy), as _TapGeometry.weight
+        w = (torch.stack([fx_k if dx else gx for dx, _ in taps]) * torch.stack([fy_k if dy else gy for _, dy in taps]))
+        code = code * ((w > 0) | ((dxi + dyi) == 0)).to(wdt)
+    code_max = code.amax(0)
     reason = reason.reshape(-1).scatter(0, pick, code_max).reshape(B, 1, H, W).to(torch.uint8)
     shape = (B, 1, H, W)
     valid, den = valid.reshape(shape), den.reshape(shape)
     # The values' nodes are made last. onnxruntime's default order is a depth-first walk from the last-made output
     # node, visiting a node's last-made input first: so the colour's chain (taps, weights, value gathers) runs
     # before the reasons, and the taps' weights and indices are freed before the reasons' tensors are made
-    # (measured: peak 2.83x the stereo op's inputs + outputs, 3.00x with the values made first).
-    values = values.reshape(B, C, H, W)
+    # (measured: peak 2.83x the stereo op's inputs + outputs, 3.00x with the values made first). Each channel is
+    # reshaped before the Concat that makes the output (onnxruntime copies a Reshape whose result is a graph output).
+    values = torch.cat([(x / den_safe).reshape(B, 1, H, W) for x in num], 1)
     if values.dtype != src_values.dtype:  # (a same-dtype .to() is exported as a Cast: a copy of the image)
         values = values.to(src_values.dtype)
     return values, valid, reason, den

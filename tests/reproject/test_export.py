@@ -262,6 +262,26 @@ class TestExportedGraph:
             got = sess.run(None, {n: x.numpy() for n, x in zip(m.input_names, inp)})
             _compare(m, got, inp)
 
+    @pytest.mark.parametrize("which", ["src", "dst"])
+    def test_nonfinite_normals(self, which, tmp_path):
+        """Non-finite normal components count as 0 (finite_or_zero) in the graph too: NaN, +inf and -inf in the x
+        component of pixels whose normal is nearly along z, so that the zeroed normals pass the normal test."""
+        m = StereoReprojection(*THR)
+        path = export_onnx(m, tmp_path / "stereo.onnx")
+        inp = list(example_inputs(m, batch=2, height=24, width=32, seed=3))
+        k = m.input_names.index(f"{which}_normal")
+        normal = inp[k].clone()
+        facing = normal[:, 0].abs() < 0.05
+        specials = torch.tensor([float("nan"), float("inf"), -float("inf")])
+        flat = normal[:, 0][facing]
+        normal[:, 0][facing] = specials[torch.arange(flat.numel()) % 3]
+        inp[k] = normal
+        got = _ort_session(path).run(None, {n: x.numpy() for n, x in zip(m.input_names, inp)})
+        _compare(m, got, inp)
+        with torch.no_grad():
+            valid = m(*inp)[1][:, 0]
+        assert int(facing.sum()) > 50 and int((valid & facing).sum()) > 0.5 * int(facing.sum())
+
     @pytest.mark.parametrize("name", sorted(MODULES))
     def test_reference_evaluator(self, name, tmp_path):
         """onnx.checker (full check) and the onnx.reference evaluator, an independent runtime, on a tiny input.
