@@ -50,8 +50,10 @@ def ort_session(module, path, lean: bool = True):
         functional.EXPORT_LEAN = saved
     so = ort.SessionOptions()
     so.intra_op_num_threads = torch.get_num_threads()
-    # no spin-waiting between runs: its threads would take the cores from the calls timed next
-    so.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    # onnxruntime's default spin-waiting between the graph's nodes, stopped when a run ends (spinning threads
+    # would take the cores from the calls timed next): measured 6-15 % faster than no spinning at all
+    so.add_session_config_entry("session.intra_op.allow_spinning", "1")
+    so.add_session_config_entry("session.force_spinning_stop", "1")
     return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
 
 
@@ -213,9 +215,18 @@ def main(argv=None) -> int:
             if (name, "torch eager") in fns and (name, "onnxruntime") in fns:
                 paired.append({"op": name, **paired_ratio(fns[(name, "torch eager")], fns[(name, "onnxruntime")],
                                                           args.paired_repeats)})
+    # native float16 against native float32, paired the same way (both ~5-15 ms: the copy floors' bytes halve, the
+    # gathers and the arithmetic do not)
+    paired_half = []
+    with torch.inference_mode():
+        for name, *_ in cases:
+            if (name, "native fp16") in fns:
+                paired_half.append({"op": name, **paired_ratio(fns[(name, "native eager")], fns[(name, "native fp16")],
+                                                               args.paired_repeats)})
     mem = [] if args.no_memory else memory_rows(H, W, ["torch", "native", "onnxruntime"] if not args.no_onnx
                                                 else ["torch", "native"])
     record = {**header(), "resolution": f"{W}x{H}", "rows": rows, "paired_onnxruntime_torch": paired,
+              "paired_native_fp16_fp32": paired_half,
               "memory": mem, "floor_bytes": nbytes}
     lines = ["| op | implementation | median ms | min ms | × copy floor | × torch eager |",
              "|---|---|---:|---:|---:|---:|"]
@@ -229,6 +240,13 @@ def main(argv=None) -> int:
                   "| op | median | quartiles | min – max | torch eager ms | onnxruntime ms |",
                   "|---|---:|---:|---:|---:|---:|"]
         for r in paired:
+            lines.append(f"| {r['op']} | **{r['median']:.2f}** | {r['q1']:.2f} – {r['q3']:.2f} | {r['min']:.2f} – "
+                         f"{r['max']:.2f} | {r['a_median_ms']:.1f} | {r['b_median_ms']:.1f} |")
+    if paired_half:
+        lines += ["", f"native float16 / native float32, paired ({args.paired_repeats} rounds, as above):", "",
+                  "| op | median | quartiles | min – max | native fp32 ms | native fp16 ms |",
+                  "|---|---:|---:|---:|---:|---:|"]
+        for r in paired_half:
             lines.append(f"| {r['op']} | **{r['median']:.2f}** | {r['q1']:.2f} – {r['q3']:.2f} | {r['min']:.2f} – "
                          f"{r['max']:.2f} | {r['a_median_ms']:.1f} | {r['b_median_ms']:.1f} |")
     if mem:
