@@ -19,8 +19,9 @@ channels) and some forty whole-image ``Where`` / ``Cast`` nodes for the per-tap 
 * **reasons** are computed for the pixels that need them only (a surface, in front of the source camera, and
   nothing accepted: ``Compress`` and ``ScatterElements``, usually a few per cent of the image): their taps' codes
   (``OUT_OF_FRAME`` off the image, ``NO_SURFACE_SRC``, ``NONFINITE``) from the tables and the padded depth, and
-  the tests repeated with the real depth; the rest follows from the depth and the projection in arithmetic
-  (exact small integers);
+  the tests repeated with the real depth, on (taps, K) tensors (one node per step for all taps: a node on K
+  elements costs mostly its launch); the rest follows from the depth and the projection in arithmetic (exact small
+  integers);
 * non-finite normals are zeroed by ``ThresholdedRelu(alpha=-inf)`` (a comparison ``x > -inf``, spec-defined
   for NaN and ±inf) of ``x − (x − x)`` (NaN where ``x`` is not finite) instead of ``Where``; values (which a rejected tap multiplies by
   0) only need to be finite: one ``ThresholdedRelu`` and a ``Clip``;
