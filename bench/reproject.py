@@ -51,7 +51,7 @@ def ort_session(module, path, lean: bool = True):
     so = ort.SessionOptions()
     so.intra_op_num_threads = torch.get_num_threads()
     # onnxruntime's default spin-waiting between the graph's nodes, stopped when a run ends (spinning threads
-    # would take the cores from the calls timed next): measured 6-15 % faster than no spinning at all
+    # would take the cores from the calls timed next): measured 5-16 % faster than no spinning at all
     so.add_session_config_entry("session.intra_op.allow_spinning", "1")
     so.add_session_config_entry("session.force_spinning_stop", "1")
     return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
