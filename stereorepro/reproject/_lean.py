@@ -23,8 +23,8 @@ channels) and some forty whole-image ``Where`` / ``Cast`` nodes for the per-tap 
   elements costs mostly its launch); the rest follows from the depth and the projection in arithmetic (exact small
   integers);
 * non-finite normals are zeroed by ``ThresholdedRelu(alpha=-inf)`` (a comparison ``x > -inf``, spec-defined
-  for NaN and ±inf) of ``x − (x − x)`` (NaN where ``x`` is not finite) instead of ``Where``; values (which a rejected tap multiplies by
-  0) only need to be finite: one ``ThresholdedRelu`` and a ``Clip``;
+  for NaN and ±inf) of ``x − (x − x)`` (NaN where ``x`` is not finite) instead of ``Where``; values (which a
+  rejected tap multiplies by 0) only need to be finite: one ``ThresholdedRelu`` and a ``Clip``;
 * **rectified** (the caller declares a parallel rig at one instant, :func:`~stereorepro.camera.rectify_warp`):
   the vertical fraction of every tap is 0, so only the two taps of row y0 are read; the y0 + 1 taps have weight 0
   and contribute nothing to any output.
@@ -316,8 +316,8 @@ def lean_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, ds
             return None
         return torch.gather(x.reshape(-1), 0, batch if per_batch else pick)
 
-    # the taps stacked: (T, K) tensors, one node per step for all taps (T, K-element nodes cost their launch more
-    # than their elements); the arithmetic of each element is that of the tap it stands for
+    # the taps stacked as (T, K) tensors: one node per step for all taps; each element's arithmetic is that of the
+    # tap it stands for
     T = len(taps)
     dxi = _column([dx for dx, _ in taps], torch.int64, dev)  # (T, 1): constants ...
     dyi = _column([dy for _, dy in taps], torch.int64, dev)
@@ -355,7 +355,7 @@ def lean_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, ds
     if T > 1:  # taps of weight 0 do not report a reason (tap (0, 0) always does)
         fx_k, fy_k = sel(fx), sel(fy)
         gx, gy = 1 - fx_k, 1 - fy_k  # the weight of each tap: (1 - fx | fx)·(1 - fy | fy), as _TapGeometry.weight
-        w = (torch.stack([fx_k if dx else gx for dx, _ in taps]) * torch.stack([fy_k if dy else gy for _, dy in taps]))
+        w = torch.stack([fx_k if dx else gx for dx, _ in taps]) * torch.stack([fy_k if dy else gy for _, dy in taps])
         code = code * ((w > 0) | ((dxi + dyi) == 0)).to(wdt)
     code_max = code.amax(0)
     reason = reason.reshape(-1).scatter(0, pick, code_max).reshape(B, 1, H, W).to(torch.uint8)
