@@ -182,19 +182,19 @@ class _TapGeometry:
         py = z·(ki4·vt + ki5) with ut = x + 0.5, vt = y + 0.5 of the tap (warp_pixels' order). ``dx``, ``dy``:
         ints (the terms of each are cached), or (T, 1) float tensors of stacked taps."""
         ki = self.ki
-        if isinstance(dx, Tensor) or dx not in self._kx:
+        cached = not isinstance(dx, Tensor)  # stacked taps are computed once
+        kx = self._kx.get(dx) if cached else None
+        if kx is None:
             kx = ki[0] * (self.x0 + (dx + 0.5))
-            if isinstance(dx, int):
+            if cached:
                 self._kx[dx] = kx
-        else:
-            kx = self._kx[dx]
-        if isinstance(dy, Tensor) or dy not in self._ky:
+        kys = self._ky.get(dy) if cached else None
+        if kys is None:
             vt = self.y0 + (dy + 0.5)
-            ky, ky_p = ki[1] * vt, ki[4] * vt + ki[5]
-            if isinstance(dy, int):
-                self._ky[dy] = ky, ky_p
-        else:
-            ky, ky_p = self._ky[dy]
+            kys = ki[1] * vt, ki[4] * vt + ki[5]
+            if cached:
+                self._ky[dy] = kys
+        ky, ky_p = kys
         px = z * (kx + ky + ki[2])
         py = z * ky_p
         q = self.q
@@ -328,8 +328,8 @@ def lean_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, ds
     def row(x: Tensor | None) -> Tensor | None:
         return None if x is None else x.unsqueeze(0)
 
-    geo_k = _TapGeometry(x0_k, y0_k, None, None, [row(sel(k, True)) for k in ki], [row(sel(x)) for x in q],
-                         [row(sel(x)) for x in nd], thr_p2, thr_n2)
+    geo_k = _TapGeometry(x0_k, y0_k, row(sel(fx)), row(sel(fy)), [row(sel(k, True)) for k in ki],
+                         [row(sel(x)) for x in q], [row(sel(x)) for x in nd], thr_p2, thr_n2)
     # each tap's destination-independent code, from what the tables hold: OUT_OF_FRAME off the source image, else
     # _OK where z is acceptable, NONFINITE where the pixel has a surface (its values are not finite), NO_SURFACE_SRC
     depth_table = F.pad(src_depth.to(wdt), (PAD,) * 4, value=math.nan).reshape(-1)
@@ -353,9 +353,7 @@ def lean_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, ds
     code = torch.minimum(torch.minimum(code, torch.where(pos_ok, c_ok, float(Reason.POSITION))),
                          torch.where(nrm_ok, c_ok, float(Reason.NORMAL)))
     if T > 1:  # taps of weight 0 do not report a reason (tap (0, 0) always does)
-        fx_k, fy_k = sel(fx), sel(fy)
-        gx, gy = 1 - fx_k, 1 - fy_k  # the weight of each tap: (1 - fx | fx)·(1 - fy | fy), as _TapGeometry.weight
-        w = torch.stack([fx_k if dx else gx for dx, _ in taps]) * torch.stack([fy_k if dy else gy for _, dy in taps])
+        w = torch.cat([geo_k.weight(dx, dy) for dx, dy in taps])  # (T, K)
         code = code * ((w > 0) | ((dxi + dyi) == 0)).to(wdt)
     code_max = code.amax(0)
     reason = reason.reshape(-1).scatter(0, pick, code_max).reshape(B, 1, H, W).to(torch.uint8)
