@@ -36,6 +36,14 @@ CASES = (("stereo", StereoReprojection, {}, False, "stereo"),
          ("temporal", TemporalReprojection, {}, True, "temporal"))
 THRESHOLDS = dict(position_threshold=0.05, normal_threshold=0.3)
 
+#: The paired timings: (record key, implementation a, implementation b (the ratio is b / a), table title, column
+#: names of a and b).
+PAIRED = (("paired_onnxruntime_torch", "torch eager", "onnxruntime",
+           "onnxruntime / torch eager, paired (the two called in alternation, {n} rounds after warm-up; the ratio of "
+           "each round):", "torch eager", "onnxruntime"),
+          ("paired_native_fp16_fp32", "native eager", "native fp16",
+           "native float16 / native float32, paired ({n} rounds, as above):", "native fp32", "native fp16"))
+
 
 def ort_session(module, path, lean: bool = True):
     """An onnxruntime session of ``module`` exported to ``path`` (``lean``: the export formulation, as
@@ -208,47 +216,32 @@ def main(argv=None) -> int:
         r["x_torch_eager"] = r["median_ms"] / t if t else None
     # onnxruntime against torch eager, paired: the two called in alternation, the ratio taken per round (the groups
     # above are timed one after the other, so their ratio also carries the change of load between groups). Both
-    # run ~60-120 ms, against which the other's spinning threads (< 1 ms) do not count.
-    paired = []
+    # run ~60-120 ms, against which the other's spinning threads (< 1 ms) do not count. Native float16 against
+    # native float32 the same way (both ~5-15 ms: the copy floors' bytes halve, the gathers and the arithmetic do
+    # not).
+    paired = {key: [] for key, *_ in PAIRED}
     with torch.inference_mode():
-        for name, *_ in cases:
-            if (name, "torch eager") in fns and (name, "onnxruntime") in fns:
-                paired.append({"op": name, **paired_ratio(fns[(name, "torch eager")], fns[(name, "onnxruntime")],
-                                                          args.paired_repeats)})
-    # native float16 against native float32, paired the same way (both ~5-15 ms: the copy floors' bytes halve, the
-    # gathers and the arithmetic do not)
-    paired_half = []
-    with torch.inference_mode():
-        for name, *_ in cases:
-            if (name, "native fp16") in fns:
-                paired_half.append({"op": name, **paired_ratio(fns[(name, "native eager")], fns[(name, "native fp16")],
-                                                               args.paired_repeats)})
+        for key, impl_a, impl_b, *_ in PAIRED:
+            for name, *_ in cases:
+                if (name, impl_a) in fns and (name, impl_b) in fns:
+                    paired[key].append({"op": name, **paired_ratio(fns[(name, impl_a)], fns[(name, impl_b)],
+                                                                   args.paired_repeats)})
     mem = [] if args.no_memory else memory_rows(H, W, ["torch", "native", "onnxruntime"] if not args.no_onnx
                                                 else ["torch", "native"])
-    record = {**header(), "resolution": f"{W}x{H}", "rows": rows, "paired_onnxruntime_torch": paired,
-              "paired_native_fp16_fp32": paired_half,
-              "memory": mem, "floor_bytes": nbytes}
+    record = {**header(), "resolution": f"{W}x{H}", "rows": rows, **paired, "memory": mem, "floor_bytes": nbytes}
     lines = ["| op | implementation | median ms | min ms | × copy floor | × torch eager |",
              "|---|---|---:|---:|---:|---:|"]
     for r in rows:
         xt = "" if r["x_torch_eager"] is None else f"{r['x_torch_eager']:.2f}"
         lines.append(f"| {r['op']} | {r['impl']} | {r['median_ms']:.1f} | {r['min_ms']:.1f} | {r['x_floor']:.1f} "
                      f"| {xt} |")
-    if paired:
-        lines += ["", f"onnxruntime / torch eager, paired (the two called in alternation, {args.paired_repeats} "
-                  "rounds after warm-up; the ratio of each round):", "",
-                  "| op | median | quartiles | min – max | torch eager ms | onnxruntime ms |",
-                  "|---|---:|---:|---:|---:|---:|"]
-        for r in paired:
-            lines.append(f"| {r['op']} | **{r['median']:.2f}** | {r['q1']:.2f} – {r['q3']:.2f} | {r['min']:.2f} – "
-                         f"{r['max']:.2f} | {r['a_median_ms']:.1f} | {r['b_median_ms']:.1f} |")
-    if paired_half:
-        lines += ["", f"native float16 / native float32, paired ({args.paired_repeats} rounds, as above):", "",
-                  "| op | median | quartiles | min – max | native fp32 ms | native fp16 ms |",
-                  "|---|---:|---:|---:|---:|---:|"]
-        for r in paired_half:
-            lines.append(f"| {r['op']} | **{r['median']:.2f}** | {r['q1']:.2f} – {r['q3']:.2f} | {r['min']:.2f} – "
-                         f"{r['max']:.2f} | {r['a_median_ms']:.1f} | {r['b_median_ms']:.1f} |")
+    for key, _, _, title, col_a, col_b in PAIRED:
+        if paired[key]:
+            lines += ["", title.format(n=args.paired_repeats), "",
+                      f"| op | median | quartiles | min – max | {col_a} ms | {col_b} ms |",
+                      "|---|---:|---:|---:|---:|---:|"]
+            lines += [f"| {r['op']} | **{r['median']:.2f}** | {r['q1']:.2f} – {r['q3']:.2f} | {r['min']:.2f} – "
+                      f"{r['max']:.2f} | {r['a_median_ms']:.1f} | {r['b_median_ms']:.1f} |" for r in paired[key]]
     if mem:
         lines += ["", "Peak memory of one call (the first, in a fresh process, inputs built and session created: the "
                   "rise of VmHWM over VmRSS), against the bytes of its inputs and outputs:", "",
