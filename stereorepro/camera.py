@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import math
 import operator
+import warnings
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -173,19 +174,34 @@ def inverse_intrinsics(K: Tensor) -> Tensor:
 class Warp(NamedTuple):
     """Per-batch matrices of a backward warp from a destination camera into a source camera.
 
-    ``q = z · M @ [u, v, 1] + t`` is the destination pixel (u, v) at depth z as a point in the source camera's
-    frame, and ``uvw = P @ [u, v, 1] + kt / z`` its homogeneous source pixel, with ``M = R K_dst^-1``,
-    ``P = K_src M`` and ``kt = K_src t`` (R, t: ``src_cam_from_dst``).
+    ``q = z · ray_src_from_pixel_dst @ [u, v, 1] + t_src_from_dst`` is the destination pixel (u, v) at depth z as a
+    point in the source camera's frame, and ``uvw = pixel_src_from_pixel_dst @ [u, v, 1] + K_src_t / z`` its
+    homogeneous source pixel, with ``ray_src_from_pixel_dst = R K_dst^-1``, ``pixel_src_from_pixel_dst = K_src R
+    K_dst^-1`` (the homography at infinity) and ``K_src_t = K_src t`` (R, t: ``src_cam_from_dst``).
 
     Attributes:
-        M: (B, 3, 3). t: (B, 3, 1). P: (B, 3, 3). kt: (B, 3, 1). Ks_inv: (B, 3, 3) = ``K_src^-1``.
+        ray_src_from_pixel_dst: (B, 3, 3). t_src_from_dst: (B, 3, 1). pixel_src_from_pixel_dst: (B, 3, 3).
+        K_src_t: (B, 3, 1). K_src_inv: (B, 3, 3) = ``K_src^-1``.
+
+    The former one-letter names (``M``, ``t``, ``P``, ``kt``, ``Ks_inv``) still read the same fields, with a
+    DeprecationWarning, for one release; positional unpacking is unchanged.
     """
 
-    M: Tensor
-    t: Tensor
-    P: Tensor
-    kt: Tensor
-    Ks_inv: Tensor
+    ray_src_from_pixel_dst: Tensor
+    t_src_from_dst: Tensor
+    pixel_src_from_pixel_dst: Tensor
+    K_src_t: Tensor
+    K_src_inv: Tensor
+
+    def _legacy(self, old: str, new: str) -> Tensor:
+        warnings.warn(f"Warp.{old} is deprecated: use Warp.{new}", DeprecationWarning, stacklevel=3)
+        return getattr(self, new)
+
+    M = property(lambda self: self._legacy("M", "ray_src_from_pixel_dst"))
+    t = property(lambda self: self._legacy("t", "t_src_from_dst"))
+    P = property(lambda self: self._legacy("P", "pixel_src_from_pixel_dst"))
+    kt = property(lambda self: self._legacy("kt", "K_src_t"))
+    Ks_inv = property(lambda self: self._legacy("Ks_inv", "K_src_inv"))
 
 
 def _snap(A: Tensor, tol: float = 1e-12) -> Tensor:

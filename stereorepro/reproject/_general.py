@@ -299,7 +299,7 @@ def general_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor,
     processed in blocks of :data:`BLOCK_PIXELS`, so that the per-tap intermediates stay in cache (the op is
     memory-bound); results are bit-identical to one block. Gradients and tracing need one graph.
     """
-    wdt = warp.Ks_inv.dtype
+    wdt = warp.K_src_inv.dtype
     dev = dst_depth.device
     B, C, Hs, Ws = src_values.shape
     H, W = dst_depth.shape[-2:]
