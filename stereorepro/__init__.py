@@ -44,6 +44,12 @@ from .measure.metrics import (
     suggest_reference_spp,
 )
 from .reproject import (
+    Blend,
+    History,
+    ReprojectionResult,
+    TemporalResult,
+    Thresholds,
+    View,
     Reason,
     StereoReprojection,
     TemporalReprojection,
@@ -68,6 +74,8 @@ __all__ = [
     # cameras and conventions
     "PinholeCamera", "StereoRig", "Warp", "camera_motion", "compose_warp", "has_surface", "intrinsics_from_fov", "invert_rigid",
     "look_at", "pixel_centers", "project", "unproject",
+    # the data model of the ops: G-buffer views, settings, named results
+    "View", "Thresholds", "Blend", "History", "ReprojectionResult", "TemporalResult",
     # reprojection ops and modules
     "Reason", "StereoReprojection", "TemporalReprojection", "backward_reproject", "reason_to_rgb",
     "stereo_reproject", "temporal_blend", "temporal_reproject", "export_onnx",

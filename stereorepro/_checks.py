@@ -16,7 +16,7 @@ from torch import Tensor
 from .errors import CameraError, ShapeError
 
 __all__ = ["check_shape", "check_floating", "check_device", "check_camera", "check_same_hw", "check_sampling",
-           "check_reprojection_inputs", "check_camera_values", "check_motion", "check_scalar", "check_thresholds", "intrinsics_problem", "rigid_problem",
+           "check_reprojection_inputs", "check_camera_values", "check_motion", "check_scalar", "check_thresholds", "check_blend", "intrinsics_problem", "rigid_problem",
            "tracing", "ShapeError", "CameraError", "SAMPLINGS", "STEREO_NAMES", "TEMPORAL_NAMES"]
 
 #: Tap sampling of the reprojection: 2×2 bilinear taps (the paper's) or the one nearest tap.
@@ -211,6 +211,15 @@ def check_thresholds(position_threshold, normal_threshold, tracing: bool | None 
         return
     check_scalar(position_threshold, "position_threshold", 0.0, allow_inf=True, tracing=False)
     check_scalar(normal_threshold, "normal_threshold", 0.0, allow_inf=True, tracing=False)
+
+
+def check_blend(alpha, max_history, tracing: bool | None = None) -> None:
+    """The temporal blend's scalars: ``alpha`` a finite number (clamped to [0, 1] where used), ``max_history`` a
+    number >= 1 (``inf``: no cap)."""
+    if _skip(tracing):
+        return
+    check_scalar(alpha, "alpha", tracing=False)
+    check_scalar(max_history, "max_history", 1.0, allow_inf=True, tracing=False)
 
 
 def check_same_hw(a: Tensor, b: Tensor, name_a: str, name_b: str, tracing: bool | None = None) -> None:

@@ -19,8 +19,8 @@ Per frame, for a stereo pair, :class:`SpatiotemporalReprojection`:
 Switching ``temporal`` or ``stereo`` off gives the paper's other two schemes: stereo only (right eye at 1 spp,
 left = reprojection + traced discards) and temporal only (the right eye's accumulation).
 
-Beyond the paper (issue #15 item 6; the authors' follow-up, IEEE Access 8:133514, 2020, reports +47 % effective
-spp from blending traced and stereo-reprojected data), two schemes at the same ray budget (one eye in full at
+Beyond the paper (the authors' follow-up, IEEE Access 8:133514, 2020, reports +47 % effective spp from blending
+traced and stereo-reprojected data), two schemes at the same ray budget (one eye in full at
 1 spp plus the other eye's stereo discards, every frame):
 
 * **Blended left eye** (``left_mode="blend"``, :func:`blend_histories`). The paper's left eye is a *fill*: where
@@ -60,9 +60,9 @@ from torch import Tensor
 
 from ._checks import (STEREO_NAMES, TEMPORAL_NAMES, check_camera, check_floating, check_motion,
                       check_reprojection_inputs, check_scalar, check_shape, tracing)
-from .reproject import Reason, StereoReprojection, TemporalReprojection, temporal_reproject
-from .reproject.functional import backward_reproject, temporal_blend, warp_values
-from .reproject._general import as_scalar, compute_dtype
+from ._tensors import as_scalar, compute_dtype
+from .reproject import History, Reason, StereoReprojection, TemporalReprojection, Thresholds, View, temporal_reproject
+from .reproject.functional import temporal_blend, temporal_views, warp_values
 
 __all__ = ["EyeState", "temporal_step", "warp_history", "blend_histories", "SpatiotemporalReprojection",
            "LEFT_MODES", "STEREO_WEIGHT"]
@@ -73,12 +73,7 @@ LEFT_MODES = ("fill", "blend")
 
 #: Default ``stereo_weight`` ρ of :func:`blend_histories`: a reprojected right history counts as ρ times its length.
 #: Once both histories are saturated the reprojection's share is ρ/(1 + ρ), so the blend adds a memory pole
-#: 1/(1 + ρ) to the EMA's 1 − alpha: ρ trades variance for lag. Measured on the analytic test scenes (alpha 0.2,
-#: frames 10-29, three noise seeds), the left eye's MSE relative to the fill for ρ = 0.25 / 0.5 / 1 / 2:
-#: ×0.57 / 0.67 / 0.78 / 0.86 (static, identity stereo: pure variance), ×0.65 / 0.66 / 0.73 / 0.82 (moving
-#: head); the noise-free moving sequence's error (resampling blur compounded) 3.8e-4 (fill) → 10.1e-4 / 6.8e-4 /
-#: 5.2e-4; after a ×2 lighting step the error falls below 1e-2 in 6 frames (fill), 9 (ρ = 0.5), 7 (ρ = 1), > 10
-#: (ρ = 0.25). 0.5 keeps nearly all of 0.25's gain in motion with its pole (2/3) below the EMA's (0.8).
+#: 1/(1 + ρ) to the EMA's 1 − alpha: ρ trades variance for lag; 0.5 keeps the pole (2/3) below the EMA's (0.8).
 STEREO_WEIGHT = 0.5
 
 
@@ -98,6 +93,16 @@ class EyeState:
     normal: Tensor
     K: Tensor
     cam_from_world: Tensor
+
+    @property
+    def view(self) -> View:
+        """The G-buffer and camera the accumulated frame lives in."""
+        return View.unchecked(self.depth, self.normal, self.K, self.cam_from_world)
+
+    @property
+    def history(self) -> History:
+        """The accumulated colour and sample count."""
+        return History(self.color, self.history_len)
 
 
 def temporal_step(module: TemporalReprojection, state: EyeState | None, color: Tensor, depth: Tensor,
@@ -125,10 +130,11 @@ def temporal_step(module: TemporalReprojection, state: EyeState | None, color: T
         reason = torch.full_like(depth, int(Reason.NO_HISTORY), dtype=torch.uint8)
         return EyeState(color, n, depth, normal, K, cam_from_world), valid, reason
     m = module
-    out, n, valid, reason = temporal_reproject(
-        color, depth, normal, K, cam_from_world, state.color, state.history_len, state.depth, state.normal, state.K,
-        state.cam_from_world, m.position_threshold, m.normal_threshold, m.alpha, m.warmup, m.max_history, m.sampling,
-        m.soft, m.temperature, m.backend, return_reason=True, motion=motion, motion_world=motion_world)
+    view, prev_view = temporal_views(color, (depth, normal, K, cam_from_world), state.history,
+                                     (state.depth, state.normal, state.K, state.cam_from_world), (motion, motion_world))
+    out, n, valid, reason = temporal_reproject(color, view, state.history, prev_view, m.thresholds, blend=m.blend,
+                                               sampling=m.sampling, soft=m.soft, backend=m.backend,
+                                               return_reason=True)
     return EyeState(out, n, depth, normal, K, cam_from_world), valid, reason
 
 
@@ -162,10 +168,8 @@ def warp_history(module: TemporalReprojection, state: EyeState, depth: Tensor, n
     m = module
     work = compute_dtype(state.color, state.history_len)
     values = torch.cat([state.color.to(work), state.history_len.to(work)], 1)  # the sample count rides along
-    warped, valid, reason, _ = backward_reproject(
-        values, state.depth, state.normal, state.K, state.cam_from_world, depth, normal, K, cam_from_world,
-        m.position_threshold, m.normal_threshold, m.sampling, m.soft, m.temperature, check=False, backend=m.backend,
-        motion=motion, motion_world=motion_world)
+    view = View.unchecked(depth, normal, K, cam_from_world, motion, motion_world)
+    warped, valid, reason, _ = warp_values(values, state.view, view, m.thresholds, m.sampling, m.soft, m.backend)
     return warped[:, :3], warped[:, 3:4], valid, reason
 
 
@@ -452,10 +456,12 @@ class SpatiotemporalReprojection:
         r, m = getattr(self, f"{src_eye}_state"), self.stereo_module
         work = compute_dtype(r.color, r.history_len)
         values = torch.cat([r.color.to(work), r.history_len.to(work)], 1)  # the sample count rides along
-        args = (values, r.depth, r.normal, r.K, r.cam_from_world, depth, normal, K, cam_from_world)
-        check_reprojection_inputs(*args, dict(STEREO_NAMES, src_values=f"{src_eye} history"))
-        warped, valid, reason = warp_values(*args, m.position_threshold, m.normal_threshold, m.sampling,
-                                            backend=m.backend)
+        check_reprojection_inputs(values, r.depth, r.normal, r.K, r.cam_from_world, depth, normal, K, cam_from_world,
+                                  dict(STEREO_NAMES, src_values=f"{src_eye} history"))
+        dst = View.unchecked(depth, normal, K, cam_from_world)
+        hard = Thresholds(m.position_threshold, m.normal_threshold)  # the stereo step's tests are hard
+        warped, valid, reason, _ = warp_values(values, r.view, dst, hard, m.sampling, backend=m.backend,
+                                               confidence=False)
         self._stereo_out = (warped[:, :3], warped[:, 3:4])
         self.stereo_valid, self.stereo_reason = valid, reason
         return ~valid

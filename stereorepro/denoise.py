@@ -50,17 +50,23 @@ then the left eye with stereo features). The other eye has this eye's size.
 
 from __future__ import annotations
 
+import warnings
+from typing import NamedTuple
+
 import torch
 from torch import Tensor, nn
 
 from ._checks import check_shape, tracing
+from ._tensors import finite_or_zero
 from .camera import has_surface
 from .errors import ShapeError
-from .reproject import StereoReprojection, TemporalReprojection, stereo_reproject, temporal_reproject
-from .reproject._general import finite_or_zero
+from .reproject import (Blend, History, StereoReprojection, TemporalReprojection, Thresholds, View, stereo_reproject,
+                        temporal_reproject)
+from .reproject.functional import as_thresholds, stereo_views, temporal_views
+from .reproject.view import Field, view_fields
 
 __all__ = ["FEATURES", "STEREO_FEATURES", "OTHER_NAMES", "feature_channels", "denoise_features",
-           "reprojection_features", "reproject_denoise",
+           "reprojection_features", "reproject_denoise", "DenoiserFeatures", "DenoiseResult",
            "empty_history", "ReprojectionDenoiser", "denoiser_example_inputs"]
 
 #: The denoiser's input channels, in order (see the module docstring).
@@ -69,8 +75,9 @@ FEATURES = ("log1p_color_r", "log1p_color_g", "log1p_color_b", "history_len_norm
 #: Channels appended with ``stereo=True``.
 STEREO_FEATURES = ("log1p_stereo_r", "log1p_stereo_g", "log1p_stereo_b", "stereo_valid")
 
-#: The five extra inputs of the stereo variant, in order.
-OTHER_NAMES = ("other_color", "other_depth", "other_normal", "other_K", "other_cam_from_world")
+#: The five extra inputs of the stereo variant, in order: the other eye's colour and view (this eye's size).
+OTHER_FIELDS = (Field("other_color", ("B", "3", "H", "W")), *view_fields("other_"))
+OTHER_NAMES = tuple(f.name for f in OTHER_FIELDS)
 
 
 def feature_channels(stereo: bool = False) -> int:
@@ -120,84 +127,193 @@ def denoise_features(color: Tensor, history_len: Tensor, valid: Tensor, depth: T
     return torch.cat(feats, 1)
 
 
-def reprojection_features(current_color: Tensor, depth: Tensor, normal: Tensor, K: Tensor, cam_from_world: Tensor,
-                          history_color: Tensor, history_len: Tensor, prev_depth: Tensor, prev_normal: Tensor,
-                          prev_K: Tensor, prev_cam_from_world: Tensor, position_threshold, normal_threshold,
-                          alpha=0.2, warmup: bool = True, max_history: float = 255.0, sampling: str = "bilinear",
-                          backend: str = "auto", other: tuple[Tensor, Tensor, Tensor, Tensor, Tensor] | None = None
-                          ) -> tuple[Tensor, Tensor, Tensor]:
+class DenoiserFeatures(NamedTuple):
+    """What :func:`reprojection_features` returns: the denoiser's input and the new state.
+
+    Attributes:
+        features: (B, 9, H, W), or (B, 13, H, W) with the other eye (:func:`denoise_features`).
+        color: (B, 3, H, W) the accumulated colour — the next frame's history colour.
+        history_len: (B, 1, H, W) its sample count — the next frame's history length.
+    """
+
+    features: Tensor
+    color: Tensor
+    history_len: Tensor
+
+    @property
+    def history(self) -> History:
+        """The next frame's :class:`~stereorepro.History`."""
+        return History(self.color, self.history_len)
+
+
+class DenoiseResult(NamedTuple):
+    """What :func:`reproject_denoise` returns: ``denoised`` (B, 3, H, W), the denoiser's output, and the new state
+    ``color`` (B, 3, H, W), ``history_len`` (B, 1, H, W) (the plain accumulation, not the denoised frame)."""
+
+    denoised: Tensor
+    color: Tensor
+    history_len: Tensor
+
+    @property
+    def history(self) -> History:
+        """The next frame's :class:`~stereorepro.History`."""
+        return History(self.color, self.history_len)
+
+
+def _deprecated(name: str, new: str) -> None:
+    warnings.warn(f"{name} with flat tensor arguments is deprecated and will be removed in the next release: call "
+                  f"{new}", DeprecationWarning, stacklevel=3)
+
+
+def reprojection_features(current_color: Tensor, view: View, history, prev_view: View, thresholds, *legacy_args,
+                          blend: Blend = Blend(), sampling: str = "bilinear", backend: str = "auto",
+                          other: tuple[Tensor, View] | None = None, **legacy_kwargs) -> DenoiserFeatures:
     """The reprojection half of :func:`reproject_denoise`: the denoiser's input features and the new state.
 
     It has no trained parameters (hard tests), so a training loop can compute the features of a clip once and
     train the denoiser on them. Arguments as :func:`reproject_denoise` (without the denoiser).
 
     Returns:
-        features: (B, 9, H, W), or (B, 13, H, W) with ``other`` (:func:`denoise_features`).
-        color: (B, 3, H, W) the accumulated colour — the next frame's ``history_color``.
-        history_len: (B, 1, H, W) its sample count — the next frame's ``history_len``.
+        :class:`DenoiserFeatures` ``(features (B, 9 or 13, H, W), color (B, 3, H, W), history_len (B, 1, H, W))``.
+
+    The flat form (``current_color, depth, normal, K, cam_from_world, history_color, history_len, prev_depth,
+    prev_normal, prev_K, prev_cam_from_world, position_threshold, normal_threshold, ...``, ``other`` as five
+    tensors) still works for one release, with a DeprecationWarning.
+
+    Example:
+        >>> import torch
+        >>> from stereorepro import History, View, intrinsics_from_fov, reprojection_features
+        >>> depth = torch.full((1, 1, 6, 8), 2.0); normal = torch.zeros(1, 3, 6, 8); normal[:, 2] = -1
+        >>> view = View(depth, normal, intrinsics_from_fov(60.0, 8, 6), torch.eye(4)[None])
+        >>> out = reprojection_features(torch.rand(1, 3, 6, 8), view, History.empty(view), view, (0.01, 0.1))
+        >>> tuple(out.features.shape), float(out.history_len.max())
+        ((1, 9, 6, 8), 1.0)
     """
-    color, n, valid = temporal_reproject(current_color, depth, normal, K, cam_from_world, history_color,
-                                         history_len, prev_depth, prev_normal, prev_K, prev_cam_from_world,
-                                         position_threshold, normal_threshold, alpha, warmup, max_history,
-                                         sampling, backend=backend)
+    if not isinstance(view, View):
+        _deprecated("reprojection_features", "reprojection_features(current_color, view: View, history: History, "
+                    "prev_view: View, (position_threshold, normal_threshold), ...)")
+        args = (current_color, view, history, prev_view, thresholds) + legacy_args
+        kw = dict(legacy_kwargs, **({} if sampling == "bilinear" else {"sampling": sampling}),
+                  **({} if backend == "auto" else {"backend": backend}))
+        if other is not None:
+            kw["other"] = other
+        return _features_flat(*args, **kw)
+    if legacy_args or legacy_kwargs:
+        raise TypeError("reprojection_features: unexpected arguments with View inputs: "
+                        f"{len(legacy_args)} positional, {sorted(legacy_kwargs)}")
+    thr = as_thresholds(thresholds)
+    color, n, valid, _ = temporal_reproject(current_color, view, history, prev_view, thr, blend=blend,
+                                            sampling=sampling, backend=backend)
     s_color = s_valid = None
     if other is not None:
-        if len(other) != len(OTHER_NAMES):
-            raise ValueError(f"other: expected ({', '.join(OTHER_NAMES)}), got {len(other)} tensors")
-        o_color, o_depth, o_normal, o_K, o_T = other
-        check_shape(o_color, ["B", "3", "H", "W"], "other_color",
-                    {"B": depth.shape[0], "H": depth.shape[-2], "W": depth.shape[-1]})
-        s_color, s_valid, _ = stereo_reproject(o_color, o_depth, o_normal, o_K, o_T, depth, normal, K,
-                                               cam_from_world, position_threshold, normal_threshold, sampling,
-                                               backend=backend)
-    return denoise_features(color, n, valid, depth, normal, max_history, s_color, s_valid), color, n
+        o_color, o_view = other
+        s_color, s_valid, _, _ = stereo_reproject(o_color, o_view, view, Thresholds(thr.position, thr.normal),
+                                                  sampling=sampling, backend=backend)
+    max_history = Blend(*blend).max_history
+    return DenoiserFeatures(denoise_features(color, n, valid, view.depth, view.normal, max_history, s_color,
+                                             s_valid), color, n)
 
 
-def reproject_denoise(current_color: Tensor, depth: Tensor, normal: Tensor, K: Tensor, cam_from_world: Tensor,
-                      history_color: Tensor, history_len: Tensor, prev_depth: Tensor, prev_normal: Tensor,
-                      prev_K: Tensor, prev_cam_from_world: Tensor, denoiser, position_threshold,
-                      normal_threshold, alpha=0.2, warmup: bool = True, max_history: float = 255.0,
-                      sampling: str = "bilinear", backend: str = "auto",
-                      other: tuple[Tensor, Tensor, Tensor, Tensor, Tensor] | None = None
-                      ) -> tuple[Tensor, Tensor, Tensor]:
+#: Flat names of the other eye's inputs, for the checks of the flat forms.
+_OTHER_NAMES = dict(src_values="other_color", src_depth="other_depth", src_normal="other_normal", src="other",
+                    dst_depth="depth", dst_normal="normal", dst="current")
+
+
+def _flat_views(current_color: Tensor, current: tuple, history: tuple, previous: tuple, other: tuple | None):
+    """(view, History, prev_view, other as (colour, View) or None) of flat inputs, checked under their flat names."""
+    history = History(*history)
+    view, prev_view = temporal_views(current_color, current, history, previous)
+    if other is None:
+        return view, history, prev_view, None
+    if len(other) != len(OTHER_NAMES):
+        raise ValueError(f"other: expected ({', '.join(OTHER_NAMES)}), got {len(other)} tensors")
+    depth = current[0]
+    check_shape(other[0], ["B", "3", "H", "W"], "other_color",
+                {"B": depth.shape[0], "H": depth.shape[-2], "W": depth.shape[-1]})
+    o_view, _ = stereo_views(other[0], tuple(other[1:]), current, _OTHER_NAMES)
+    return view, history, prev_view, (other[0], o_view)
+
+
+def _features_flat(current_color, depth, normal, K, cam_from_world, history_color, history_len, prev_depth,
+                   prev_normal, prev_K, prev_cam_from_world, position_threshold, normal_threshold, alpha=0.2,
+                   warmup=True, max_history=255.0, sampling="bilinear", backend="auto", other=None):
+    """The flat form of :func:`reprojection_features` (deprecated): a plain 3-tuple."""
+    view, history, prev_view, other = _flat_views(current_color, (depth, normal, K, cam_from_world),
+                                                  (history_color, history_len),
+                                                  (prev_depth, prev_normal, prev_K, prev_cam_from_world), other)
+    return tuple(reprojection_features(current_color, view, history, prev_view, (position_threshold, normal_threshold),
+                                       blend=Blend(alpha, warmup, max_history), sampling=sampling, backend=backend,
+                                       other=other))
+
+
+def reproject_denoise(current_color: Tensor, view: View, history, prev_view: View, denoiser, thresholds,
+                      *legacy_args, blend: Blend = Blend(), sampling: str = "bilinear", backend: str = "auto",
+                      other: tuple[Tensor, View] | None = None, **legacy_kwargs) -> DenoiseResult:
     """Temporal reprojection, (optional) stereo reprojection and a denoiser, for one eye and one frame.
 
     Args:
         current_color: (B, 3, H, W) this frame's 1-spp colour.
-        depth, normal: (B, 1, H, W), (B, 3, H, W) this frame's G-buffer; K, cam_from_world: (B, 3, 3), (B, 4, 4).
-        history_color, history_len: (B, 3, Hp, Wp), (B, 1, Hp, Wp) the state returned for the previous frame
-            (first frame: :func:`empty_history`).
-        prev_depth, prev_normal, prev_K, prev_cam_from_world: the previous frame's G-buffer and camera.
+        view: this frame's :class:`~stereorepro.View` (H, W).
+        history: :class:`~stereorepro.History` ``(color (B, 3, Hp, Wp), length (B, 1, Hp, Wp))``, the state
+            returned for the previous frame (first frame: :meth:`History.empty <stereorepro.History.empty>`).
+        prev_view: the previous frame's :class:`~stereorepro.View` (Hp, Wp).
         denoiser: a callable (an nn.Module) mapping (B, C_in, H, W) features (:func:`denoise_features`;
             C_in = :func:`feature_channels`) to a (B, 3, H, W) frame.
-        position_threshold, normal_threshold, alpha, warmup, max_history, sampling, backend: the temporal
-            reprojection's settings (:func:`~stereorepro.reproject.temporal_reproject`; hard tests); the stereo
-            step uses the same thresholds, sampling and backend.
-        other: optional (other_color (B, 3, H, W), other_depth (B, 1, H, W), other_normal (B, 3, H, W), other_K
-            (B, 3, 3), other_cam_from_world (B, 4, 4)): the other eye's accumulated colour, G-buffer and camera,
-            reprojected into this eye as four more feature channels.
+        thresholds, blend, sampling, backend: the temporal reprojection's settings
+            (:func:`~stereorepro.reproject.temporal_reproject`; hard tests); the stereo step uses the same
+            thresholds, sampling and backend.
+        other: optional ``(other_color (B, 3, H, W), other_view)``: the other eye's accumulated colour and its
+            :class:`~stereorepro.View`, reprojected into this eye as four more feature channels.
 
     Returns:
-        denoised: (B, 3, H, W) the denoiser's output.
-        color: (B, 3, H, W) the accumulated colour — the next frame's ``history_color``.
-        history_len: (B, 1, H, W) its sample count — the next frame's ``history_len``.
+        :class:`DenoiseResult` ``(denoised (B, 3, H, W), color (B, 3, H, W), history_len (B, 1, H, W))``.
+
+    The flat form (``current_color, depth, normal, K, cam_from_world, history_color, history_len, prev_depth,
+    prev_normal, prev_K, prev_cam_from_world, denoiser, position_threshold, normal_threshold, ...``) still works
+    for one release, with a DeprecationWarning.
+
+    Example:
+        >>> import torch
+        >>> from stereorepro import History, View, intrinsics_from_fov, reproject_denoise
+        >>> from stereorepro.denoise import feature_channels
+        >>> depth = torch.full((1, 1, 6, 8), 2.0); normal = torch.zeros(1, 3, 6, 8); normal[:, 2] = -1
+        >>> view = View(depth, normal, intrinsics_from_fov(60.0, 8, 6), torch.eye(4)[None])
+        >>> net = torch.nn.Conv2d(feature_channels(), 3, 3, padding=1)
+        >>> out = reproject_denoise(torch.rand(1, 3, 6, 8), view, History.empty(view), view, net, (0.01, 0.1))
+        >>> tuple(out.denoised.shape)
+        (1, 3, 6, 8)
     """
+    if not isinstance(view, View):
+        _deprecated("reproject_denoise", "reproject_denoise(current_color, view: View, history: History, "
+                    "prev_view: View, denoiser, (position_threshold, normal_threshold), ...)")
+        args = (current_color, view, history, prev_view, denoiser, thresholds) + legacy_args
+        kw = dict(legacy_kwargs, **({} if sampling == "bilinear" else {"sampling": sampling}),
+                  **({} if backend == "auto" else {"backend": backend}))
+        if other is not None:
+            kw["other"] = other
+        return tuple(_denoise_flat(*args, **kw))
+    if legacy_args or legacy_kwargs:
+        raise TypeError("reproject_denoise: unexpected arguments with View inputs: "
+                        f"{len(legacy_args)} positional, {sorted(legacy_kwargs)}")
     if not callable(denoiser):
         raise TypeError(f"denoiser: expected a module mapping (B, C_in, H, W) to (B, 3, H, W), "
                         f"got {type(denoiser).__name__}")
-    x, color, n = reprojection_features(current_color, depth, normal, K, cam_from_world, history_color,
-                                        history_len, prev_depth, prev_normal, prev_K, prev_cam_from_world,
-                                        position_threshold, normal_threshold, alpha, warmup, max_history, sampling,
-                                        backend, other)
+    x, color, n = reprojection_features(current_color, view, history, prev_view, thresholds, blend=blend,
+                                        sampling=sampling, backend=backend, other=other)
+    return DenoiseResult(_run_denoiser(denoiser, x, current_color, other is not None), color, n)
+
+
+def _run_denoiser(denoiser, x: Tensor, current_color: Tensor, stereo: bool) -> Tensor:
+    """``denoiser(x)``, with errors that say what the features are and what the output must be."""
     if tracing():
-        return denoiser(x), color, n
+        return denoiser(x)
     try:
         denoised = denoiser(x)
     except RuntimeError as e:  # typically a first layer built for another C_in: say what the features are
         if "channels" not in str(e):
             raise
         raise ShapeError(f"denoiser: failed on the features, shape {tuple(x.shape)} (C_in = {x.shape[1]}: "
-                         f"{', '.join(FEATURES + (STEREO_FEATURES if other is not None else ()))}): {e}") from e
+                         f"{', '.join(FEATURES + (STEREO_FEATURES if stereo else ()))}): {e}") from e
     if not isinstance(denoised, Tensor):
         raise TypeError(f"denoiser: expected it to return a tensor of shape (B, 3, H, W), "
                         f"got {type(denoised).__name__}")
@@ -205,7 +321,19 @@ def reproject_denoise(current_color: Tensor, depth: Tensor, normal: Tensor, K: T
     if tuple(denoised.shape) != (B, 3, H, W):
         raise ShapeError(f"denoiser: expected an output of shape (B, 3, H, W) = {(B, 3, H, W)} for input "
                          f"features {tuple(x.shape)}, got {tuple(denoised.shape)}")
-    return denoised, color, n
+    return denoised
+
+
+def _denoise_flat(current_color, depth, normal, K, cam_from_world, history_color, history_len, prev_depth,
+                  prev_normal, prev_K, prev_cam_from_world, denoiser, position_threshold, normal_threshold, alpha=0.2,
+                  warmup=True, max_history=255.0, sampling="bilinear", backend="auto", other=None):
+    """The flat form of :func:`reproject_denoise` (deprecated)."""
+    view, history, prev_view, other = _flat_views(current_color, (depth, normal, K, cam_from_world),
+                                                  (history_color, history_len),
+                                                  (prev_depth, prev_normal, prev_K, prev_cam_from_world), other)
+    return reproject_denoise(current_color, view, history, prev_view, denoiser,
+                             (position_threshold, normal_threshold), blend=Blend(alpha, warmup, max_history),
+                             sampling=sampling, backend=backend, other=other)
 
 
 def empty_history(depth: Tensor, normal: Tensor, K: Tensor, cam_from_world: Tensor
@@ -244,7 +372,10 @@ class ReprojectionDenoiser(nn.Module):
     and Hp, Wp for the history).
     """
 
-    input_names = list(TemporalReprojection.input_names)
+    #: The forward's inputs without the other eye (name, symbolic shape): the temporal op's; with ``stereo`` the
+    #: other eye's colour and view follow (:data:`OTHER_FIELDS`).
+    input_fields = TemporalReprojection.input_fields
+    input_names = [f.name for f in input_fields]
     output_names = ["denoised", "color", "history_len_out"]
 
     def __init__(self, denoiser: nn.Module, position_threshold: float, normal_threshold: float, alpha: float = 0.2,
@@ -259,7 +390,8 @@ class ReprojectionDenoiser(nn.Module):
                                              sampling, backend=backend)
         self.stereo = bool(stereo)
         if self.stereo:
-            self.input_names = type(self).input_names + list(OTHER_NAMES)
+            self.input_fields = type(self).input_fields + OTHER_FIELDS
+            self.input_names = [f.name for f in self.input_fields]
         self.denoiser = denoiser
 
     @property
@@ -280,9 +412,11 @@ class ReprojectionDenoiser(nn.Module):
                             f"with stereo=True for stereo features")
         return others if self.stereo else None
 
-    def _settings(self) -> tuple:
-        t = self.temporal
-        return (t.position_threshold, t.normal_threshold, t.alpha, t.warmup, t.max_history, t.sampling, t.backend)
+    def _views(self, current_color: Tensor, current: tuple, history: tuple, previous: tuple, others: tuple,
+               method: str) -> tuple:
+        """(view, History, prev_view, other) of the flat inputs, checked under their flat names."""
+        other = self._other(others, method)
+        return _flat_views(current_color, current, history, previous, other)
 
     def features(self, current_color: Tensor, depth: Tensor, normal: Tensor, K: Tensor, cam_from_world: Tensor,
                  history_color: Tensor, history_len: Tensor, prev_depth: Tensor, prev_normal: Tensor,
@@ -292,10 +426,13 @@ class ReprojectionDenoiser(nn.Module):
                  ) -> tuple[Tensor, Tensor, Tensor]:
         """The forward without the denoiser: (features, color, history_len) (:func:`reprojection_features`), the
         denoiser's training input."""
-        other = self._other((other_color, other_depth, other_normal, other_K, other_cam_from_world), "features")
-        return reprojection_features(current_color, depth, normal, K, cam_from_world, history_color, history_len,
-                                     prev_depth, prev_normal, prev_K, prev_cam_from_world, *self._settings(),
-                                     other)
+        view, history, prev_view, other = self._views(
+            current_color, (depth, normal, K, cam_from_world), (history_color, history_len),
+            (prev_depth, prev_normal, prev_K, prev_cam_from_world),
+            (other_color, other_depth, other_normal, other_K, other_cam_from_world), "features")
+        t = self.temporal
+        return tuple(reprojection_features(current_color, view, history, prev_view, t.thresholds, blend=t.blend,
+                                           sampling=t.sampling, backend=t.backend, other=other))
 
     def forward(self, current_color: Tensor, depth: Tensor, normal: Tensor, K: Tensor, cam_from_world: Tensor,
                 history_color: Tensor, history_len: Tensor, prev_depth: Tensor, prev_normal: Tensor,
@@ -303,11 +440,13 @@ class ReprojectionDenoiser(nn.Module):
                 other_depth: Tensor | None = None, other_normal: Tensor | None = None,
                 other_K: Tensor | None = None, other_cam_from_world: Tensor | None = None
                 ) -> tuple[Tensor, Tensor, Tensor]:
-        other = self._other((other_color, other_depth, other_normal, other_K, other_cam_from_world), "forward")
-        pos, nrm, *rest = self._settings()
-        return reproject_denoise(current_color, depth, normal, K, cam_from_world, history_color, history_len,
-                                 prev_depth, prev_normal, prev_K, prev_cam_from_world, self.denoiser, pos, nrm,
-                                 *rest, other)
+        view, history, prev_view, other = self._views(
+            current_color, (depth, normal, K, cam_from_world), (history_color, history_len),
+            (prev_depth, prev_normal, prev_K, prev_cam_from_world),
+            (other_color, other_depth, other_normal, other_K, other_cam_from_world), "forward")
+        t = self.temporal
+        return tuple(reproject_denoise(current_color, view, history, prev_view, self.denoiser, t.thresholds,
+                                       blend=t.blend, sampling=t.sampling, backend=t.backend, other=other))
 
 
 def denoiser_example_inputs(module: ReprojectionDenoiser, batch: int = 1, height: int = 24, width: int = 32,

@@ -18,8 +18,15 @@ from .functional import (
 from ._general import SOFT_DEN_FLOOR
 from .modules import StereoReprojection, TemporalReprojection
 from .reason import REASON_COLORS, Reason, reason_to_rgb
+from .view import Blend, History, ReprojectionResult, TemporalResult, Thresholds, View
 
 __all__ = [
+    "View",
+    "Thresholds",
+    "Blend",
+    "History",
+    "ReprojectionResult",
+    "TemporalResult",
     "Reason",
     "REASON_COLORS",
     "SOFT_DEN_FLOOR",

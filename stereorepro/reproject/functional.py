@@ -35,20 +35,25 @@ inference fast path :mod:`._fast`) and the native kernels (:mod:`._native`), whi
 
 from __future__ import annotations
 
+import warnings
 from typing import Iterable
 
 import torch
 from torch import Tensor
 
 from .. import _backend
-from .._checks import (STEREO_NAMES, TEMPORAL_NAMES, check_floating, check_motion, check_reprojection_inputs,
-                       check_sampling, check_scalar, check_shape, check_thresholds, tracing)
+from .._checks import (check_blend, check_device, check_floating, check_sampling, check_shape, check_thresholds,
+                       tracing)
 from ..camera import compose_warp, rectify_warp
-from . import _fast, _general, _lean, _native
+from ..errors import ShapeError
+from . import _fast, _flat, _general, _lean, _native
+from ._flat import stereo_views, temporal_views
 from ._general import as_scalar, compute_dtype, inference_only, squared_thresholds
+from .view import Blend, History, ReprojectionResult, TemporalResult, Thresholds, View
 
 __all__ = ["BACKENDS", "backward_reproject", "stereo_reproject", "temporal_blend", "temporal_reproject",
-           "select_backend", "native_unsupported", "warp_values"]
+           "select_backend", "native_unsupported", "warp_values", "reproject_history", "as_thresholds", "stereo_views",
+           "temporal_views"]
 
 #: Backend names the ops accept (``STEREOREPRO_BACKEND`` also accepts ``numpy`` and ``reference`` for torch).
 BACKENDS = ("auto", "torch", "native")
@@ -111,95 +116,150 @@ def select_backend(backend: str, images: Iterable[Tensor], others: Iterable = ()
     return "native" if chosen == "native" else "torch"
 
 
+def _deprecated(name: str, new: str) -> None:
+    warnings.warn(f"{name} with flat tensor arguments is deprecated and will be removed in the next release: call "
+                  f"{new}", DeprecationWarning, stacklevel=3)
+
+
+def _given(**pairs) -> dict:
+    """The keyword arguments of a new-form call that differ from their defaults ``name=(value, default)``, to
+    forward to a flat (deprecated) call without clashing with its positional arguments."""
+    return {k: v for k, (v, default) in pairs.items() if v is not default and v != default}
+
+
+def _no_extra(op: str, args: tuple, kwargs: dict) -> None:
+    if args or kwargs:
+        extra = [f"{len(args)} more positional argument(s)"] if args else []
+        raise TypeError(f"{op}: unexpected arguments with View inputs: {', '.join(extra + sorted(kwargs))}")
+
+
+def as_thresholds(thresholds) -> Thresholds:
+    """``thresholds`` as :class:`Thresholds`: a Thresholds, or a ``(position, normal)`` pair (TypeError otherwise)."""
+    if isinstance(thresholds, Thresholds):
+        return thresholds
+    if isinstance(thresholds, (tuple, list)) and len(thresholds) in (2, 3):
+        return Thresholds(*thresholds)
+    raise TypeError(f"thresholds: expected Thresholds(position, normal) or a (position, normal) pair, got "
+                    f"{type(thresholds).__name__}")
+
+
+def _as_pair(x, cls, what: str):
+    if isinstance(x, cls):
+        return x
+    if isinstance(x, (tuple, list)) and len(x) == len(cls._fields):
+        return cls(*x)
+    raise TypeError(f"{what}: expected {cls.__name__}({', '.join(cls._fields)}), got {type(x).__name__}")
+
+
+def _check_op_inputs(op: str, values: Tensor, values_name: str, channels: str, src: View, dst: View,
+                     thr: Thresholds, sampling: str) -> None:
+    """Checks of an op's arguments beyond what each :class:`View` checked at construction: the values against the
+    source view, the two views against each other, the sampling and the thresholds."""
+    if not isinstance(src, View) or not isinstance(dst, View):
+        bad = "src" if not isinstance(src, View) else "dst"
+        raise TypeError(f"{op}: {bad} must be a stereorepro.View, got {type(src if bad == 'src' else dst).__name__}")
+    check_sampling(sampling)
+    if tracing():
+        return
+    check_shape(values, ["B", channels, "H", "W"], values_name, {"B": src.batch_size, "H": src.height,
+                                                                 "W": src.width}, False)
+    if values.shape[-2] == 0 or values.shape[-1] == 0:
+        raise ShapeError(f"{values_name}: the source image needs at least one pixel, got shape {tuple(values.shape)}")
+    check_floating(values, values_name, False)
+    if dst.batch_size != src.batch_size:
+        raise ShapeError(f"{op}: the views' batch sizes differ: {src.batch_size} (source) and {dst.batch_size} "
+                         f"(destination)")
+    check_device({values_name: values, "source view": src.depth, "destination view": dst.depth}, op, False)
+    check_thresholds(thr.position, thr.normal, False)
+
+
 def backward_reproject(
-    src_values: Tensor,
-    src_depth: Tensor,
-    src_normal: Tensor,
-    src_K: Tensor,
-    src_cam_from_world: Tensor,
-    dst_depth: Tensor,
-    dst_normal: Tensor,
-    dst_K: Tensor,
-    dst_cam_from_world: Tensor,
-    position_threshold,
-    normal_threshold,
+    values: Tensor,
+    src: View,
+    dst: View,
+    thresholds,
+    *legacy_args,
     sampling: str = "bilinear",
     soft: bool = False,
-    temperature: float = 0.1,
-    check: bool = True,
     backend: str = "auto",
-    motion: Tensor | None = None,
-    motion_world: Tensor | None = None,
     rectified: bool = False,
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Backward-warp ``src_values`` into the destination view with per-tap discard tests.
+    **legacy_kwargs,
+) -> ReprojectionResult:
+    """Backward-warp ``values`` of the source view into the destination view with per-tap discard tests.
 
     Args:
-        src_values: (B, C, Hs, Ws) values to carry (colour; extra channels such as history length ride along).
-        src_depth: (B, 1, Hs, Ws) camera-z depth of the source view.
-        src_normal: (B, 3, Hs, Ws) unit world-space shading normals of the source view.
-        src_K: (B, 3, 3) source intrinsics.
-        src_cam_from_world: (B, 4, 4) source extrinsics (rigid).
-        dst_depth: (B, 1, H, W) camera-z depth of the destination view.
-        dst_normal: (B, 3, H, W) unit world-space shading normals of the destination view.
-        dst_K: (B, 3, 3) destination intrinsics.
-        dst_cam_from_world: (B, 4, 4) destination extrinsics (rigid).
-        position_threshold: max |P_src − P_dst| in scene units (float or 0-d tensor).
-        normal_threshold: max |N_src − N_dst| between unit normals (float or 0-d tensor).
+        values: (B, C, Hs, Ws) values to carry (colour; extra channels such as history length ride along).
+        src: the source :class:`View` (Hs, Ws), whose pixels ``values`` are.
+        dst: the destination :class:`View` (H, W). Its ``motion`` (B, 2, H, W), when given, places the taps:
+            ``src_pixel = dst_pixel + motion`` instead of where the cameras put the destination point (non-finite
+            motion: ``OUT_OF_FRAME``), and the position test compares the source tap with ``P + motion_world``
+            (a moving object is kept, a disocclusion still rejected). Torch only: ``backend="auto"`` then runs
+            torch's general path.
+        thresholds: :class:`Thresholds` or ``(position, normal)``: max |P_src − P_dst| in scene units and max
+            |N_src − N_dst| between unit normals, each a number or one-element tensor >= 0.
         sampling: ``"bilinear"`` (2×2 taps, the paper's choice) or ``"nearest"`` (one tap).
         soft: replace the position and normal step functions by sigmoids
-            ``sigmoid((thr² − d²) / (2·temperature·thr²))`` (≈ a sigmoid in (thr − d) / (temperature·thr)), so
-            that the output is differentiable in the thresholds. ``valid`` and ``reason`` still report the hard
-            decision at the current thresholds.
-        temperature: softness relative to the threshold (dimensionless), used when ``soft``. Soft colours are
-            renormalised by ``max(accepted weight, SOFT_DEN_FLOOR)`` so that gradients stay bounded.
-        check: validate shapes/dtypes (public boundary).
+            ``sigmoid((thr² − d²) / (2·temperature·thr²))`` (``temperature`` of ``thresholds``), so that the output
+            is differentiable in the thresholds. ``valid`` and ``reason`` still report the hard decision; soft
+            colours are renormalised by ``max(accepted weight, SOFT_DEN_FLOOR)`` so that gradients stay bounded.
         backend: ``"auto"`` | ``"torch"`` | ``"native"``: see :func:`select_backend`.
-        motion: optional (B, 2, H, W) motion vectors in pixels, ``src_pixel = dst_pixel + motion`` (a renderer's
-            screen-space motion to the source frame): the taps are read there instead of where the cameras put
-            the destination point. Non-finite motion sends the pixel out of the frame (``OUT_OF_FRAME``). Torch
-            only: ``backend="auto"`` then runs torch's general path.
-        motion_world: optional (B, 3, H, W) world-space motion of the destination point to the source instant
-            (``P_src = P_dst + motion_world``; with ``motion``): the position test compares the source tap with
-            the moved point, so a moving object is kept and a disocclusion is still rejected. Default zeros
-            (static geometry).
         rectified: the caller declares a rectified pair (a parallel rig at one instant with equal intrinsics,
             the paper's stereo case): every destination pixel reads its own source row, with the rounding of
             real cameras removed (:func:`stereorepro.camera.rectify_warp`, which raises CameraError for cameras
-            that are not such a pair). Every backend then reads two taps per pixel instead of four, and so does
-            the exported ONNX graph. Not with ``motion``.
+            that are not such a pair); two taps per pixel instead of four, also in the exported ONNX graph. Not
+            with motion vectors.
 
     Returns:
-        values: (B, C, H, W) warped values (0 where nothing was accepted), dtype of ``src_values``.
-        valid: (B, 1, H, W) bool, accepted bilinear weight > 0.
-        reason: (B, 1, H, W) uint8 :class:`Reason` codes (0 where valid).
-        confidence: (B, 1, H, W) accepted bilinear weight in [0, 1] before renormalisation (soft weights when
-            ``soft``), in the compute dtype.
+        :class:`ReprojectionResult` ``(values (B, C, H, W), valid, reason, confidence (B, 1, H, W))``.
 
-    On the torch backend, hard tests without autograd or tracing (and with finite squared thresholds) take a
-    faster path with identical outputs (:mod:`stereorepro.reproject._fast`); gradients, tracing, ONNX export and
-    soft tests take the general one (:mod:`stereorepro.reproject._general`).
+    On the torch backend, hard tests without autograd or tracing take a faster path with identical outputs
+    (:mod:`stereorepro.reproject._fast`); gradients, tracing, ONNX export, soft tests and motion vectors take the
+    general one (:mod:`stereorepro.reproject._general`).
+
+    The flat form ``backward_reproject(src_values, src_depth, src_normal, src_K, src_cam_from_world, dst_depth,
+    dst_normal, dst_K, dst_cam_from_world, position_threshold, normal_threshold, ...)`` still works for one
+    release, with a DeprecationWarning, and returns a plain 4-tuple.
+
+    Example:
+        >>> import torch
+        >>> from stereorepro import View, backward_reproject, intrinsics_from_fov
+        >>> depth = torch.full((1, 1, 6, 8), 2.0); normal = torch.zeros(1, 3, 6, 8); normal[:, 2] = -1
+        >>> view = View(depth, normal, intrinsics_from_fov(60.0, 8, 6), torch.eye(4)[None])
+        >>> values = torch.rand(1, 5, 6, 8)
+        >>> out = backward_reproject(values, view, view, (0.01, 0.1))
+        >>> bool(torch.equal(out.values, values)), bool(out.valid.all()), float(out.confidence.min())
+        (True, True, 1.0)
     """
-    check_sampling(sampling)
-    if check:
-        check_reprojection_inputs(src_values, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal,
-                                  dst_K, dst_cam_from_world, dict(STEREO_NAMES, src_values="src_values"))
-        check_thresholds(position_threshold, normal_threshold)
-        check_motion(motion, motion_world, dst_depth, "motion", "motion_world")
-    if rectified and motion is not None:
+    if not isinstance(src, View):
+        _deprecated("backward_reproject", "backward_reproject(values, src: View, dst: View, (position_threshold, "
+                    "normal_threshold), ...)")
+        return _flat.backward_reproject(values, src, dst, thresholds, *legacy_args, **_given(
+            sampling=(sampling, "bilinear"), soft=(soft, False), backend=(backend, "auto"),
+            rectified=(rectified, False)), **legacy_kwargs)
+    _no_extra("backward_reproject", legacy_args, legacy_kwargs)
+    thr = as_thresholds(thresholds)
+    _check_op_inputs("backward_reproject", values, "values", "C", src, dst, thr, sampling)
+    if rectified and dst.motion is not None:
         raise ValueError("backward_reproject: rectified=True declares a same-instant stereo pair; it cannot be "
-                         "combined with motion vectors")
-    if _is_empty(dst_depth):
-        return _empty_outputs(src_values, dst_depth, confidence=True)
-    if select_backend(backend, (src_values, src_depth, src_normal, dst_depth, dst_normal),
-                      (src_K, src_cam_from_world, dst_K, dst_cam_from_world, position_threshold, normal_threshold),
-                      soft, motion is not None) == "native":
-        return _native_backward(src_values, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal,
-                                dst_K, dst_cam_from_world, position_threshold, normal_threshold, sampling,
-                                rectified=rectified)
-    return _torch_backward(src_values, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal, dst_K,
-                           dst_cam_from_world, position_threshold, normal_threshold, sampling, soft, temperature,
-                           motion, motion_world, rectified)
+                         "combined with motion vectors (dst.motion)")
+    return warp_values(values, src, dst, thr, sampling, soft, backend, rectified)
+
+
+def warp_values(values: Tensor, src: View, dst: View, thresholds: Thresholds, sampling: str = "bilinear",
+                soft: bool = False, backend: str = "auto", rectified: bool = False,
+                confidence: bool = True) -> ReprojectionResult:
+    """:func:`backward_reproject` of arguments the caller has checked; without ``confidence`` the result's
+    confidence is None (the native kernel then does not write it). The stereo op, the temporal op and the
+    combined scheme's stereo step call it."""
+    if _is_empty(dst.depth):
+        return ReprojectionResult(*_empty_outputs(values, dst.depth, confidence))
+    images = (values, src.depth, src.normal, dst.depth, dst.normal)
+    others = (src.K, src.cam_from_world, dst.K, dst.cam_from_world, thresholds.position, thresholds.normal)
+    if select_backend(backend, images, others, soft, dst.motion is not None) == "native":
+        out = _native_backward(values, src, dst, thresholds, sampling, confidence, rectified)
+    else:
+        out = _torch_backward(values, src, dst, thresholds, sampling, soft, rectified)
+    return ReprojectionResult(out[0], out[1], out[2], out[3] if confidence else None)
 
 
 def _exporting_lean(soft: bool, motion) -> bool:
@@ -208,135 +268,114 @@ def _exporting_lean(soft: bool, motion) -> bool:
     return EXPORT_LEAN and not soft and motion is None and torch.onnx.is_in_onnx_export()
 
 
-def _warp(src_K, src_cam_from_world, dst_K, dst_cam_from_world, dtype, dst_depth, rectified: bool):
+def _warp(src: View, dst: View, dtype: torch.dtype, rectified: bool):
     """The composed warp (:func:`compose_warp`), rectified when the caller declares a rectified pair."""
-    warp = compose_warp(src_K, src_cam_from_world, dst_K, dst_cam_from_world, dtype)
-    return rectify_warp(warp, *dst_depth.shape[-2:]) if rectified else warp
+    warp = compose_warp(src.K, src.cam_from_world, dst.K, dst.cam_from_world, dtype)
+    return rectify_warp(warp, *dst.depth.shape[-2:]) if rectified else warp
 
 
-def _torch_backward(src_values, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal, dst_K,
-                    dst_cam_from_world, position_threshold, normal_threshold, sampling, soft, temperature,
-                    motion=None, motion_world=None, rectified=False):
+def _torch_backward(values: Tensor, src: View, dst: View, thr: Thresholds, sampling: str, soft: bool,
+                    rectified: bool = False) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """The torch backend of :func:`backward_reproject` (arguments checked): the fast path where it applies, and
     the export formulation (:mod:`._lean`) while exporting to ONNX with hard tests."""
-    wdt = compute_dtype(src_values, src_depth, src_normal, dst_depth, dst_normal)
-    warp = _warp(src_K, src_cam_from_world, dst_K, dst_cam_from_world, wdt, dst_depth, rectified)
+    wdt = compute_dtype(values, src.depth, src.normal, dst.depth, dst.normal)
+    warp = _warp(src, dst, wdt, rectified)
+    motion, motion_world = dst.motion, dst.motion_world
     if _exporting_lean(soft, motion):
-        return _lean.lean_reproject(src_values, src_depth, src_normal, dst_depth, dst_normal, warp,
-                                    position_threshold, normal_threshold, sampling, rectified)
-    inference = inference_only((src_values, src_depth, src_normal, dst_depth, dst_normal, src_K, dst_K,
-                                src_cam_from_world, dst_cam_from_world, position_threshold, normal_threshold,
-                                motion, motion_world))
+        return _lean.lean_reproject(values, src.depth, src.normal, dst.depth, dst.normal, warp, thr.position,
+                                    thr.normal, sampling, rectified)
+    inference = inference_only((values, src.depth, src.normal, dst.depth, dst.normal, src.K, dst.K,
+                                src.cam_from_world, dst.cam_from_world, thr.position, thr.normal, motion,
+                                motion_world))
     if motion is not None:  # motion vectors: the general path (the fast path and native warp with cameras only)
-        return _general.general_reproject(src_values, src_depth, src_normal, dst_depth, dst_normal, warp,
-                                          position_threshold, normal_threshold, sampling, soft, temperature,
-                                          inference, motion, motion_world, src_cam_from_world[:, :3, :3])
+        return _general.general_reproject(values, src.depth, src.normal, dst.depth, dst.normal, warp, thr.position,
+                                          thr.normal, sampling, soft, thr.temperature, inference, motion,
+                                          motion_world, src.cam_from_world[:, :3, :3])
     if inference and not soft and FAST_PATH:  # the usual inference case: same results, less memory traffic
-        thr2 = squared_thresholds(position_threshold, normal_threshold, wdt, dst_depth.device)
+        thr2 = squared_thresholds(thr.position, thr.normal, wdt, dst.depth.device)
         if bool(torch.isfinite(thr2).all()):
-            return _fast.fast_reproject(src_values, src_depth, src_normal, dst_depth, dst_normal, warp, thr2,
-                                        position_threshold, normal_threshold, sampling)
-    return _general.general_reproject(src_values, src_depth, src_normal, dst_depth, dst_normal, warp,
-                                      position_threshold, normal_threshold, sampling, soft, temperature, inference)
+            return _fast.fast_reproject(values, src.depth, src.normal, dst.depth, dst.normal, warp, thr2,
+                                        thr.position, thr.normal, sampling)
+    return _general.general_reproject(values, src.depth, src.normal, dst.depth, dst.normal, warp, thr.position,
+                                      thr.normal, sampling, soft, thr.temperature, inference)
 
 
-def _native_thresholds(position_threshold, normal_threshold) -> tuple[float, float]:
+def _native_thresholds(thr: Thresholds) -> tuple[float, float]:
     """float32 thr·thr of both thresholds, squared as the torch path squares them."""
-    thr2 = squared_thresholds(position_threshold, normal_threshold, torch.float32, "cpu").detach().view(2)
+    thr2 = squared_thresholds(thr.position, thr.normal, torch.float32, "cpu").detach().view(2)
     return float(thr2[0]), float(thr2[1])
 
 
-def _native_backward(src_values, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal, dst_K,
-                     dst_cam_from_world, position_threshold, normal_threshold, sampling, want_confidence=True,
-                     rectified=False):
+def _native_backward(values: Tensor, src: View, dst: View, thr: Thresholds, sampling: str,
+                     want_confidence: bool = True, rectified: bool = False):
     """The native backend of :func:`backward_reproject` (arguments checked, hard tests, float32 compute on the CPU;
     float32 or float16 images)."""
-    warp = _warp(src_K, src_cam_from_world, dst_K, dst_cam_from_world, torch.float32, dst_depth, rectified)
-    return _native.reproject(src_values, src_depth, src_normal, warp, dst_depth, dst_normal,
-                             _native_thresholds(position_threshold, normal_threshold), sampling == "bilinear",
-                             want_confidence)
+    warp = _warp(src, dst, torch.float32, rectified)
+    return _native.reproject(values, src.depth, src.normal, warp, dst.depth, dst.normal, _native_thresholds(thr),
+                             sampling == "bilinear", want_confidence)
 
 
-def _native_temporal(current_color, depth, normal, K, cam_from_world, history_color, history_len, prev_depth,
-                     prev_normal, prev_K, prev_cam_from_world, position_threshold, normal_threshold, alpha, warmup,
-                     max_history, sampling):
+def _native_temporal(current_color: Tensor, view: View, history: History, prev_view: View, thr: Thresholds,
+                     blend: Blend, sampling: str):
     """The native backend of :func:`temporal_reproject` (arguments checked): one fused warp-and-blend pass."""
     like = torch.empty((), dtype=torch.float32)
+    alpha = blend.alpha
     a = as_scalar(alpha.detach() if isinstance(alpha, Tensor) else alpha, like).clamp(0.0, 1.0)
-    warp = compose_warp(prev_K, prev_cam_from_world, K, cam_from_world, torch.float32)
-    return _native.temporal_reproject(current_color, history_color, history_len, prev_depth, prev_normal, warp, depth,
-                                      normal, _native_thresholds(position_threshold, normal_threshold),
-                                      sampling == "bilinear", float(a), bool(warmup),
-                                      float(as_scalar(max_history, like)))
+    warp = compose_warp(prev_view.K, prev_view.cam_from_world, view.K, view.cam_from_world, torch.float32)
+    return _native.temporal_reproject(current_color, history.color, history.length, prev_view.depth,
+                                      prev_view.normal, warp, view.depth, view.normal, _native_thresholds(thr),
+                                      sampling == "bilinear", float(a), bool(blend.warmup),
+                                      float(as_scalar(blend.max_history, like)))
 
 
 def stereo_reproject(
-    src_color: Tensor,
-    src_depth: Tensor,
-    src_normal: Tensor,
-    src_K: Tensor,
-    src_cam_from_world: Tensor,
-    dst_depth: Tensor,
-    dst_normal: Tensor,
-    dst_K: Tensor,
-    dst_cam_from_world: Tensor,
-    position_threshold,
-    normal_threshold,
+    color: Tensor,
+    src: View,
+    dst: View,
+    thresholds,
+    *legacy_args,
     sampling: str = "bilinear",
     soft: bool = False,
-    temperature: float = 0.1,
     backend: str = "auto",
     rectified: bool = False,
-) -> tuple[Tensor, Tensor, Tensor]:
+    **legacy_kwargs,
+) -> ReprojectionResult:
     """Reproject one eye into the other at the same instant (paper §4.1: right → left).
 
-    Args: as :func:`backward_reproject`, with ``src_color`` (B, 3, Hs, Ws), ``backend``: ``"auto"`` |
-        ``"torch"`` | ``"native"`` (see :func:`select_backend`; ``STEREOREPRO_BACKEND`` overrides it), and
-        ``rectified``: the pair is a parallel rig with equal intrinsics (two taps per pixel; see
-        :func:`backward_reproject`).
+    Args:
+        color: (B, 3, Hs, Ws) the source eye's colour.
+        src, dst: the source and destination :class:`View` (their ``motion`` is not used: same instant).
+        thresholds, sampling, soft, backend, rectified: see :func:`backward_reproject` (``rectified``: two taps
+            per pixel for a parallel rig with equal intrinsics).
 
     Returns:
-        color: (B, 3, H, W) reprojected colour, 0 where discarded.
-        valid: (B, 1, H, W) bool.
-        reason: (B, 1, H, W) uint8 :class:`Reason`.
+        :class:`ReprojectionResult` ``(values (B, 3, H, W) colour, 0 where discarded; valid (B, 1, H, W) bool;
+        reason (B, 1, H, W) uint8 Reason; confidence None)``.
+
+    The flat form ``stereo_reproject(src_color, src_depth, src_normal, src_K, src_cam_from_world, dst_depth,
+    dst_normal, dst_K, dst_cam_from_world, position_threshold, normal_threshold, ...)`` still works for one
+    release, with a DeprecationWarning, and returns a plain 3-tuple.
 
     Example:
         >>> import torch
-        >>> from stereorepro import stereo_reproject, intrinsics_from_fov
-        >>> K = intrinsics_from_fov(60.0, 8, 6); T = torch.eye(4)[None]
+        >>> from stereorepro import View, stereo_reproject, intrinsics_from_fov
         >>> depth = torch.full((1, 1, 6, 8), 2.0); normal = torch.zeros(1, 3, 6, 8); normal[:, 2] = -1
+        >>> view = View(depth, normal, intrinsics_from_fov(60.0, 8, 6), torch.eye(4)[None])
         >>> color = torch.rand(1, 3, 6, 8)
-        >>> out, valid, reason = stereo_reproject(color, depth, normal, K, T, depth, normal, K, T, 0.01, 0.1)
+        >>> out, valid, reason, _ = stereo_reproject(color, view, view, (0.01, 0.1))
         >>> bool(torch.equal(out, color)), bool(valid.all()), int(reason.max())
         (True, True, 0)
     """
-    check_shape(src_color, ["B", "3", "H", "W"], "src_color")
-    check_sampling(sampling)
-    check_reprojection_inputs(src_color, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal,
-                              dst_K, dst_cam_from_world, STEREO_NAMES)
-    check_thresholds(position_threshold, normal_threshold)
-    return warp_values(src_color, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal, dst_K,
-                       dst_cam_from_world, position_threshold, normal_threshold, sampling, soft, temperature, backend,
-                       rectified)
-
-
-def warp_values(src_values, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal, dst_K,
-                dst_cam_from_world, position_threshold, normal_threshold, sampling="bilinear", soft=False,
-                temperature=0.1, backend="auto", rectified=False) -> tuple[Tensor, Tensor, Tensor]:
-    """:func:`backward_reproject` without the confidence map (the native kernel then does not write it), arguments
-    assumed checked: (values (B, C, H, W), valid, reason (B, 1, H, W)). Used by :func:`stereo_reproject` and the
-    stereo step of :class:`~stereorepro.accumulate.SpatiotemporalReprojection`."""
-    if _is_empty(dst_depth):
-        return _empty_outputs(src_values, dst_depth)
-    args = (src_values, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal, dst_K,
-            dst_cam_from_world, position_threshold, normal_threshold, sampling)
-    if select_backend(backend, (src_values, src_depth, src_normal, dst_depth, dst_normal),
-                      (src_K, src_cam_from_world, dst_K, dst_cam_from_world, position_threshold, normal_threshold),
-                      soft) == "native":
-        values, valid, reason, _ = _native_backward(*args, want_confidence=False, rectified=rectified)
-    else:
-        values, valid, reason, _ = _torch_backward(*args, soft, temperature, rectified=rectified)
-    return values, valid, reason
+    if not isinstance(src, View):
+        _deprecated("stereo_reproject", "stereo_reproject(src_color, src: View, dst: View, (position_threshold, "
+                    "normal_threshold), ...)")
+        return _flat.stereo_reproject(color, src, dst, thresholds, *legacy_args, **_given(
+            sampling=(sampling, "bilinear"), soft=(soft, False), backend=(backend, "auto"),
+            rectified=(rectified, False)), **legacy_kwargs)
+    _no_extra("stereo_reproject", legacy_args, legacy_kwargs)
+    thr = as_thresholds(thresholds)
+    _check_op_inputs("stereo_reproject", color, "color", "3", src, dst, thr, sampling)
+    return warp_values(color, src, dst.without_motion(), thr, sampling, soft, backend, rectified, confidence=False)
 
 
 def _is_empty(dst_depth: Tensor) -> bool:
@@ -355,11 +394,6 @@ def _empty_outputs(values_like: Tensor, dst_depth: Tensor, confidence: bool = Fa
     return out
 
 
-def _check_blend_scalars(alpha, max_history) -> None:
-    check_scalar(alpha, "alpha")
-    check_scalar(max_history, "max_history", 1.0, allow_inf=True)
-
-
 def temporal_blend(
     current_color: Tensor,
     history_color: Tensor,
@@ -368,7 +402,7 @@ def temporal_blend(
     alpha=0.2,
     warmup: bool = True,
     max_history: float = 255.0,
-) -> tuple[Tensor, Tensor]:
+) -> History:
     """Blend a (reprojected) history into the current frame: the paper's 20 % exponential moving average.
 
     ``a = max(1 / (n + 1), alpha)`` with ``warmup`` (a running mean until the EMA weight is reached, as in BMFR,
@@ -392,11 +426,19 @@ def temporal_blend(
     history is discarded, as the renderer produced it).
 
     Returns:
-        color: (B, C, H, W), dtype of ``current_color``.
-        history_len: (B, 1, H, W) float, the new n (1 where restarted, capped at ``max_history``).
+        :class:`History` ``(color (B, C, H, W) in the dtype of current_color, length (B, 1, H, W) float)``: the
+        new n is 1 where restarted, capped at ``max_history``.
+
+    Example:
+        >>> import torch
+        >>> from stereorepro import temporal_blend
+        >>> cur, hist = torch.ones(1, 3, 2, 2), torch.zeros(1, 3, 2, 2)
+        >>> out = temporal_blend(cur, hist, torch.full((1, 1, 2, 2), 9.0), torch.ones(1, 1, 2, 2, dtype=torch.bool))
+        >>> round(float(out.color[0, 0, 0, 0]), 6), float(out.length[0, 0, 0, 0])
+        (0.2, 10.0)
     """
     if not tracing():
-        _check_blend_scalars(alpha, max_history)
+        check_blend(alpha, max_history)
     wdt = compute_dtype(current_color, history_color)
     cur = current_color.to(wdt)
     hist = history_color.to(wdt)
@@ -416,99 +458,108 @@ def temporal_blend(
         keep = s > 0
         out = torch.where(keep, s * torch.where(keep, blended, cur) + (1.0 - s) * cur, cur)
         n_out = torch.where(keep, s * n_next + (1.0 - s), one)
-    return out.to(current_color.dtype), n_out
+    return History(out.to(current_color.dtype), n_out)
 
 
 def temporal_reproject(
     current_color: Tensor,
-    depth: Tensor,
-    normal: Tensor,
-    K: Tensor,
-    cam_from_world: Tensor,
-    history_color: Tensor,
-    history_len: Tensor,
-    prev_depth: Tensor,
-    prev_normal: Tensor,
-    prev_K: Tensor,
-    prev_cam_from_world: Tensor,
-    position_threshold,
-    normal_threshold,
-    alpha=0.2,
-    warmup: bool = True,
-    max_history: float = 255.0,
+    view: View,
+    history,
+    prev_view: View,
+    thresholds,
+    *legacy_args,
+    blend: Blend = Blend(),
     sampling: str = "bilinear",
     soft: bool = False,
-    temperature: float = 0.1,
     backend: str = "auto",
     return_reason: bool = False,
-    motion: Tensor | None = None,
-    motion_world: Tensor | None = None,
-) -> tuple[Tensor, ...]:
+    **legacy_kwargs,
+) -> TemporalResult:
     """Temporal accumulation: warp the previous frame's history into this frame and blend (paper §4.1).
 
     Args:
         current_color: (B, 3, H, W) this frame's 1-spp colour.
-        depth, normal: (B, 1, H, W), (B, 3, H, W) this frame's G-buffer.
-        K, cam_from_world: (B, 3, 3), (B, 4, 4) this frame's camera.
-        history_color: (B, 3, Hp, Wp) accumulated colour of the previous frame.
-        history_len: (B, 1, Hp, Wp) its sample count (float; 0 = no history).
-        prev_depth, prev_normal, prev_K, prev_cam_from_world: the previous frame's G-buffer and camera.
-        position_threshold, normal_threshold, sampling, soft, temperature: see :func:`backward_reproject`.
-        alpha, warmup, max_history: see :func:`temporal_blend`.
-        backend: ``"auto"`` | ``"torch"`` | ``"native"`` (see :func:`select_backend`).
-        return_reason: also return the discard reasons of the history.
-        motion: optional (B, 2, H, W) screen-space motion to the previous frame in pixels (``prev_pixel = pixel +
-            motion``, e.g. :attr:`~stereorepro.render.RenderResult.motion`): the history is read there instead of
-            where the cameras alone put it, so objects that move independently of the camera keep their history.
-        motion_world: optional (B, 3, H, W) world-space motion of the surface to the previous frame (``P_prev = P
-            + motion_world``): the position test compares the history with the moved point (zeros if omitted:
-            static geometry). See :func:`backward_reproject`; with motion the op runs on torch's general path.
+        view: this frame's :class:`View` (H, W). Its ``motion`` (B, 2, H, W), when given, is the screen-space
+            motion to the previous frame (``prev_pixel = pixel + motion``, e.g. a renderer's motion vectors) and
+            ``motion_world`` the surface's world motion (``P_prev = P + motion_world``): the history is read
+            there, so objects that move independently of the camera keep their history (see
+            :func:`backward_reproject`; torch's general path).
+        history: :class:`History` ``(color (B, 3, Hp, Wp), length (B, 1, Hp, Wp))`` of the previous frame (the
+            previous call's :attr:`TemporalResult.history`; first frame: :meth:`History.empty`).
+        prev_view: the previous frame's :class:`View` (Hp, Wp).
+        thresholds, sampling, soft, backend: see :func:`backward_reproject`.
+        blend: :class:`Blend` ``(alpha, warmup, max_history)``: see :func:`temporal_blend`.
+        return_reason: also return the discard reasons of the history (the native backend then warps and blends
+            in two passes, with the same results).
 
     Returns:
-        color: (B, 3, H, W) accumulated colour.
-        history_len: (B, 1, H, W) float sample count for the next frame.
-        valid: (B, 1, H, W) bool, where the history was kept.
-        reason: (B, 1, H, W) uint8 :class:`Reason` of the history's discards (only with ``return_reason``; the
-            native backend then warps and blends in two passes, with the same results).
+        :class:`TemporalResult` ``(color (B, 3, H, W), history_len (B, 1, H, W) float, valid (B, 1, H, W) bool,
+        reason (B, 1, H, W) uint8 or None)``.
+
+    The flat form ``temporal_reproject(current_color, depth, normal, K, cam_from_world, history_color,
+    history_len, prev_depth, prev_normal, prev_K, prev_cam_from_world, position_threshold, normal_threshold,
+    ...)`` still works for one release, with a DeprecationWarning, and returns a plain 3- or 4-tuple.
+
+    Example:
+        >>> import torch
+        >>> from stereorepro import History, View, temporal_reproject, intrinsics_from_fov
+        >>> depth = torch.full((1, 1, 6, 8), 2.0); normal = torch.zeros(1, 3, 6, 8); normal[:, 2] = -1
+        >>> view = View(depth, normal, intrinsics_from_fov(60.0, 8, 6), torch.eye(4)[None])
+        >>> current = torch.ones(1, 3, 6, 8)
+        >>> first = temporal_reproject(current, view, History.empty(view), view, (0.01, 0.1))
+        >>> bool(torch.equal(first.color, current)), float(first.history_len.max())
+        (True, 1.0)
+        >>> second = temporal_reproject(torch.zeros(1, 3, 6, 8), view, first.history, view, (0.01, 0.1))
+        >>> float(second.color.max()), float(second.history_len.max())
+        (0.5, 2.0)
     """
-    bind: dict = {}
-    check_shape(current_color, ["B", "3", "H", "W"], "current_color", bind)
-    check_shape(depth, ["B", "1", "H", "W"], "depth", bind)
-    check_shape(normal, ["B", "3", "H", "W"], "normal", bind)
-    bind_p: dict = {"B": bind.get("B")} if bind else {}
-    check_shape(history_color, ["B", "3", "H", "W"], "history_color", bind_p)
-    check_shape(history_len, ["B", "1", "H", "W"], "history_len", bind_p)
+    if not isinstance(view, View):
+        _deprecated("temporal_reproject", "temporal_reproject(current_color, view: View, history: History, "
+                    "prev_view: View, (position_threshold, normal_threshold), ...)")
+        return _flat.temporal_reproject(current_color, view, history, prev_view, thresholds, *legacy_args, **_given(
+            sampling=(sampling, "bilinear"), soft=(soft, False), backend=(backend, "auto"),
+            return_reason=(return_reason, False)), **legacy_kwargs)
+    _no_extra("temporal_reproject", legacy_args, legacy_kwargs)
+    thr = as_thresholds(thresholds)
+    history = _as_pair(history, History, "temporal_reproject: history")
+    blend = _as_pair(blend, Blend, "temporal_reproject: blend")
+    check_shape(current_color, ["B", "3", "H", "W"], "current_color",
+                {"B": view.batch_size, "H": view.height, "W": view.width})
     check_floating(current_color, "current_color")
-    check_floating(history_len, "history_len")
-    check_reprojection_inputs(history_color, prev_depth, prev_normal, prev_K, prev_cam_from_world, depth, normal, K,
-                  cam_from_world, TEMPORAL_NAMES)
-    check_sampling(sampling)
+    _check_op_inputs("temporal_reproject", history.color, "history.color", "3", prev_view, view, thr, sampling)
+    check_shape(history.length, ["B", "1", "H", "W"], "history.length",
+                {"B": prev_view.batch_size, "H": prev_view.height, "W": prev_view.width})
+    check_floating(history.length, "history.length")
     if not tracing():
-        check_thresholds(position_threshold, normal_threshold)
-        _check_blend_scalars(alpha, max_history)
-        check_motion(motion, motion_world, depth, "motion", "motion_world")
-    if _is_empty(depth):
-        color, valid, reason = _empty_outputs(current_color, depth)
-        n = torch.zeros(depth.shape, dtype=compute_dtype(history_color, history_len), device=depth.device)
-        return (color, n, valid, reason) if return_reason else (color, n, valid)
-    images = (current_color, depth, normal, history_color, history_len, prev_depth, prev_normal)
-    others = (K, cam_from_world, prev_K, prev_cam_from_world, position_threshold, normal_threshold, alpha)
-    native = select_backend(backend, images, others, soft, motion is not None) == "native"
+        check_blend(blend.alpha, blend.max_history)
+    return reproject_history(current_color, view, history, prev_view, thr, blend, sampling, soft, backend,
+                             return_reason)
+
+
+def reproject_history(current_color: Tensor, view: View, history: History, prev_view: View, thr: Thresholds,
+                      blend: Blend, sampling: str = "bilinear", soft: bool = False, backend: str = "auto",
+                      return_reason: bool = False) -> TemporalResult:
+    """:func:`temporal_reproject` of arguments the caller has checked."""
+    if _is_empty(view.depth):
+        color, valid, reason = _empty_outputs(current_color, view.depth)
+        n = torch.zeros(view.depth.shape, dtype=compute_dtype(*history), device=view.depth.device)
+        return TemporalResult(color, n, valid, reason if return_reason else None)
+    images = (current_color, view.depth, view.normal, history.color, history.length, prev_view.depth,
+              prev_view.normal)
+    others = (view.K, view.cam_from_world, prev_view.K, prev_view.cam_from_world, thr.position, thr.normal,
+              blend.alpha)
+    native = select_backend(backend, images, others, soft, view.motion is not None) == "native"
     if native and not return_reason:
-        return _native_temporal(current_color, depth, normal, K, cam_from_world, history_color, history_len,
-                                prev_depth, prev_normal, prev_K, prev_cam_from_world, position_threshold,
-                                normal_threshold, alpha, warmup, max_history, sampling)
-    work = compute_dtype(history_color, history_len)
-    values = torch.cat([history_color.to(work), history_len.to(work)], 1)  # colour and n ride together
-    args = (values, prev_depth, prev_normal, prev_K, prev_cam_from_world, depth, normal, K, cam_from_world,
-            position_threshold, normal_threshold, sampling)
+        return TemporalResult(*_native_temporal(current_color, view, history, prev_view, thr, blend, sampling))
+    work = compute_dtype(*history)
+    values = torch.cat([history.color.to(work), history.length.to(work)], 1)  # colour and n ride together
     if native:
-        warped, valid, reason, _ = _native_backward(*args, want_confidence=False)
+        warped, valid, reason, _ = _native_backward(values, prev_view, view, thr, sampling, want_confidence=False)
         confidence = valid
     else:
-        warped, valid, reason, den = _torch_backward(*args, soft, temperature, motion, motion_world)
+        warped, valid, reason, den = _torch_backward(values, prev_view, view, thr, sampling, soft)
         confidence = den if soft else valid
     # exporting the reprojection's export formulation: its blend too (the history it warps is finite)
-    blend = _lean.lean_blend if not native and _exporting_lean(soft, motion) else temporal_blend
-    color, n = blend(current_color, warped[:, :3], warped[:, 3:4], confidence, alpha, warmup, max_history)
-    return (color, n, valid, reason) if return_reason else (color, n, valid)
+    blend_fn = _lean.lean_blend if not native and _exporting_lean(soft, view.motion) else temporal_blend
+    color, n = blend_fn(current_color, warped[:, :3], warped[:, 3:4], confidence, *blend)
+    return TemporalResult(color, n, valid, reason if return_reason else None)

@@ -7,8 +7,10 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from .._checks import check_sampling
+from .._checks import check_sampling, check_thresholds
+from . import _flat
 from .functional import BACKENDS, stereo_reproject, temporal_reproject
+from .view import Blend, Field, History, Thresholds, view_fields
 
 __all__ = ["StereoReprojection", "TemporalReprojection"]
 
@@ -16,6 +18,10 @@ __all__ = ["StereoReprojection", "TemporalReprojection"]
 def _threshold_param(value, learnable: bool) -> Tensor:
     t = torch.as_tensor(float(value), dtype=torch.float32)
     return nn.Parameter(t) if learnable else t
+
+
+def _image(name: str, channels: str, height: str = "H", width: str = "W") -> Field:
+    return Field(name, ("B", channels, height, width))
 
 
 class _ReprojectionBase(nn.Module):
@@ -26,9 +32,7 @@ class _ReprojectionBase(nn.Module):
             raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
         self.backend = backend
         check_sampling(sampling)
-        for name, val in (("position_threshold", position_threshold), ("normal_threshold", normal_threshold)):
-            if not float(val) > 0:
-                raise ValueError(f"{name} must be > 0, got {val}")
+        check_thresholds(position_threshold, normal_threshold, tracing=False)
         if soft and not temperature > 0:
             raise ValueError(f"temperature must be > 0, got {temperature}")
         self.sampling = sampling
@@ -40,6 +44,11 @@ class _ReprojectionBase(nn.Module):
         else:
             self.register_buffer("position_threshold", _threshold_param(position_threshold, False))
             self.register_buffer("normal_threshold", _threshold_param(normal_threshold, False))
+
+    @property
+    def thresholds(self) -> Thresholds:
+        """The accept tests as the functions take them."""
+        return Thresholds(self.position_threshold, self.normal_threshold, self.temperature)
 
     def extra_repr(self) -> str:
         return (f"position_threshold={float(self.position_threshold):g}, "
@@ -69,8 +78,9 @@ class StereoReprojection(_ReprojectionBase):
         → (B,3,H,W), (B,1,H,W) bool, (B,1,H,W) uint8.
     """
 
-    input_names = ["src_color", "src_depth", "src_normal", "src_K", "src_cam_from_world",
-                   "dst_depth", "dst_normal", "dst_K", "dst_cam_from_world"]
+    #: The forward's inputs: name and symbolic shape (the one description ONNX export reads).
+    input_fields = (_image("src_color", "3", "Hp", "Wp"), *view_fields("src_", "Hp", "Wp"), *view_fields("dst_"))
+    input_names = [f.name for f in input_fields]
     output_names = ["color", "valid", "reason"]
 
     def __init__(self, position_threshold: float, normal_threshold: float, sampling: str = "bilinear",
@@ -84,9 +94,11 @@ class StereoReprojection(_ReprojectionBase):
     def forward(self, src_color: Tensor, src_depth: Tensor, src_normal: Tensor, src_K: Tensor,
                 src_cam_from_world: Tensor, dst_depth: Tensor, dst_normal: Tensor, dst_K: Tensor,
                 dst_cam_from_world: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        return stereo_reproject(src_color, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal,
-                                dst_K, dst_cam_from_world, self.position_threshold, self.normal_threshold,
-                                self.sampling, self.soft, self.temperature, self.backend, self.rectified)
+        src, dst = _flat.stereo_views(src_color, (src_depth, src_normal, src_K, src_cam_from_world),
+                                      (dst_depth, dst_normal, dst_K, dst_cam_from_world))
+        out = stereo_reproject(src_color, src, dst, self.thresholds, sampling=self.sampling, soft=self.soft,
+                               backend=self.backend, rectified=self.rectified)
+        return out.values, out.valid, out.reason
 
 
 class TemporalReprojection(_ReprojectionBase):
@@ -109,8 +121,11 @@ class TemporalReprojection(_ReprojectionBase):
         (B,3,3), (B,4,4)[, (B,2,H,W), (B,3,H,W)] → (B,3,H,W), (B,1,H,W) float, (B,1,H,W) bool.
     """
 
-    input_names = ["current_color", "depth", "normal", "K", "cam_from_world", "history_color", "history_len",
-                   "prev_depth", "prev_normal", "prev_K", "prev_cam_from_world"]
+    #: The forward's inputs without motion vectors: name and symbolic shape (what ONNX export reads); with
+    #: ``motion_vectors`` the motion fields follow.
+    input_fields = (_image("current_color", "3"), *view_fields(""), _image("history_color", "3", "Hp", "Wp"),
+                    _image("history_len", "1", "Hp", "Wp"), *view_fields("prev_", "Hp", "Wp"))
+    input_names = [f.name for f in input_fields]
     output_names = ["color", "history_len_out", "valid"]
 
     def __init__(self, position_threshold: float, normal_threshold: float, alpha: float = 0.2,
@@ -119,7 +134,8 @@ class TemporalReprojection(_ReprojectionBase):
         super().__init__(position_threshold, normal_threshold, sampling, soft, temperature, backend)
         self.motion_vectors = bool(motion_vectors)
         if self.motion_vectors:
-            self.input_names = type(self).input_names + ["motion", "motion_world"]
+            self.input_fields = type(self).input_fields + view_fields(motion=True)[-2:]
+            self.input_names = [f.name for f in self.input_fields]
         if not (0.0 < float(alpha) <= 1.0):
             raise ValueError(f"alpha must be in (0, 1], got {alpha}")
         if not max_history >= 1:
@@ -141,8 +157,15 @@ class TemporalReprojection(_ReprojectionBase):
                 motion_world: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
         if self.motion_vectors and motion is None and not torch.jit.is_tracing():
             raise TypeError("TemporalReprojection(motion_vectors=True).forward needs `motion` (and motion_world)")
-        return temporal_reproject(current_color, depth, normal, K, cam_from_world, history_color, history_len,
-                                  prev_depth, prev_normal, prev_K, prev_cam_from_world, self.position_threshold,
-                                  self.normal_threshold, self.alpha, self.warmup, self.max_history, self.sampling,
-                                  self.soft, self.temperature, self.backend, motion=motion,
-                                  motion_world=motion_world)
+        history = History(history_color, history_len)
+        view, prev_view = _flat.temporal_views(current_color, (depth, normal, K, cam_from_world), history,
+                                               (prev_depth, prev_normal, prev_K, prev_cam_from_world),
+                                               (motion, motion_world))
+        out = temporal_reproject(current_color, view, history, prev_view, self.thresholds, blend=self.blend,
+                                 sampling=self.sampling, soft=self.soft, backend=self.backend)
+        return out.color, out.history_len, out.valid
+
+    @property
+    def blend(self) -> Blend:
+        """The accumulation settings as the functions take them."""
+        return Blend(self.alpha, self.warmup, self.max_history)

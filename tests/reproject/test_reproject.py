@@ -118,7 +118,9 @@ class TestStereoReproject:
         with pytest.raises(ValueError, match="sampling"):
             run(plane_pair(), sampling="bicubic")
         with pytest.raises(ValueError, match="position_threshold"):
-            StereoReprojection(0.0, 0.1)
+            StereoReprojection(-1e-3, 0.1)  # the one threshold rule: >= 0 (0 accepts only exact matches)
+        with pytest.raises(ValueError, match="normal_threshold"):
+            StereoReprojection(0.1, float("nan"))
         with pytest.raises(ValueError, match="sampling"):
             StereoReprojection(0.1, 0.1, sampling="cubic")
 

@@ -1,0 +1,248 @@
+"""The data model of the reprojection ops: a G-buffer :class:`View` with its camera, the accept
+:class:`Thresholds`, the :class:`Blend` of temporal accumulation, the accumulated :class:`History`, and the named
+results :class:`ReprojectionResult` and :class:`TemporalResult`.
+
+Conventions (axes, pixel centres, depth, "no surface", motion) are those of :mod:`stereorepro.camera`.
+:data:`VIEW_FIELDS` is the one description of a view's tensors: the checks, the modules' flat ``forward`` inputs,
+their ONNX input names and symbolic dimensions all derive from it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from .._checks import check_camera, check_device, check_floating, check_motion, check_shape, tracing
+
+__all__ = ["View", "Thresholds", "Blend", "History", "ReprojectionResult", "TemporalResult", "Field",
+           "VIEW_FIELDS", "MOTION_FIELDS", "view_fields"]
+
+
+class Field(NamedTuple):
+    """One named tensor input: its name and symbolic shape (digits are fixed sizes, letters bind)."""
+
+    name: str
+    shape: tuple[str, ...]
+
+    def renamed(self, prefix: str = "", height: str = "H", width: str = "W") -> "Field":
+        """This field with ``prefix`` before its name and the image dimensions called ``height`` / ``width``."""
+        sizes = {"H": height, "W": width}
+        return Field(prefix + self.name, tuple(sizes.get(s, s) for s in self.shape))
+
+
+#: The tensors of every view, in this order: camera-z depth, unit world-space shading normals, intrinsics,
+#: extrinsics.
+VIEW_FIELDS = (Field("depth", ("B", "1", "H", "W")), Field("normal", ("B", "3", "H", "W")),
+               Field("K", ("B", "3", "3")), Field("cam_from_world", ("B", "4", "4")))
+#: The optional motion of a view to the other instant: screen-space (pixels) and world-space.
+MOTION_FIELDS = (Field("motion", ("B", "2", "H", "W")), Field("motion_world", ("B", "3", "H", "W")))
+
+
+def view_fields(prefix: str = "", height: str = "H", width: str = "W", motion: bool = False) -> tuple[Field, ...]:
+    """The fields of a view as flat inputs named ``prefix + field`` (e.g. ``src_depth``), with the image
+    dimensions called ``height`` / ``width``; the motion fields too with ``motion``."""
+    fields = VIEW_FIELDS + (MOTION_FIELDS if motion else ())
+    return tuple(f.renamed(prefix, height, width) for f in fields)
+
+
+@dataclass(frozen=True)
+class View:
+    """A G-buffer and its camera at one instant: what the reprojection ops read of a source or destination image.
+
+    Attributes:
+        depth: (B, 1, H, W) camera-space z; no surface where non-finite or <= 0.
+        normal: (B, 3, H, W) unit world-space shading normals.
+        K: (B, 3, 3) intrinsics (pixel centres at +0.5).
+        cam_from_world: (B, 4, 4) rigid extrinsics (OpenCV axes).
+        motion: optional (B, 2, H, W) screen-space motion to the other instant in pixels, ``other_pixel = pixel +
+            motion`` (a renderer's motion vectors; read by the temporal ops, ignored by the stereo op).
+        motion_world: optional (B, 3, H, W) world-space motion of the surface point to the other instant,
+            ``P_other = P + motion_world`` (only with ``motion``; zeros when omitted: static geometry).
+
+    Shapes, dtypes (floating), devices and camera values are checked once, here (skipped while tracing).
+
+    Example:
+        >>> import torch
+        >>> from stereorepro import View, intrinsics_from_fov
+        >>> depth = torch.full((1, 1, 6, 8), 2.0); normal = torch.zeros(1, 3, 6, 8); normal[:, 2] = -1
+        >>> view = View(depth, normal, intrinsics_from_fov(60.0, 8, 6), torch.eye(4)[None])
+        >>> view.batch_size, view.height, view.width
+        (1, 6, 8)
+    """
+
+    depth: Tensor
+    normal: Tensor
+    K: Tensor
+    cam_from_world: Tensor
+    motion: Tensor | None = None
+    motion_world: Tensor | None = None
+
+    def __post_init__(self):
+        self.check()
+
+    def check(self, name: str = "View") -> None:
+        """Raise ShapeError / TypeError / CameraError naming ``name`` and the field when the view is malformed."""
+        if tracing():
+            return
+        bind = check_shape(self.depth, ["B", "1", "H", "W"], f"{name}.depth", None, False)
+        check_shape(self.normal, ["B", "3", "H", "W"], f"{name}.normal", dict(bind), False)
+        check_floating(self.depth, f"{name}.depth", False)
+        check_floating(self.normal, f"{name}.normal", False)
+        check_camera(self.K, self.cam_from_world, name, {"B": bind["B"]}, False)
+        check_motion(self.motion, self.motion_world, self.depth, f"{name}.motion", f"{name}.motion_world", False)
+        check_device({f"{name}.depth": self.depth, f"{name}.normal": self.normal, f"{name}.K": self.K,
+                      f"{name}.cam_from_world": self.cam_from_world}, name, False)
+
+    @classmethod
+    def unchecked(cls, depth: Tensor, normal: Tensor, K: Tensor, cam_from_world: Tensor,
+                  motion: Tensor | None = None, motion_world: Tensor | None = None) -> "View":
+        """A view of tensors the caller has already checked (no checks run)."""
+        view = object.__new__(cls)
+        for f, v in zip(("depth", "normal", "K", "cam_from_world", "motion", "motion_world"),
+                        (depth, normal, K, cam_from_world, motion, motion_world)):
+            object.__setattr__(view, f, v)
+        return view
+
+    @classmethod
+    def from_camera(cls, camera, depth: Tensor, normal: Tensor, motion: Tensor | None = None,
+                    motion_world: Tensor | None = None) -> "View":
+        """A view from a :class:`~stereorepro.camera.PinholeCamera` (whose image size must match) and G-buffers."""
+        if not tracing() and tuple(depth.shape[-2:]) != (camera.height, camera.width):
+            from ..errors import ShapeError
+
+            raise ShapeError(f"View.from_camera: depth is {tuple(depth.shape[-2:])} (H, W) but the camera is "
+                             f"{camera.height}x{camera.width} (HxW)")
+        return cls(depth, normal, camera.K, camera.cam_from_world, motion, motion_world)
+
+    @classmethod
+    def from_render(cls, result, camera, motion: bool = True) -> "View":
+        """A view of a :class:`~stereorepro.render.RenderResult` rendered with G-buffers by ``camera``; its motion
+        vectors are taken along when it has them and ``motion`` is true."""
+        if result.depth is None or result.normal is None:
+            from ..errors import UserError
+
+            raise UserError("View.from_render: the render result has no G-buffers (render with gbuffers=True)")
+        mv = result.motion if motion else None
+        return cls.from_camera(camera, result.depth, result.normal, mv, result.motion_world if mv is not None else None)
+
+    @property
+    def batch_size(self) -> int:
+        return self.depth.shape[0]
+
+    @property
+    def height(self) -> int:
+        return self.depth.shape[-2]
+
+    @property
+    def width(self) -> int:
+        return self.depth.shape[-1]
+
+    @property
+    def camera(self):
+        """The view's :class:`~stereorepro.camera.PinholeCamera`."""
+        from ..camera import PinholeCamera
+
+        return PinholeCamera(self.K, self.cam_from_world, self.height, self.width)
+
+    def without_motion(self) -> "View":
+        """This view with its motion fields dropped (no checks rerun)."""
+        if self.motion is None and self.motion_world is None:
+            return self
+        return View.unchecked(self.depth, self.normal, self.K, self.cam_from_world)
+
+    def replace(self, **changes) -> "View":
+        """A copy with some fields replaced (checked)."""
+        return dataclasses.replace(self, **changes)
+
+    def to(self, *args, **kwargs) -> "View":
+        """Every tensor moved / cast like :meth:`torch.Tensor.to` (cameras too: pass float64 for far scenes)."""
+        def move(x):
+            return None if x is None else x.to(*args, **kwargs)
+
+        return View(move(self.depth), move(self.normal), move(self.K), move(self.cam_from_world), move(self.motion),
+                    move(self.motion_world))
+
+    def flat(self, motion: bool = False) -> tuple[Tensor | None, ...]:
+        """The tensors in :data:`VIEW_FIELDS` order (and the motion fields with ``motion``): a module's inputs."""
+        out = (self.depth, self.normal, self.K, self.cam_from_world)
+        return out + (self.motion, self.motion_world) if motion else out
+
+
+class Thresholds(NamedTuple):
+    """The accept tests of a tap: ``|P_src − P_dst| <= position`` (scene units) and ``|N_src − N_dst| <= normal``
+    (unit normals), each a number or a one-element tensor >= 0 (``inf`` accepts everything); ``temperature`` is the
+    softness of ``soft=True`` tests, relative to the thresholds. A plain ``(position, normal)`` pair works too."""
+
+    position: float | Tensor
+    normal: float | Tensor
+    temperature: float = 0.1
+
+
+class Blend(NamedTuple):
+    """Temporal accumulation: ``a = max(1/(n+1), alpha)`` with ``warmup`` (BMFR's running mean until the weight
+    reaches ``alpha``), else ``a = alpha``; ``out = (1 − a)·history + a·current``; n capped at ``max_history``.
+    ``alpha`` may be a learnable one-element tensor."""
+
+    alpha: float | Tensor = 0.2
+    warmup: bool = True
+    max_history: float = 255.0
+
+
+class History(NamedTuple):
+    """The accumulated state of one eye: ``color`` (B, C, H, W) and ``length`` (B, 1, H, W), the float sample
+    count n (0 = no history)."""
+
+    color: Tensor
+    length: Tensor
+
+    @classmethod
+    def empty(cls, view: View, channels: int = 3, dtype: torch.dtype | None = None) -> "History":
+        """No history yet (the first frame): zeros of ``view``'s size. A temporal step with it returns the current
+        frame with ``history_len`` 1 (``valid`` still reports the accept tests against the previous view given)."""
+        dtype = view.depth.dtype if dtype is None else dtype
+        B, _, H, W = view.depth.shape
+        zeros = torch.zeros(B, channels, H, W, dtype=dtype, device=view.depth.device)
+        return cls(zeros, torch.zeros(B, 1, H, W, dtype=dtype, device=view.depth.device))
+
+
+class ReprojectionResult(NamedTuple):
+    """What a backward reprojection returns.
+
+    Attributes:
+        values: (B, C, H, W) warped values, 0 where nothing was accepted; dtype of the source values.
+        valid: (B, 1, H, W) bool, accepted bilinear weight > 0.
+        reason: (B, 1, H, W) uint8 :class:`~stereorepro.reproject.Reason` codes (0 where valid).
+        confidence: (B, 1, H, W) accepted bilinear weight in [0, 1] before renormalisation (soft weights with
+            soft tests), in the compute dtype; ``None`` where the op was not asked for it.
+    """
+
+    values: Tensor
+    valid: Tensor
+    reason: Tensor
+    confidence: Tensor | None = None
+
+
+class TemporalResult(NamedTuple):
+    """What a temporal accumulation step returns.
+
+    Attributes:
+        color: (B, C, H, W) accumulated colour, dtype of the current colour.
+        history_len: (B, 1, H, W) float sample count n for the next frame.
+        valid: (B, 1, H, W) bool, where the history was kept.
+        reason: (B, 1, H, W) uint8 :class:`~stereorepro.reproject.Reason` of the history's discards; ``None``
+            unless asked for (``return_reason=True``).
+    """
+
+    color: Tensor
+    history_len: Tensor
+    valid: Tensor
+    reason: Tensor | None = None
+
+    @property
+    def history(self) -> History:
+        """The state to pass as the next frame's history."""
+        return History(self.color, self.history_len)
