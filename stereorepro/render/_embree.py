@@ -1,6 +1,6 @@
 """The only module that imports embreex: a static triangle BVH with closest-hit and occlusion queries.
 
-Traps handled here (measured on embreex 4.4):
+Traps of embreex (4.4) handled here:
 * ``tnear`` is fixed at 0, so callers must offset ray origins (see :func:`ray_epsilon`).
 * with ``output=1`` a passed ``dists`` array is overwritten and OCCLUDED results are garbage: closest-hit
   queries use ``output=1`` without ``dists``; occlusion queries pass a *copy* of ``dists`` and no ``output``.

@@ -1,18 +1,20 @@
 """A wavefront path tracer over structure-of-arrays batches (numpy float32), intersecting with embreex.
 
-Per sample (the paper's "one primary ray, one secondary ray, and two shadow rays"):
+Per sample (the paper's "one primary ray, one secondary ray, and two shadow rays"), the stages of
+:data:`STAGES`, in this order, on a batch of paths at a time:
 
-1. **generate** - a primary ray through a uniformly jittered position inside the pixel (``pixel_sampling="box"``,
+1. ``generate`` - a primary ray through a uniformly jittered position inside the pixel (``pixel_sampling="box"``,
    the default: box-filter antialiasing), or through the pixel centre, exactly the G-buffer's ray
    (``pixel_sampling="center"``: TAA's one sample per frame at the camera's jittered position, see
    :meth:`PathTracer.render`);
-2. **intersect** - closest hit ``x1``; emitted radiance of ``x1`` is added (emitters seen directly);
-3. **shade + NEE** - one light sample at ``x1`` (a shadow ray), MIS-weighted (balance heuristic) against BSDF
-   sampling for area lights;
-4. **bounce** - one BSDF-sampled secondary ray to ``x2``; if ``x2`` is emissive its emission is added with the
-   complementary MIS weight;
-5. **NEE at x2** - one light sample at ``x2`` (the second shadow ray), unweighted (no further bounce);
-6. **shadow** - both shadow-ray sets are tested in one occlusion query.
+2. ``intersect_primary`` - closest hit ``x1`` (a miss adds nothing);
+3. ``shade_x1`` - emitted radiance of ``x1`` (emitters seen directly); one light sample at ``x1`` (a shadow ray),
+   MIS-weighted (balance heuristic) against BSDF sampling for area lights; the BSDF sample of the bounce;
+4. ``intersect_bounce`` - closest hit ``x2`` of the secondary ray;
+5. ``shade_x2`` - if ``x2`` is emissive, its emission with the complementary MIS weight; one light sample at
+   ``x2`` (the second shadow ray), unweighted (no further bounce);
+6. ``intersect_shadow`` - both shadow-ray sets tested in one occlusion query;
+7. ``accumulate`` - the visible light samples, the firefly clamps (below) and the sample's sum.
 
 This equals a path tracer with maximum path depth 3 (Mitsuba's ``path`` integrator with ``max_depth = 3``):
 emission + direct light + one bounce of indirect light.
@@ -20,7 +22,7 @@ emission + direct light + one bounce of indirect light.
 Firefly control (``PathTracer(clamp=...)``)
 -------------------------------------------
 Next-event estimation has a 1/r^2 geometry term: a vertex very close to an area light (or any point light) yields
-rare, huge samples (measured 1-spp maxima of 270-600 against a median of 0.07) that dominate RMSE. Each *vertex's
+rare samples thousands of times the median that dominate RMSE. Each *vertex's
 reflected-radiance estimate* is therefore clamped to a per-scene limit ``C``, before it is multiplied by the
 throughput of the vertices before it:
 
@@ -48,13 +50,13 @@ range runs in its thread (embreex and numpy's large-array loops release the GIL)
 
 Backends (``PathTracer(backend=...)``)
 --------------------------------------
-The stages other than intersection exist twice: in numpy (:meth:`PathTracer._trace_paths`, the reference) and in
-C++ (``stereorepro._core``: ``tracer_generate`` and ``TracerShader.shade1/shade2/accumulate`` from
-``cpp_ext/src/shade_tracer.cpp``, used by :meth:`PathTracer._trace_paths_native`). Intersection stays in embreex
-(:mod:`._embree`) for both; the native path calls it between its kernels on compacted structure-of-arrays
-batches. Both paths use the same random numbers and the same float32 operations in the same order (transcendentals
-in float64, see :mod:`.bsdf`), so radiance, ray counts and the rays themselves are bit-identical
-(``tests/test_render_native.py``).
+The stages other than intersection exist twice: in numpy (:class:`_NumpyStages`, the reference) and in C++
+(:class:`_NativeStages`: ``stereorepro._core``'s ``tracer_generate`` and ``TracerShader.shade1/shade2/accumulate``
+from ``cpp_ext/src/shade_tracer.cpp``). Both fill in the one sequence :meth:`PathTracer._trace_paths` runs; the
+intersection stages are theirs in common, in embreex (:mod:`._embree`), on compacted structure-of-arrays batches.
+Both use the same random numbers and the same float32 operations in the same order (transcendentals in float64,
+see :mod:`.bsdf`), so radiance, ray counts and the rays themselves are bit-identical
+(``tests/render/test_render_native.py``).
 
 * ``backend="auto"`` (default): native when ``_core`` has the tracer kernels, else numpy;
 * ``"numpy"``: the reference; ``"native"``: the C++ stages (RuntimeError when ``_core`` lacks them);
@@ -73,6 +75,7 @@ import os
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -198,6 +201,46 @@ def _normalize(v):
     return v / np.where(n > 0, n, np.float32(1))[:, None]
 
 
+def _check_render_args(spp, sample_offset, pixel_sampling) -> None:
+    if int(spp) < 1:
+        raise ValueError(f"render: spp must be >= 1, got {spp}")
+    if int(sample_offset) < 0:
+        raise ValueError(f"render: sample_offset must be >= 0, got {sample_offset}")
+    if not (isinstance(pixel_sampling, str) and pixel_sampling in PIXEL_SAMPLINGS):
+        raise ValueError(f"render: pixel_sampling must be one of {PIXEL_SAMPLINGS}, got {pixel_sampling!r}")
+
+
+class _PixelSums:
+    """A frame's radiance as its samples arrive, per range of pixels. With ``spp = 1`` the one sample is the pixel
+    value (``0 + x / 1`` in float64 and back is ``x``, but for -0 -> +0, hence the ``+ 0``): written straight into the
+    planar image. Otherwise samples are summed per pixel in float64, in a fixed order (bit-identical whatever the
+    chunking), and divided by ``spp`` at the end."""
+
+    def __init__(self, pixels: np.ndarray, H: int, W: int, spp: int, full: bool):
+        self.pixels, self.H, self.W, self.spp = pixels, H, W, spp
+        self.full = full  # pixels = arange(H * W): ranges of pixels are column ranges of the image
+        self.rad = np.zeros((3, H * W), np.float32)  # planar, the layout of the output tensor
+        self.acc = None if spp == 1 else np.zeros((len(pixels), 3), np.float64)
+
+    def add(self, lo: int, hi: int, contrib: np.ndarray) -> None:
+        """Samples (kk, hi - lo, 3) float32 of the pixels ``pixels[lo:hi]``, sample by sample."""
+        if self.acc is None:
+            if self.full:
+                np.add(contrib[0].T, np.float32(0), out=self.rad[:, lo:hi])
+            else:
+                self.rad[:, self.pixels[lo:hi]] = contrib[0].T + np.float32(0)
+            return
+        view = self.acc[lo:hi]
+        for j in range(len(contrib)):
+            view += contrib[j]
+
+    def image(self) -> Tensor:
+        """The mean of the samples, (1, 3, H, W) float32; 0 at pixels not traced."""
+        if self.acc is not None:
+            self.rad[:, self.pixels] = (self.acc / self.spp).astype(np.float32).T
+        return torch.from_numpy(self.rad.reshape(1, 3, self.H, self.W))
+
+
 @dataclass
 class _Frame:
     """Per-render constants."""
@@ -211,7 +254,7 @@ class _Frame:
     shader: object = None       # _core.TracerShader of the frame's lights (native backend)
     M32: np.ndarray | None = None  # (9,) float32 dir_from_pix, as _camera_dirs rounds it
     geom: "_Geometry" = None    # the frame's triangles (moving objects placed)
-    center_rays: bool = False   # pixel_sampling="center": primary rays are the G-buffer's rays (see _center_primary)
+    center_rays: bool = False   # pixel_sampling="center": primary rays are the G-buffer's rays (see _center_dirs)
 
 
 @dataclass(frozen=True)
@@ -321,7 +364,8 @@ class PathTracer:
         self._lock = threading.Lock()
         self._stage_times: dict | None = None  # set to {} to accumulate per-stage seconds (profiling)
         self._triangle_distances: tuple | None = None  # (frame, TriangleDistances), built on first use by _limit
-        self._ws_free: list[dict] = []  # scratch arrays of the native path, one set per concurrent worker
+        self._ws_free: list[dict] = []  # scratch arrays of the native stages, one set per concurrent worker
+        self._stages = _NativeStages(self) if self.backend == "native" else _NumpyStages(self)
 
     # ------------------------------------------------------------------ geometry
     def geometry(self, frame: int) -> "_Geometry":
@@ -451,79 +495,50 @@ class PathTracer:
             :class:`RenderResult` with (1, C, H, W) tensors.
         """
         t0 = time.perf_counter()
-        if int(spp) < 1:
-            raise ValueError(f"render: spp must be >= 1, got {spp}")
-        if int(sample_offset) < 0:
-            raise ValueError(f"render: sample_offset must be >= 0, got {sample_offset}")
-        if not (isinstance(pixel_sampling, str) and pixel_sampling in PIXEL_SAMPLINGS):
-            raise ValueError(f"render: pixel_sampling must be one of {PIXEL_SAMPLINGS}, got {pixel_sampling!r}")
+        _check_render_args(spp, sample_offset, pixel_sampling)
         fr, pixels, H, W = self._setup(camera, frame, pixel_mask, eye)
         fr.center_rays = pixel_sampling == "center"
         counts = {"primary": 0, "secondary": 0, "shadow": 0, "gbuffer": 0}
-        rad = np.zeros((3, H * W), np.float32)  # planar, the layout of the output tensor
-        # spp = 1: the one sample is the pixel value (0 + x / 1 in float64 and back is x, but for -0 -> +0, hence the
-        # + 0 below): written straight into the image. Otherwise samples are summed in float64, in a fixed order.
-        one = int(spp) == 1
-        acc = None if one else np.zeros((len(pixels), 3), np.float64)
-        full = pixel_mask is None  # pixels = arange(H * W): ranges of pixels are column ranges of rad
+        sums = _PixelSums(pixels, H, W, int(spp), full=pixel_mask is None)
         bar = None
         if progress:
             from tqdm import tqdm
             bar = tqdm(total=int(spp) * len(pixels), unit="path", unit_scale=True, desc="render")
 
-        native = self.backend == "native"
-
         def work(lo_hi):
-            lo, hi = lo_hi
-            c = {"primary": 0, "secondary": 0, "shadow": 0}
-            m = hi - lo
-            k = max(1, self.max_batch // max(m, 1))
-            slot = None
-            if native:
-                with self._lock:
-                    slot = {"ws": self._ws_free.pop() if self._ws_free else None}
-            try:
-                for s0 in range(0, int(spp), k):
-                    kk = min(k, int(spp) - s0)
-                    pix = pixels[lo:hi] if kk == 1 else np.tile(pixels[lo:hi], kk)
-                    samp = np.repeat(np.arange(s0, s0 + kk, dtype=np.int64) + int(sample_offset), m)
-                    if native:
-                        slot["ws"] = self._workspace(len(pix), slot["ws"])
-                        contrib = self._trace_paths_native(fr, pix, samp, c, slot["ws"])
-                    else:
-                        contrib = self._trace_paths(fr, pix, samp, c)
-                    contrib = contrib.reshape(kk, m, 3)
-                    t0 = time.perf_counter() if self._stage_times is not None else 0.0
-                    if one:
-                        if full:
-                            np.add(contrib[0].T, np.float32(0), out=rad[:, lo:hi])
-                        else:
-                            rad[:, pixels[lo:hi]] = contrib[0].T + np.float32(0)
-                    else:
-                        view = acc[lo:hi]
-                        for j in range(kk):  # fixed summation order: bit-identical whatever the chunking
-                            view += contrib[j]
-                    _tick(self._stage_times, "accumulate_frame", t0)
-                    if bar is not None:
-                        with self._lock:
-                            bar.update(kk * m)
-            finally:
-                if slot is not None and slot["ws"] is not None:
-                    with self._lock:
-                        self._ws_free.append(slot["ws"])
-            return c
+            return self._trace_range(fr, pixels, lo_hi, int(spp), int(sample_offset), sums, bar)
 
         for c in self._run(work, self._ranges(len(pixels))):
             for name, v in c.items():
                 counts[name] += v
         if bar is not None:
             bar.close()
-        if not one:
-            rad[:, pixels] = (acc / int(spp)).astype(np.float32).T
-        radiance = torch.from_numpy(rad.reshape(1, 3, H, W))
+        radiance = sums.image()
         g = self._gbuffer_full(fr, frame, pixels, H, W, counts, prev_camera, prev_frame) if gbuffers else {}
         return RenderResult(radiance=radiance, ray_counts=counts, spp=int(spp), time_s=time.perf_counter() - t0,
                             **{k: g.get(k) for k in _GBUFFER_FIELDS})
+
+    def _trace_range(self, fr: _Frame, pixels: np.ndarray, lo_hi: tuple[int, int], spp: int, sample_offset: int,
+                     sums: "_PixelSums", bar) -> dict:
+        """All ``spp`` samples of the pixels ``pixels[lo:hi]`` (one worker), in batches of at most ``max_batch``
+        paths (several samples per batch when the range is short); returns the rays traced per kind."""
+        lo, hi = lo_hi
+        c = {"primary": 0, "secondary": 0, "shadow": 0}
+        m = hi - lo
+        k = max(1, self.max_batch // max(m, 1))
+        with self._workspace_slot() as slot:
+            for s0 in range(0, spp, k):
+                kk = min(k, spp - s0)
+                pix = pixels[lo:hi] if kk == 1 else np.tile(pixels[lo:hi], kk)
+                samp = np.repeat(np.arange(s0, s0 + kk, dtype=np.int64) + sample_offset, m)
+                contrib = self._trace_paths(fr, pix, samp, c, slot).reshape(kk, m, 3)
+                t0 = time.perf_counter() if self._stage_times is not None else 0.0
+                sums.add(lo, hi, contrib)
+                _tick(self._stage_times, "accumulate_frame", t0)
+                if bar is not None:
+                    with self._lock:
+                        bar.update(kk * m)
+        return c
 
     def gbuffer(self, camera: PinholeCamera, frame: int, pixel_mask: Tensor | None = None,
                 prev_camera: PinholeCamera | None = None, prev_frame: int | None = None) -> RenderResult:
@@ -611,8 +626,7 @@ class PathTracer:
 
     def _ranges(self, n):
         """[lo, hi) ranges of n pixels, none longer than max_batch, sizes within one; with several workers at least
-        two per worker, handed out as workers free up (image halves can differ in cost: 2 workers on classroom at
-        320x180 were 5 % faster with 4 ranges than with 2, atrium and living room 1-2 % slower)."""
+        two per worker, handed out as workers free up (parts of an image can differ in cost)."""
         per_worker = 2 if self.workers > 1 else 1
         parts = max(1, min(n, max(self.workers * per_worker, -(-n // self.max_batch))))
         edges = [n * i // parts for i in range(parts + 1)]
@@ -632,24 +646,15 @@ class PathTracer:
             d[:, r] = M[r, 0] * px + M[r, 1] * py + M[r, 2]
         return d
 
-    def _center_primary(self, fr: _Frame, pix: np.ndarray):
-        """Primary rays of ``pixel_sampling="center"`` and their hits: the G-buffer's ray of each pixel (origin the
-        camera centre, direction with camera z = 1 through the pixel centre, as :meth:`_gbuffer` and
-        ``_core.tracer_gbuffer_rays`` form it) is intersected as it is, so the first hit is the G-buffer's; then
-        the direction is normalised and ``t`` rescaled to it (``t * |d|``), as the shading stages expect. One
-        numpy function for both backends, so they hand embree the same rays and shade the same values.
-
-        Returns:
-            o (N, 3) (a broadcast view), unit d (N, 3), t (N,), prim (N,) (-1: a miss); float32 / int32.
-        """
+    def _center_dirs(self, fr: _Frame, pix: np.ndarray) -> np.ndarray:
+        """Primary-ray directions (N, 3) float32 of ``pixel_sampling="center"``: the G-buffer's ray of each pixel
+        (direction with camera z = 1 through the pixel centre, as :meth:`_gbuffer` and ``_core.tracer_gbuffer_rays``
+        form it; the origin is the camera centre). The stage ``intersect_primary`` intersects them as they are, so
+        the first hit is the G-buffer's, then makes them unit and rescales ``t`` to them (``t * |d|``), as the
+        shading stages expect. One numpy function for both backends, so they hand embree the same rays."""
         px = (pix % fr.width).astype(np.float32) + np.float32(0.5)
         py = (pix // fr.width).astype(np.float32) + np.float32(0.5)
-        d = self._camera_dirs(fr, px, py)
-        o = np.broadcast_to(fr.center, d.shape)
-        t, prim = fr.geom.bvh.intersect(o, d)
-        n = np.sqrt(_dot(d, d))
-        n = np.where(n > 0, n, np.float32(1))
-        return o, d / n[:, None], np.asarray(t, np.float32) * n, prim
+        return self._camera_dirs(fr, px, py)
 
     def _surface(self, fr: _Frame, prim, d):
         """Material ids (N,) and shading normals (N, 3) of hits ``prim`` (N,) facing against directions ``d``."""
@@ -727,7 +732,7 @@ class PathTracer:
         out["_prim"] = prim_img
         return out
 
-    # The stages of one wavefront batch ------------------------------------------------------------
+    # ------------------------------------------------------------------ BSDF and light sampling (numpy stages)
     def _bsdf_eval(self, mat, n, wo, wi):
         """f (N, 3), cos_i (N,), pdf (N,) of the surface BSDF; Lambert only unless the scene is glossy."""
         if self.glossy:
@@ -763,115 +768,25 @@ class PathTracer:
         tmax = dist - np.float32(2) * self.eps
         return ok, o, wi, tmax, val
 
-    def _trace_paths(self, fr: _Frame, pix: np.ndarray, samp: np.ndarray, counts: dict) -> np.ndarray:
-        """Radiance (N, 3) float32 of one sample per path (flat pixel ``pix`` (N,), sample index ``samp`` (N,))."""
-        N = len(pix)
-        L = np.zeros((N, 3), np.float32)
-        if N == 0:
-            return L
+    # ------------------------------------------------------------------ one wavefront batch
+    def _trace_paths(self, fr: _Frame, pix: np.ndarray, samp: np.ndarray, counts: dict,
+                     slot: dict | None = None) -> np.ndarray:
+        """Radiance (N, 3) float32 of one sample per path (flat pixel ``pix`` (N,), sample index ``samp`` (N,)):
+        the :data:`STAGES` in order, as the tracer's backend implements them; ray counts are added to ``counts``.
+        ``slot`` holds the worker's scratch arrays (native backend, see :meth:`_workspace_slot`)."""
+        if len(pix) == 0:
+            return np.zeros((0, 3), np.float32)
+        stages = self._stages
+        batch = stages.start(fr, pix, samp, counts, slot)
         tm = self._stage_times
         t0 = time.perf_counter() if tm is not None else 0.0
-        keys = path_keys(fr.key, pix, samp)
-        if fr.center_rays:  # --- generate + intersect: the G-buffer's rays
-            o, d, t, prim = self._center_primary(fr, pix)
-            counts["primary"] += N
-            t0 = _tick(tm, "intersect_primary", t0)
-        else:
-            # --- generate
-            px = (pix % fr.width).astype(np.float32) + uniform(keys, DIM["jitter_x"])
-            py = (pix // fr.width).astype(np.float32) + uniform(keys, DIM["jitter_y"])
-            d = _normalize(self._camera_dirs(fr, px, py))
-            o = np.broadcast_to(fr.center, d.shape)
-            t0 = _tick(tm, "generate", t0)
-            # --- intersect
-            t, prim = fr.geom.bvh.intersect(o, d)
-            counts["primary"] += N
-            t0 = _tick(tm, "intersect_primary", t0)
-        i1 = np.flatnonzero(prim >= 0)
-        if len(i1) == 0:
-            return L
-        d1, k1, prim1 = d[i1], keys[i1], prim[i1]
-        P1 = fr.center + t[i1, None] * d1
-        mat1, n1v = self._surface(fr, prim1, d1)
-        wo1 = -d1
-        # --- emission seen directly (never clamped)
-        em1 = self.mat_emissive[mat1]
-        if em1.any():
-            L[i1] += self.emission[mat1]
-        have_lights = not fr.lights.empty
-        n1 = len(i1)
-        R1 = np.zeros((n1, 3), np.float32)  # reflected-radiance estimate of x1, per path of i1
-        shadow = []  # (local index, origins, directions, tmax, value) per shadow-ray set
-        # --- shade + NEE at x1
-        if have_lights:
-            ok, so, sd, st, val = self._nee(fr, P1, n1v, wo1, mat1, k1,
-                                            (DIM["light1"], DIM["light1_u"], DIM["light1_v"]), mis=True)
-            shadow.append((np.flatnonzero(ok), so[ok], sd[ok], st[ok], val[ok]))
-        # --- bounce
-        wi2, weight, pdf_b = self._bsdf_sample(mat1, n1v, wo1, k1)
-        live = np.flatnonzero(weight.max(axis=1) > 0)
-        j2 = np.zeros(0, np.int64)  # local (i1) index of paths whose bounce hit x2
-        thr = np.zeros((0, 3), np.float32)
-        E2 = np.zeros((0, 3), np.float32)  # MIS-weighted emission of x2
-        R2 = np.zeros((0, 3), np.float32)  # reflected-radiance estimate of x2 (before the throughput)
-        if len(live):
-            o2 = P1[live] + n1v[live] * self.eps
-            d2 = wi2[live]
-            t0 = _tick(tm, "shade_x1", t0)
-            t2, prim2 = fr.geom.bvh.intersect(o2, d2)
-            counts["secondary"] += len(live)
-            t0 = _tick(tm, "intersect_bounce", t0)
-            h = np.flatnonzero(prim2 >= 0)
-            if len(h):
-                j2 = live[h]
-                thr = weight[j2]
-                d2h, t2h, p2 = d2[h], t2[h], prim2[h]
-                P2 = o2[h] + t2h[:, None] * d2h
-                mat2, n2 = self._surface(fr, p2, d2h)
-                em2 = self.mat_emissive[mat2]
-                E2 = np.zeros((len(h), 3), np.float32)
-                R2 = np.zeros((len(h), 3), np.float32)
-                if em2.any() and have_lights:
-                    e = np.flatnonzero(em2)
-                    cos_l = np.abs(_dot(fr.geom.face_normal[p2[e]], d2h[e]))
-                    pdf_l = fr.lights.pdf_area_face[p2[e]] * t2h[e] * t2h[e] / np.maximum(cos_l, np.float32(1e-12))
-                    pb = pdf_b[j2[e]]
-                    w = np.where(pb > 0, pb / (pb + pdf_l), np.float32(0)).astype(np.float32)
-                    E2[e] = self.emission[mat2[e]] * w[:, None]
-                elif em2.any():
-                    e = np.flatnonzero(em2)
-                    E2[e] = self.emission[mat2[e]]
-                # --- NEE at x2
-                if have_lights:
-                    ok, so, sd, st, val = self._nee(fr, P2, n2, -d2h, mat2, k1[j2],
-                                                    (DIM["light2"], DIM["light2_u"], DIM["light2_v"]), mis=False)
-                    shadow.append((np.flatnonzero(ok), so[ok], sd[ok], st[ok], val[ok]))
-        t0 = _tick(tm, "shade_x2" if len(live) else "shade_x1", t0)
-        # --- shadow: both sets in one occlusion query
-        if shadow and sum(len(x[0]) for x in shadow):
-            so = np.concatenate([x[1] for x in shadow])
-            sd = np.concatenate([x[2] for x in shadow])
-            st = np.concatenate([x[3] for x in shadow])
-            t0 = _tick(tm, "shade_x2", t0)
-            vis = ~fr.geom.bvh.occluded(so, sd, st)
-            counts["shadow"] += len(so)
-            t0 = _tick(tm, "intersect_shadow", t0)
-            n_first = len(shadow[0][0])
-            # Each path has at most one shadow ray per set: plain fancy-index adds are exact.
-            a = np.flatnonzero(vis[:n_first])
-            R1[shadow[0][0][a]] += shadow[0][4][a]
-            if len(shadow) > 1:
-                b = np.flatnonzero(vis[n_first:])
-                R2[shadow[1][0][b]] += shadow[1][4][b]
-        # --- clamp: x2's reflected estimate, then x1's whole reflected estimate
-        if len(j2):
-            R1[j2] += thr * (E2 + _clamp_radiance(R2, fr.limit))
-        L[i1] += _clamp_radiance(R1, fr.limit)
-        _tick(tm, "accumulate", t0)
-        return L
+        for name in STAGES:
+            getattr(stages, name)(batch)
+            t0 = _tick(tm, name, t0)
+        return batch.L
 
     def _workspace(self, n: int, ws: dict | None = None) -> dict:
-        """Scratch arrays of the native path for batches of up to ``n`` paths: ``ws`` when it is large enough, else
+        """Scratch arrays of the native stages for batches of up to ``n`` paths: ``ws`` when it is large enough, else
         new ones (reused between batches and renders through ``_ws_free``, about 150 bytes per path: fresh
         multi-megabyte arrays cost page faults on every batch)."""
         if ws is None or len(ws["keys"]) < n:
@@ -882,63 +797,261 @@ class PathTracer:
                   "b_path": np.empty(n, np.int32), "E2": rows(n), "hit2": np.empty(n, np.uint8)}
         return ws
 
-    def _trace_paths_native(self, fr: _Frame, pix: np.ndarray, samp: np.ndarray, counts: dict,
-                            ws: dict | None = None) -> np.ndarray:
-        """The native twin of :meth:`_trace_paths` (same arguments, bit-identical result): C++ stages from
-        ``_core`` between the three embreex queries (primary, bounce, one occlusion query for both shadow sets)."""
-        N = len(pix)
-        f32 = np.float32
-        if N == 0:
-            return np.zeros((0, 3), f32)
-        tm = self._stage_times
-        t0 = time.perf_counter() if tm is not None else 0.0
-        sh = fr.shader
-        pix = np.ascontiguousarray(pix, np.int64)
-        samp = np.ascontiguousarray(samp, np.int64)
-        ws = self._workspace(N, ws)
-        keys, o, d = ws["keys"][:N], ws["o"][:N], ws["d"][:N]
-        if fr.center_rays:  # the G-buffer's rays (the numpy path's function), keys from _core
-            _core.rng_path_keys(fr.key, pix, samp, keys)
-            _, d[:], t, prim = self._center_primary(fr, pix)
-            o[:] = fr.center
+    @contextmanager
+    def _workspace_slot(self):
+        """One worker's scratch arrays of the native stages, ``{"ws": dict | None}``, taken from the pool and given
+        back when the worker is done (``None`` for the numpy backend, which allocates per batch)."""
+        if self.backend != "native":
+            yield None
+            return
+        with self._lock:
+            slot = {"ws": self._ws_free.pop() if self._ws_free else None}
+        try:
+            yield slot
+        finally:
+            if slot["ws"] is not None:
+                with self._lock:
+                    self._ws_free.append(slot["ws"])
+
+
+#: The stages of one wavefront batch of paths, in the order they run (the sequence of pbrt-v4's wavefront
+#: integrator): camera rays; their closest hits ``x1`` (misses add nothing); shading at ``x1`` (emission seen
+#: directly, a light sample, the BSDF sample of the bounce); the bounce rays' closest hits ``x2``; shading at ``x2``
+#: (MIS-weighted emission, a light sample); one occlusion query for both light samples' shadow rays; the sample's
+#: sum with the firefly clamps. :class:`_NumpyStages` and :class:`_NativeStages` implement every stage; the three
+#: ``intersect_*`` stages are theirs in common (embreex, :class:`_Stages`).
+STAGES = ("generate", "intersect_primary", "shade_x1", "intersect_bounce", "shade_x2", "intersect_shadow",
+          "accumulate")
+
+_X1_DIMS = (DIM["light1"], DIM["light1_u"], DIM["light1_v"])
+_X2_DIMS = (DIM["light2"], DIM["light2_u"], DIM["light2_v"])
+
+
+@dataclass
+class _Batch:
+    """One wavefront batch of N paths as a structure of arrays, filled in stage by stage. These are the fields the
+    shared stages read or write; each backend's subclass adds its intermediate arrays."""
+
+    fr: _Frame
+    pix: np.ndarray  # (N,) int64 flat pixel index
+    samp: np.ndarray  # (N,) int64 sample index
+    counts: dict  # rays traced per kind, added to by the intersect stages
+    L: np.ndarray  # (N, 3) float32 the sample of each path (the result)
+    keys: np.ndarray | None = None  # (N,) uint64 path keys                             generate
+    o: np.ndarray | None = None  # (N, 3) float32 primary-ray origins                   generate
+    d: np.ndarray | None = None  # (N, 3) float32 primary-ray directions                generate
+    t: np.ndarray | None = None  # (N,) float32 distance to x1 (unit d)                 intersect_primary
+    prim: np.ndarray | None = None  # (N,) int32 triangle of x1, -1: a miss             intersect_primary
+    bounce_o: np.ndarray | None = None  # (nb, 3) bounce rays of the paths that go on   shade_x1
+    bounce_d: np.ndarray | None = None
+    t2: np.ndarray | None = None  # (nb,) their closest hits x2                         intersect_bounce
+    prim2: np.ndarray | None = None
+    shadow_o: np.ndarray | None = None  # (ns, 3) shadow rays of both light samples     shade_x1, shade_x2
+    shadow_d: np.ndarray | None = None
+    shadow_t: np.ndarray | None = None  # (ns,) their tmax
+    occluded: np.ndarray | None = None  # (ns,) bool                                    intersect_shadow
+
+
+class _Stages:
+    """The stages both backends share: the embreex queries (each skipped, as a query, when it has no rays)."""
+
+    def __init__(self, tracer: PathTracer):
+        self.tr = tracer
+
+    def intersect_primary(self, b: _Batch) -> None:
+        t, prim = b.fr.geom.bvh.intersect(b.o, b.d)
+        b.counts["primary"] += len(b.pix)
+        if b.fr.center_rays:  # the G-buffer's rays, intersected as they are, then made unit (see _center_dirs)
+            n = np.sqrt(_dot(b.d, b.d))
+            n = np.where(n > 0, n, np.float32(1))
+            b.d, t = b.d / n[:, None], np.asarray(t, np.float32) * n
+        b.t, b.prim = t, prim
+
+    def intersect_bounce(self, b: _Batch) -> None:
+        if len(b.bounce_o):
+            b.t2, b.prim2 = b.fr.geom.bvh.intersect(b.bounce_o, b.bounce_d)
+            b.counts["secondary"] += len(b.bounce_o)
         else:
-            _core.tracer_generate(fr.key, fr.width, pix, samp, fr.M32, fr.center, keys, o, d)
-            t0 = _tick(tm, "generate", t0)
-            t, prim = fr.geom.bvh.intersect(o, d)
-        counts["primary"] += N
-        t0 = _tick(tm, "intersect_primary", t0)
-        t = np.ascontiguousarray(t, f32)
-        prim = np.ascontiguousarray(prim, np.int32)
-        L = np.empty((N, 3), f32)  # returned: never a workspace buffer
-        thr, pdfb = ws["thr"][:N], ws["pdfb"][:N]
-        cap = 2 * N  # at most one shadow ray per path and set
-        sh_o, sh_d, sh_val, sh_t, sh_path = (ws[k][:cap] for k in ("sh_o", "sh_d", "sh_val", "sh_t", "sh_path"))
+            b.t2, b.prim2 = np.zeros(0, np.float32), np.zeros(0, np.int32)
+
+    def intersect_shadow(self, b: _Batch) -> None:
+        if len(b.shadow_o):
+            b.occluded = b.fr.geom.bvh.occluded(b.shadow_o, b.shadow_d, b.shadow_t)
+            b.counts["shadow"] += len(b.shadow_o)
+        else:
+            b.occluded = np.zeros(0, bool)
+
+
+@dataclass
+class _NumpyBatch(_Batch):
+    i1: np.ndarray | None = None  # (n1,) paths whose primary ray hit x1
+    k1: np.ndarray | None = None  # (n1,) their keys
+    R1: np.ndarray | None = None  # (n1, 3) reflected-radiance estimate of x1
+    weight: np.ndarray | None = None  # (n1, 3) BSDF weight f cos / pdf of the bounce
+    pdf_b: np.ndarray | None = None  # (n1,) its pdf
+    live: np.ndarray | None = None  # (nb,) local (i1) index of the bounce rays
+    j2: np.ndarray | None = None  # (n2,) local (i1) index of the paths whose bounce hit x2
+    E2: np.ndarray | None = None  # (n2, 3) MIS-weighted emission of x2
+    R2: np.ndarray | None = None  # (n2, 3) reflected-radiance estimate of x2 (before the throughput)
+    shadow_sets: list = field(default_factory=list)  # (local index, o, d, tmax, value) per light sample: x1, x2
+
+
+class _NumpyStages(_Stages):
+    """The reference implementation of :data:`STAGES` (numpy float32, transcendentals in float64)."""
+
+    def start(self, fr: _Frame, pix, samp, counts, slot) -> _NumpyBatch:
+        return _NumpyBatch(fr, pix, samp, counts, np.zeros((len(pix), 3), np.float32))
+
+    def generate(self, b: _NumpyBatch) -> None:
+        fr, pix = b.fr, b.pix
+        b.keys = path_keys(fr.key, pix, b.samp)
+        if fr.center_rays:
+            b.d = self.tr._center_dirs(fr, pix)
+        else:
+            px = (pix % fr.width).astype(np.float32) + uniform(b.keys, DIM["jitter_x"])
+            py = (pix // fr.width).astype(np.float32) + uniform(b.keys, DIM["jitter_y"])
+            b.d = _normalize(self.tr._camera_dirs(fr, px, py))
+        b.o = np.broadcast_to(fr.center, b.d.shape)
+
+    def shade_x1(self, b: _NumpyBatch) -> None:
+        """Emission seen directly (never clamped), the MIS-weighted light sample, the BSDF sample of the bounce."""
+        tr, fr = self.tr, b.fr
+        b.i1 = i1 = np.flatnonzero(b.prim >= 0)
+        b.R1 = np.zeros((len(i1), 3), np.float32)
+        if len(i1) == 0:
+            b.k1, b.weight, b.live = b.keys[i1], np.zeros((0, 3), np.float32), np.zeros(0, np.int64)
+            b.bounce_o = b.bounce_d = np.zeros((0, 3), np.float32)
+            return
+        d1, b.k1 = b.d[i1], b.keys[i1]
+        P1 = fr.center + b.t[i1, None] * d1
+        mat1, n1 = tr._surface(fr, b.prim[i1], d1)
+        wo1 = -d1
+        if tr.mat_emissive[mat1].any():
+            b.L[i1] += tr.emission[mat1]
+        if not fr.lights.empty:
+            b.shadow_sets.append(self._light_sample(fr, P1, n1, wo1, mat1, b.k1, _X1_DIMS, mis=True))
+        wi2, b.weight, b.pdf_b = tr._bsdf_sample(mat1, n1, wo1, b.k1)
+        b.live = live = np.flatnonzero(b.weight.max(axis=1) > 0)
+        b.bounce_o = P1[live] + n1[live] * tr.eps
+        b.bounce_d = wi2[live]
+
+    def shade_x2(self, b: _NumpyBatch) -> None:
+        """The MIS-weighted emission of x2 and its light sample (no MIS, no further bounce); then the shadow rays of
+        both light samples as one batch."""
+        tr, fr = self.tr, b.fr
+        h = np.flatnonzero(b.prim2 >= 0)
+        b.j2 = b.live[h]
+        b.E2 = np.zeros((len(h), 3), np.float32)
+        b.R2 = np.zeros((len(h), 3), np.float32)
+        if len(h):
+            d2, t2, p2 = b.bounce_d[h], b.t2[h], b.prim2[h]
+            P2 = b.bounce_o[h] + t2[:, None] * d2
+            mat2, n2 = tr._surface(fr, p2, d2)
+            self._emission_x2(b, mat2, p2, d2, t2)
+            if not fr.lights.empty:
+                b.shadow_sets.append(self._light_sample(fr, P2, n2, -d2, mat2, b.k1[b.j2], _X2_DIMS, mis=False))
+        sets = b.shadow_sets
+        if sum(len(s[0]) for s in sets):
+            b.shadow_o, b.shadow_d, b.shadow_t = (np.concatenate([s[k] for s in sets]) for k in (1, 2, 3))
+        else:
+            b.shadow_o = b.shadow_d = np.zeros((0, 3), np.float32)
+            b.shadow_t = np.zeros(0, np.float32)
+
+    def accumulate(self, b: _NumpyBatch) -> None:
+        """Visible light samples into x1's and x2's estimates; x2's clamped estimate through the bounce's weight;
+        x1's whole clamped estimate into the sample."""
+        sets, vis = b.shadow_sets, ~b.occluded
+        if len(vis):  # each path has at most one shadow ray per set: plain fancy-index adds are exact
+            n_first = len(sets[0][0])
+            a = np.flatnonzero(vis[:n_first])
+            b.R1[sets[0][0][a]] += sets[0][4][a]
+            if len(sets) > 1:
+                c = np.flatnonzero(vis[n_first:])
+                b.R2[sets[1][0][c]] += sets[1][4][c]
+        limit = b.fr.limit
+        if len(b.j2):
+            b.R1[b.j2] += b.weight[b.j2] * (b.E2 + _clamp_radiance(b.R2, limit))
+        b.L[b.i1] += _clamp_radiance(b.R1, limit)
+
+    def _light_sample(self, fr, P, n, wo, mat, keys, dims, mis):
+        """One light sample per shading point, only the shadow rays needed: (path index local to the points,
+        origins, directions, tmax, unoccluded values)."""
+        ok, so, sd, st, val = self.tr._nee(fr, P, n, wo, mat, keys, dims, mis=mis)
+        return np.flatnonzero(ok), so[ok], sd[ok], st[ok], val[ok]
+
+    def _emission_x2(self, b: _NumpyBatch, mat2, p2, d2, t2) -> None:
+        """``b.E2``: emission of x2 weighted against the light sample that could have found it (balance heuristic,
+        area-light pdf per solid angle); unweighted when the scene has no lights to sample."""
+        tr, fr = self.tr, b.fr
+        em2 = tr.mat_emissive[mat2]
+        if not em2.any():
+            return
+        e = np.flatnonzero(em2)
+        if fr.lights.empty:
+            b.E2[e] = tr.emission[mat2[e]]
+            return
+        cos_l = np.abs(_dot(fr.geom.face_normal[p2[e]], d2[e]))
+        pdf_l = fr.lights.pdf_area_face[p2[e]] * t2[e] * t2[e] / np.maximum(cos_l, np.float32(1e-12))
+        pb = b.pdf_b[b.j2[e]]
+        w = np.where(pb > 0, pb / (pb + pdf_l), np.float32(0)).astype(np.float32)
+        b.E2[e] = tr.emission[mat2[e]] * w[:, None]
+
+
+@dataclass
+class _NativeBatch(_Batch):
+    ws: dict | None = None  # the worker's scratch arrays (PathTracer._workspace)
+    n1: int = 0  # shadow rays of x1's light sample (the first n1 of the shadow batch)
+    bounce_path: np.ndarray | None = None  # (nb,) int32 path of each bounce ray
+
+
+class _NativeStages(_Stages):
+    """:data:`STAGES` with the kernels of ``stereorepro._core`` (``cpp_ext/src/shade_tracer.cpp``) between the
+    shared embreex queries; same values as :class:`_NumpyStages`, bit for bit."""
+
+    def start(self, fr: _Frame, pix, samp, counts, slot) -> _NativeBatch:
+        N = len(pix)
+        slot["ws"] = self.tr._workspace(N, slot["ws"])
+        return _NativeBatch(fr, np.ascontiguousarray(pix, np.int64), np.ascontiguousarray(samp, np.int64), counts,
+                            np.empty((N, 3), np.float32), ws=slot["ws"])  # L: never a workspace buffer
+
+    def generate(self, b: _NativeBatch) -> None:
+        fr, N = b.fr, len(b.pix)
+        b.keys, b.o, b.d = b.ws["keys"][:N], b.ws["o"][:N], b.ws["d"][:N]
+        if fr.center_rays:  # the G-buffer's rays (the numpy stages' function), keys from _core
+            _core.rng_path_keys(fr.key, b.pix, b.samp, b.keys)
+            b.d = self.tr._center_dirs(fr, b.pix)
+            b.o[:] = fr.center
+        else:
+            _core.tracer_generate(fr.key, fr.width, b.pix, b.samp, fr.M32, fr.center, b.keys, b.o, b.d)
+
+    def shade_x1(self, b: _NativeBatch) -> None:
+        N, ws = len(b.pix), b.ws
+        b.t, b.prim = np.ascontiguousarray(b.t, np.float32), np.ascontiguousarray(b.prim, np.int32)
         b_o, b_d, b_path = ws["b_o"][:N], ws["b_d"][:N], ws["b_path"][:N]
-        n1, nb = sh.shade1(keys, d, t, prim, fr.center, L, thr, pdfb, sh_o, sh_d, sh_t, sh_val, sh_path,
-                           b_o, b_d, b_path)
-        t0 = _tick(tm, "shade_x1", t0)
-        ns = n1
+        b.n1, nb = b.fr.shader.shade1(b.keys, b.d, b.t, b.prim, b.fr.center, b.L, ws["thr"][:N], ws["pdfb"][:N],
+                                      *self._shadow_buffers(b), b_o, b_d, b_path)
+        b.bounce_o, b.bounce_d, b.bounce_path = b_o[:nb], b_d[:nb], b_path[:nb]
+
+    def shade_x2(self, b: _NativeBatch) -> None:
+        N, ws, ns = len(b.pix), b.ws, b.n1
         E2, hit2 = ws["E2"][:N], ws["hit2"][:N]
-        if nb:
-            bo, bd = b_o[:nb], b_d[:nb]
-            t2, prim2 = fr.geom.bvh.intersect(bo, bd)
-            counts["secondary"] += nb
-            t0 = _tick(tm, "intersect_bounce", t0)
-            ns += sh.shade2(keys, bo, bd, b_path[:nb], np.ascontiguousarray(t2, f32),
-                            np.ascontiguousarray(prim2, np.int32), pdfb, E2, hit2, sh_o, sh_d, sh_t, sh_val, sh_path,
-                            n1)
-            t0 = _tick(tm, "shade_x2", t0)
+        if len(b.bounce_o):
+            ns += b.fr.shader.shade2(b.keys, b.bounce_o, b.bounce_d, b.bounce_path,
+                                     np.ascontiguousarray(b.t2, np.float32), np.ascontiguousarray(b.prim2, np.int32),
+                                     ws["pdfb"][:N], E2, hit2, *self._shadow_buffers(b), b.n1)
         else:
             E2.fill(0)
             hit2.fill(0)
-        if ns:
-            occ = np.ascontiguousarray(fr.geom.bvh.occluded(sh_o[:ns], sh_d[:ns], sh_t[:ns]), bool)
-            counts["shadow"] += ns
-            t0 = _tick(tm, "intersect_shadow", t0)
-        else:
-            occ = np.zeros(0, bool)
-        limit = fr.limit
-        sh.accumulate(prim, hit2, thr, E2, sh_path[:ns], sh_val[:ns], occ, n1,
-                      float(f32(limit)) if limit is not None else 0.0, limit is not None, L)
-        _tick(tm, "accumulate", t0)
-        return L
+        b.shadow_o, b.shadow_d, b.shadow_t = ws["sh_o"][:ns], ws["sh_d"][:ns], ws["sh_t"][:ns]
+
+    def accumulate(self, b: _NativeBatch) -> None:
+        N, ws, ns, limit = len(b.pix), b.ws, len(b.shadow_o), b.fr.limit
+        b.fr.shader.accumulate(b.prim, ws["hit2"][:N], ws["thr"][:N], ws["E2"][:N], ws["sh_path"][:ns],
+                               ws["sh_val"][:ns], np.ascontiguousarray(b.occluded, bool), b.n1,
+                               float(np.float32(limit)) if limit is not None else 0.0, limit is not None, b.L)
+
+    @staticmethod
+    def _shadow_buffers(b: _NativeBatch):
+        """The shadow-ray batch (o, d, tmax, value, path), room for one ray per path and light sample."""
+        cap = 2 * len(b.pix)
+        return (b.ws[k][:cap] for k in ("sh_o", "sh_d", "sh_t", "sh_val", "sh_path"))
