@@ -1,29 +1,32 @@
 // Wavefront path-tracer stages other than intersection: the native twin of the numpy reference in
 // stereorepro/render/tracer.py (with bsdf.py, lights.py, rng.py). Embree intersection stays in Python (embreex);
-// these kernels run between its queries on structure-of-arrays batches (float32 / int32 / uint64, C-contiguous):
+// these kernels run between its queries on structure-of-arrays batches (float32 / int32 / uint64, C-contiguous).
+// They are the native stages of tracer.STAGES (tracer._NativeStages calls them):
 //
-//   tracer_generate  keys + primary rays (jittered pixel position, camera matrix, normalised direction);
-//   TracerShader.shade1      after the primary query: surface, directly seen emission, NEE at x1 (shadow ray +
-//                            MIS-weighted value), BSDF sample of the bounce (compacted bounce-ray batch);
-//   TracerShader.shade2      after the bounce query: surface at x2, MIS-weighted emission of x2, NEE at x2
-//                            (shadow rays appended after those of x1, so one occlusion query tests both sets);
-//   TracerShader.accumulate  after the occlusion query: visible NEE values, x2's and x1's clamps, the sample.
+//   tracer_generate          generate: keys + primary rays (jittered pixel position, camera matrix, unit
+//                            direction);
+//   TracerShader.shade1      shade_x1, after the primary query: surface, directly seen emission, NEE at x1
+//                            (shadow ray + MIS-weighted value), BSDF sample of the bounce (compacted bounce rays);
+//   TracerShader.shade2      shade_x2, after the bounce query: surface at x2, MIS-weighted emission of x2, NEE at
+//                            x2 (shadow rays appended after those of x1, so one occlusion query tests both sets);
+//   TracerShader.accumulate  accumulate, after the occlusion query: visible NEE values, x2's and x1's clamps, the
+//                            sample.
 //
 // Parity with numpy: every float32 operation follows the numpy code in the same order (a*b + c*d + e*f is
 // (a*b + c*d) + e*f, divisions stay divisions), without FMA contraction. The azimuth (cos, sin) of a sampled
 // direction is a float32 polynomial evaluated the same way on both sides (unit_circle = bsdf.unit_circle); pow
 // (glossy lobes) is a float64 libm call cast to float32 in both paths (bsdf.py does the same in numpy float64),
 // because numpy's float32 SIMD transcendentals differ from libm in the last bit. Light selection compares float64
-// CDF values as np.searchsorted(side="right") does. Result: bit-identical radiance (tests/test_render_native.py).
+// CDF values as np.searchsorted(side="right") does. Result: bit-identical radiance
+// (tests/render/test_render_native.py).
 //
 // Layout inside a kernel: paths are processed in blocks of kBlock lanes held as a structure of arrays (Lanes,
 // NeeBlock). Each step of next-event estimation and of Lambertian BSDF sampling is a loop over the block: the
 // integer work (hashing, light selection, table lookups) stays scalar, the float work is `#pragma omp simd` loops
 // of selects instead of branches, which the compiler vectorises (SSE2 at the x86-64 baseline; -fno-trapping-math
 // and -fno-math-errno in CMakeLists.txt let it: values are unchanged, vector sqrt/div/mul/add round exactly as
-// scalar ones). Measured on a 320x180 living-room frame: shade_x1 4.4 -> 2.6 ms, shade_x2 2.7 -> 1.9 ms. (AVX2
-// target_clones were measured slower here: shade_x1 2.65 -> 3.04 ms.) Compaction of shadow and bounce rays is
-// branchless (write, then advance the count by the keep flag) and keeps path order.
+// scalar ones). Compaction of shadow and bounce rays is branchless (write, then advance the count by the keep
+// flag) and keeps path order.
 //
 // Threading: none inside. The Python tracer already runs one worker thread per pixel range and each worker runs
 // its own embreex queries and these kernels (both release the GIL), so a second (OpenMP) level would only
@@ -176,6 +179,16 @@ struct NeeBlock {
     int32_t ok[kBlock];
 };
 
+// One light sample per lane of a block, between the steps of nee_block: random numbers, the chosen light, the
+// point on it (normal, emission, area pdf factor), distance, incident radiance, light and BSDF pdfs, BSDF value.
+struct LightLanes {
+    float u1[kBlock], u2[kBlock];
+    int32_t sel[kBlock];
+    float target[3][kBlock], ln[3][kBlock], le[3][kBlock], lpdf[kBlock];
+    float d2[kBlock], dist[kBlock], li[3][kBlock], pdf_l[kBlock];
+    float f[3][kBlock], cos_i[kBlock], pdf_b[kBlock];
+};
+
 struct ShadowBuf {  // compacted shadow-ray batch (both sets share it)
     float *o, *d, *t, *val;
     int32_t *path;
@@ -215,7 +228,7 @@ public:
                 throw std::invalid_argument("TracerShader: face_material out of range");
     }
 
-    // ---- stage (b): after the primary query ----------------------------------------------------------------
+    // ---- stage shade_x1: after intersect_primary -----------------------------------------------------------
     std::tuple<int64_t, int64_t> shade1(In<uint64_t> keys, In<float> d, In<float> t, In<int32_t> prim,
                                         In<float> center, Out<float> L, Out<float> thr, Out<float> pdfb,
                                         Out<float> sh_o, Out<float> sh_d, Out<float> sh_t, Out<float> sh_val,
@@ -284,7 +297,7 @@ public:
         return {ns, nbounce};
     }
 
-    // ---- stage (c): after the bounce query -------------------------------------------------------------------
+    // ---- stage shade_x2: after intersect_bounce --------------------------------------------------------------
     int64_t shade2(In<uint64_t> keys, In<float> b_o, In<float> b_d, In<int32_t> b_path, In<float> t2,
                    In<int32_t> prim2, In<float> pdfb, Out<float> E2, Out<uint8_t> hit2, Out<float> sh_o,
                    Out<float> sh_d, Out<float> sh_t, Out<float> sh_val, Out<int32_t> sh_path, int64_t offset) {
@@ -349,7 +362,7 @@ public:
         return ns - offset;
     }
 
-    // ---- stage (d): after the occlusion query ----------------------------------------------------------------
+    // ---- stage accumulate: after intersect_shadow ------------------------------------------------------------
     void accumulate(In<int32_t> prim, In<uint8_t> hit2, In<float> thr, In<float> E2, In<int32_t> sh_path,
                     In<float> sh_val, In<bool> occluded, int64_t n_first, float limit, bool clamp, Out<float> L) {
         const int64_t N = prim.shape(0), ns = occluded.shape(0);
@@ -474,9 +487,9 @@ private:
         sb.t[k] = r.tmax[lane];
         sb.path[k] = path;
     }
-    // tracer._clamp_radiance for one row, without branches (which channel is largest is a coin toss: the
-    // branchy max3 made the clamps 40 % of the accumulate stage). Where max3 matters it is the largest channel: a
-    // NaN channel makes max3 NaN, never above the limit; ties and the sign of zero do not matter (max > limit > 0).
+    // tracer._clamp_radiance for one row, without branches (which channel is largest is a coin toss, so a branch
+    // mispredicts). Where max3 matters it is the largest channel: a NaN channel makes max3 NaN, never above the
+    // limit; ties and the sign of zero do not matter (max > limit > 0).
     static void clamp_row(float *r, float limit) {
         const bool nan = (r[0] != r[0]) || (r[1] != r[1]) || (r[2] != r[2]);
         const float m01 = (r[1] > r[0]) ? r[1] : r[0];
@@ -597,50 +610,64 @@ private:
     // integer work, the geometry and the values are float loops the compiler vectorises (omp simd: 4 or 8 lanes per
     // instruction, the same IEEE operations per lane as numpy's, in the same order).
     void nee_block(int m, const Lanes &in, uint64_t d_sel, uint64_t d_u, uint64_t d_v, bool mis, NeeBlock &r) const {
-        // (1) random numbers and light selection: np.searchsorted(cdf, u, side="right"), clipped to the last light
-        float u1[kBlock], u2[kBlock];
-        int32_t sel[kBlock];
+        LightLanes s;
+        select_lights(m, in, d_sel, d_u, d_v, s);
+        const bool any_point = light_points(m, s);
+        shadow_rays(m, in, s, r);
+        if (any_point) point_light_values(m, s);
+        nee_bsdf(m, in, r, s);
+        nee_values(m, mis, s, r);
+    }
+
+    // (1) random numbers and light selection: np.searchsorted(cdf, u, side="right"), clipped to the last light.
+    void select_lights(int m, const Lanes &in, uint64_t d_sel, uint64_t d_u, uint64_t d_v, LightLanes &s) const {
         const int64_t K = cdf_.shape(0);
         const double *cdf = cdf_.data();
         for (int k = 0; k < m; ++k) {
             const double u = static_cast<double>(sr_rng::uniform(in.key[k], d_sel));
-            u1[k] = sr_rng::uniform(in.key[k], d_u);
-            u2[k] = sr_rng::uniform(in.key[k], d_v);
+            s.u1[k] = sr_rng::uniform(in.key[k], d_u);
+            s.u2[k] = sr_rng::uniform(in.key[k], d_v);
             int64_t c = 0;
             if (K <= 32) {  // branchless count of cdf entries <= u (= upper_bound on the sorted CDF)
                 for (int64_t q = 0; q < K; ++q) c += (cdf[q] <= u);
             } else {
                 c = std::upper_bound(cdf, cdf + K, u) - cdf;
             }
-            sel[k] = static_cast<int32_t>(std::min<int64_t>(c, K - 1));
+            s.sel[k] = static_cast<int32_t>(std::min<int64_t>(c, K - 1));
         }
-        // (2) the selected light's data per lane: sampled point, normal, emission and area pdf factor (area lights),
-        // position (point lights, whose value is set in (4))
-        float target[3][kBlock], ln[3][kBlock], le[3][kBlock], lpdf[kBlock];
+    }
+
+    // (2) the selected light's data per lane: sampled point, normal, emission and area pdf factor (area lights),
+    // position (point lights, whose value point_light_values sets). Returns whether any lane chose a point light.
+    bool light_points(int m, LightLanes &s) const {
         bool any_point = false;
         for (int k = 0; k < m; ++k) {
-            if (sel[k] < num_area_) {
-                const float *T = table_.data() + 16 * sel[k];
-                const float su = std::sqrt(u1[k]);
-                const float b1 = su * (1.0f - u2[k]), b2 = su * u2[k];
+            if (s.sel[k] < num_area_) {
+                const float *T = table_.data() + 16 * s.sel[k];
+                const float su = std::sqrt(s.u1[k]);
+                const float b1 = su * (1.0f - s.u2[k]), b2 = su * s.u2[k];
                 for (int c = 0; c < 3; ++c) {
-                    target[c][k] = T[c] + b1 * T[3 + c] + b2 * T[6 + c];
-                    ln[c][k] = T[9 + c];
-                    le[c][k] = T[12 + c];
+                    s.target[c][k] = T[c] + b1 * T[3 + c] + b2 * T[6 + c];
+                    s.ln[c][k] = T[9 + c];
+                    s.le[c][k] = T[12 + c];
                 }
-                lpdf[k] = T[15];
+                s.lpdf[k] = T[15];
             } else {
-                const float *p = point_pos_.data() + 3 * (sel[k] - num_area_);
+                const float *p = point_pos_.data() + 3 * (s.sel[k] - num_area_);
                 for (int c = 0; c < 3; ++c) {
-                    target[c][k] = p[c];
-                    ln[c][k] = le[c][k] = 0.0f;
+                    s.target[c][k] = p[c];
+                    s.ln[c][k] = s.le[c][k] = 0.0f;
                 }
-                lpdf[k] = 0.0f;
+                s.lpdf[k] = 0.0f;
                 any_point = true;
             }
         }
-        // (3) shadow ray and the area light's value and pdf
-        float d2[kBlock], dist[kBlock], li[3][kBlock], pdf_l[kBlock];
+        return any_point;
+    }
+
+    // (3) shadow ray (origin offset along the normal, unit direction to the light point) and the area light's
+    // value and pdf per solid angle (infinite where the light is seen edge-on or the points coincide).
+    void shadow_rays(int m, const Lanes &in, LightLanes &s, NeeBlock &r) const {
         const float eps = eps_;
 #pragma omp simd
         for (int k = 0; k < m; ++k) {
@@ -648,7 +675,7 @@ private:
             for (int c = 0; c < 3; ++c) {
                 const float o = in.P[c][k] + in.n[c][k] * eps;
                 r.o[c][k] = o;
-                delta[c] = target[c][k] - o;
+                delta[c] = s.target[c][k] - o;
             }
             const float q = delta[0] * delta[0] + delta[1] * delta[1] + delta[2] * delta[2];
             const float len = std::sqrt(q);
@@ -658,43 +685,36 @@ private:
                 wi[c] = delta[c] / safe;
                 r.wi[c][k] = wi[c];
             }
-            const float cos_l = std::fabs(ln[0][k] * wi[0] + ln[1][k] * wi[1] + ln[2][k] * wi[2]);
-            const float pdf_a = lpdf[k] * q / maxlo(cos_l, 1e-12f);
+            const float cos_l = std::fabs(s.ln[0][k] * wi[0] + s.ln[1][k] * wi[1] + s.ln[2][k] * wi[2]);
+            const float pdf_a = s.lpdf[k] * q / maxlo(cos_l, 1e-12f);
             const bool facing = cos_l > 1e-7f, apart = q > 0.0f;  // (named first: no branch, the loop vectorises)
             const bool ok = facing && apart;
-            pdf_l[k] = ok ? pdf_a : kInf;
+            s.pdf_l[k] = ok ? pdf_a : kInf;
             const float inv_a = 1.0f / pdf_a;  // computed for every lane, selected below (a select vectorises)
             const float inv = ok ? inv_a : 0.0f;
-            for (int c = 0; c < 3; ++c) li[c][k] = le[c][k] * inv;
-            d2[k] = q;
-            dist[k] = len;
+            for (int c = 0; c < 3; ++c) s.li[c][k] = s.le[c][k] * inv;
+            s.d2[k] = q;
+            s.dist[k] = len;
         }
-        // (4) point lights (LightSet.sample: intensity / (d^2 prob) in float64, no MIS)
-        if (any_point) {
-            for (int k = 0; k < m; ++k) {
-                if (sel[k] < num_area_) continue;
-                const int64_t q = sel[k] - num_area_;
-                const float w = (d2[k] > 0.0f)
-                    ? static_cast<float>(1.0 / (static_cast<double>(d2[k]) * prob_.data()[num_area_ + q])) : 0.0f;
-                const float *I = point_int_.data() + 3 * q;
-                for (int c = 0; c < 3; ++c) li[c][k] = I[c] * w;
-                pdf_l[k] = kInf;
-            }
+    }
+
+    // (4) point lights' values (LightSet.sample: intensity / (d^2 prob) in float64, no MIS).
+    void point_light_values(int m, LightLanes &s) const {
+        for (int k = 0; k < m; ++k) {
+            if (s.sel[k] < num_area_) continue;
+            const int64_t q = s.sel[k] - num_area_;
+            const float w = (s.d2[k] > 0.0f)
+                ? static_cast<float>(1.0 / (static_cast<double>(s.d2[k]) * prob_.data()[num_area_ + q])) : 0.0f;
+            const float *I = point_int_.data() + 3 * q;
+            for (int c = 0; c < 3; ++c) s.li[c][k] = I[c] * w;
+            s.pdf_l[k] = kInf;
         }
-        // (5) BSDF at the shading point, MIS weight, value, and whether the shadow ray is needed
-        float f[3][kBlock], cos_i[kBlock], pdf_b[kBlock];
-        if (!glossy_) {  // bsdf.lambert_eval
-            for (int k = 0; k < m; ++k) {
-                const float *kd = kd_.data() + 3 * in.mat[k];
-                for (int c = 0; c < 3; ++c) f[c][k] = kd[c] * kInvPi;
-            }
-#pragma omp simd
-            for (int k = 0; k < m; ++k) {
-                const float ci = in.n[0][k] * r.wi[0][k] + in.n[1][k] * r.wi[1][k] + in.n[2][k] * r.wi[2][k];
-                cos_i[k] = ci;
-                pdf_b[k] = max0(ci) * kInvPi;
-            }
-        } else {  // the mixture's pow is a float64 libm call: lane by lane
+    }
+
+    // (5) the BSDF at the shading point towards the light: f, cos_i, pdf (bsdf.lambert_eval as vectorised loops;
+    // the glossy mixture lane by lane, its pow being a float64 libm call).
+    void nee_bsdf(int m, const Lanes &in, const NeeBlock &r, LightLanes &s) const {
+        if (glossy_) {
             for (int k = 0; k < m; ++k) {
                 float n[3], wo[3], wi[3], fk[3];
                 for (int c = 0; c < 3; ++c) {
@@ -702,31 +722,46 @@ private:
                     wo[c] = in.wo[c][k];
                     wi[c] = r.wi[c][k];
                 }
-                bsdf_eval(in.mat[k], n, wo, wi, fk, cos_i[k], pdf_b[k]);
-                for (int c = 0; c < 3; ++c) f[c][k] = fk[c];
+                bsdf_eval(in.mat[k], n, wo, wi, fk, s.cos_i[k], s.pdf_b[k]);
+                for (int c = 0; c < 3; ++c) s.f[c][k] = fk[c];
             }
+            return;
         }
-        const float two_eps = 2.0f * eps;
+        for (int k = 0; k < m; ++k) {
+            const float *kd = kd_.data() + 3 * in.mat[k];
+            for (int c = 0; c < 3; ++c) s.f[c][k] = kd[c] * kInvPi;
+        }
+#pragma omp simd
+        for (int k = 0; k < m; ++k) {
+            const float ci = in.n[0][k] * r.wi[0][k] + in.n[1][k] * r.wi[1][k] + in.n[2][k] * r.wi[2][k];
+            s.cos_i[k] = ci;
+            s.pdf_b[k] = max0(ci) * kInvPi;
+        }
+    }
+
+    // (6) MIS weight, value, and whether the shadow ray is needed at all.
+    void nee_values(int m, bool mis, const LightLanes &s, NeeBlock &r) const {
+        const float two_eps = 2.0f * eps_;
         const bool no_mis = !mis;
 #pragma omp simd
         for (int k = 0; k < m; ++k) {
-            const float cpos = max0(cos_i[k]);
-            const float w_mis = pdf_l[k] / (pdf_l[k] + pdf_b[k]);
-            const bool single = std::fabs(pdf_l[k]) == kInf;  // delta light (or no valid light pdf): weight 1
+            const float cpos = max0(s.cos_i[k]);
+            const float w_mis = s.pdf_l[k] / (s.pdf_l[k] + s.pdf_b[k]);
+            const bool single = std::fabs(s.pdf_l[k]) == kInf;  // delta light (or no valid light pdf): weight 1
             const float w = (no_mis || single) ? 1.0f : w_mis;  // x * 1 is x, bit for bit: no MIS = weight 1
             float v[3];
             for (int c = 0; c < 3; ++c) {
-                v[c] = f[c][k] * (li[c][k] * cpos) * w;
+                v[c] = s.f[c][k] * (s.li[c][k] * cpos) * w;
                 r.val[c][k] = v[c];
             }
-            const bool lit = cos_i[k] > 0.0f, far = dist[k] > two_eps;
+            const bool lit = s.cos_i[k] > 0.0f, far = s.dist[k] > two_eps;
             r.ok[k] = (lit && far && max3_positive(v[0], v[1], v[2])) ? 1 : 0;
-            r.tmax[k] = dist[k] - two_eps;
+            r.tmax[k] = s.dist[k] - two_eps;
         }
     }
 };
 
-// ---- stage (a): keys and primary rays -----------------------------------------------------------------------
+// ---- stage generate: keys and primary rays ------------------------------------------------------------------
 void tracer_generate(uint64_t key, int64_t width, In<int64_t> pix, In<int64_t> samp, In<float> M, In<float> center,
                      Out<uint64_t> keys, Out<float> o, Out<float> d) {
     const int64_t N = pix.shape(0);
