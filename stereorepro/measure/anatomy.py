@@ -2,7 +2,7 @@
 per-region effective spp from a two-rung ladder.
 
 Pure functions of (1, C, H, W) images and (1, 1, H, W) bool masks; ``bench/error_anatomy.py`` applies them to a
-scheme's frames (the Classroom question of issue #15: which pixels decide its effective spp).
+scheme's frames (which pixels decide a scheme's effective spp).
 """
 
 from __future__ import annotations
