@@ -151,24 +151,60 @@ def look_at(eye: Tensor, target: Tensor, up: Tensor) -> Tensor:
 
 def invert_rigid(T: Tensor) -> Tensor:
     """Inverse of rigid (B, 4, 4) transforms: ``[R | t]^-1 = [R^T | -R^T t]`` (ONNX-friendly, no linalg.inv)."""
-    R = T[..., :3, :3]
-    t = T[..., :3, 3:]
-    Rt = R.transpose(-1, -2)
-    top = torch.cat([Rt, -(Rt @ t)], dim=-1)
-    bottom = T[..., 3:, :]  # [0, 0, 0, 1]
-    return torch.cat([top, bottom], dim=-2)
+    return _invert_rigid(T, torch)
 
 
 def inverse_intrinsics(K: Tensor) -> Tensor:
     """Closed-form inverse of upper-triangular pinhole intrinsics (B, 3, 3) (skew allowed, K[2] = [0, 0, 1])."""
+    return _inverse_intrinsics(K, torch)
+
+
+# The formulas of invert_rigid, inverse_intrinsics and compose_warp, written once for both array libraries: ``xp`` is
+# the module ``torch`` (tensors: autograd, tracing, any device) or ``numpy`` (float64 arrays: compose_warp's CPU
+# path); the bodies use only names the two share.
+
+def _invert_rigid(T, xp):
+    R = T[..., :3, :3]
+    t = T[..., :3, 3:]
+    Rt = R.swapaxes(-1, -2)
+    top = xp.concatenate([Rt, -(Rt @ t)], -1)
+    bottom = T[..., 3:, :]  # [0, 0, 0, 1]
+    return xp.concatenate([top, bottom], -2)
+
+
+def _inverse_intrinsics(K, xp):
     fx, s, cx = K[:, 0, 0], K[:, 0, 1], K[:, 0, 2]
     fy, cy = K[:, 1, 1], K[:, 1, 2]
-    zero = torch.zeros_like(fx)
-    one = torch.ones_like(fx)
-    row0 = torch.stack([1.0 / fx, -s / (fx * fy), (s * cy - cx * fy) / (fx * fy)], dim=-1)
-    row1 = torch.stack([zero, 1.0 / fy, -cy / fy], dim=-1)
-    row2 = torch.stack([zero, zero, one], dim=-1)
-    return torch.stack([row0, row1, row2], dim=-2)
+    return _upper_triangular(1.0 / fx, -s / (fx * fy), (s * cy - cx * fy) / (fx * fy), 1.0 / fy, -cy / fy, xp)
+
+
+def _upper_triangular(m00, m01, m02, m11, m12, xp):
+    """(B, 3, 3) matrices ``[[m00, m01, m02], [0, m11, m12], [0, 0, 1]]`` from (B,) entries: stacked in torch
+    (differentiable and traceable), written into a zero array in numpy (cheaper than stacking; compose_warp runs
+    once per frame)."""
+    if xp is torch:
+        zero = torch.zeros_like(m00)
+        one = torch.ones_like(m00)
+        rows = [torch.stack(r, -1) for r in ([m00, m01, m02], [zero, m11, m12], [zero, zero, one])]
+        return torch.stack(rows, -2)
+    out = xp.zeros(m00.shape + (3, 3), m00.dtype)
+    out[:, 0, 0], out[:, 0, 1], out[:, 0, 2], out[:, 1, 1], out[:, 1, 2], out[:, 2, 2] = m00, m01, m02, m11, m12, 1.0
+    return out
+
+
+def _snap(A, xp, tol: float = 1e-12):
+    """Round entries within ``tol`` (relative) of an integer to it (float64 camera compositions); round half to
+    even in both libraries."""
+    r = xp.round(A)
+    return xp.where(abs(A - r) <= tol * (1.0 + abs(A)), r, A)
+
+
+def _compose_warp(src_K, src_cam_from_world, dst_K, dst_cam_from_world, xp) -> tuple:
+    """The five matrices of :class:`Warp`, in the inputs' (float64) dtype."""
+    src_from_dst = _snap(src_cam_from_world @ _invert_rigid(dst_cam_from_world, xp), xp)
+    M = src_from_dst[:, :3, :3] @ _inverse_intrinsics(dst_K, xp)
+    t = src_from_dst[:, :3, 3:]
+    return M, t, _snap(src_K @ M, xp), src_K @ t, _inverse_intrinsics(src_K, xp)
 
 
 class Warp(NamedTuple):
@@ -204,12 +240,6 @@ class Warp(NamedTuple):
     Ks_inv = property(lambda self: self._legacy("Ks_inv", "K_src_inv"))
 
 
-def _snap(A: Tensor, tol: float = 1e-12) -> Tensor:
-    """Round entries within ``tol`` (relative) of an integer to it (float64 camera compositions)."""
-    r = torch.round(A)
-    return torch.where((A - r).abs() <= tol * (1.0 + A.abs()), r, A)
-
-
 def compose_warp(src_K: Tensor, src_cam_from_world: Tensor, dst_K: Tensor, dst_cam_from_world: Tensor,
                  dtype: torch.dtype) -> Warp:
     """The :class:`Warp` from a destination camera into a source camera, composed in float64, cast to ``dtype``.
@@ -226,43 +256,15 @@ def compose_warp(src_K: Tensor, src_cam_from_world: Tensor, dst_K: Tensor, dst_c
     cams = (src_K, src_cam_from_world, dst_K, dst_cam_from_world)
     if not tracing() and all(c.device.type == "cpu" and not (c.requires_grad and torch.is_grad_enabled())
                              for c in cams):
-        return _compose_warp_numpy(*cams, dtype)
-    src_from_dst = _snap(src_cam_from_world.double() @ invert_rigid(dst_cam_from_world.double()))
-    M64 = src_from_dst[:, :3, :3] @ inverse_intrinsics(dst_K.double())
-    t64 = src_from_dst[:, :3, 3:]
-    P = _snap(src_K.double() @ M64).to(dtype)
-    kt = (src_K.double() @ t64).to(dtype)
-    Ks_inv = inverse_intrinsics(src_K.double()).to(dtype)
-    return Warp(M64.to(dtype), t64.to(dtype), P, kt, Ks_inv)
+        return _compose_warp_numpy(cams, dtype)
+    return Warp(*(m.to(dtype) for m in _compose_warp(*(c.double() for c in cams), torch)))
 
 
-def _compose_warp_numpy(src_K: Tensor, src_cam_from_world: Tensor, dst_K: Tensor, dst_cam_from_world: Tensor,
-                        dtype: torch.dtype) -> Warp:
-    """:func:`compose_warp` in float64 numpy: invert_rigid, the closed-form K^-1 and _snap written out."""
+def _compose_warp_numpy(cams: tuple[Tensor, ...], dtype: torch.dtype) -> Warp:
+    """:func:`compose_warp` of CPU cameras in float64 numpy, cast to ``dtype``."""
     import numpy as np
 
-    def f64(x):
-        return x.detach().to(torch.float64).numpy()
-
-    def snap(A, tol=1e-12):
-        r = np.round(A)  # half to even, as torch.round
-        return np.where(np.abs(A - r) <= tol * (1.0 + np.abs(A)), r, A)
-
-    def k_inv(K):  # inverse_intrinsics
-        fx, s, cx, fy, cy = K[:, 0, 0], K[:, 0, 1], K[:, 0, 2], K[:, 1, 1], K[:, 1, 2]
-        out = np.zeros_like(K)
-        out[:, 0, 0], out[:, 0, 1], out[:, 0, 2] = 1.0 / fx, -s / (fx * fy), (s * cy - cx * fy) / (fx * fy)
-        out[:, 1, 1], out[:, 1, 2], out[:, 2, 2] = 1.0 / fy, -cy / fy, 1.0
-        return out
-
-    sK, sT, dK, dT = f64(src_K), f64(src_cam_from_world), f64(dst_K), f64(dst_cam_from_world)
-    Rt = dT[:, :3, :3].transpose(0, 2, 1)
-    dst_inv = np.concatenate([np.concatenate([Rt, -(Rt @ dT[:, :3, 3:])], 2), dT[:, 3:, :]], 1)  # invert_rigid
-    src_from_dst = snap(sT @ dst_inv)
-    M64 = src_from_dst[:, :3, :3] @ k_inv(dK)
-    t64 = src_from_dst[:, :3, 3:]
-    P = snap(sK @ M64)
-    out = (M64, t64, P, sK @ t64, k_inv(sK))
+    out = _compose_warp(*(c.detach().to(torch.float64).numpy() for c in cams), np)
     if dtype in (torch.float32, torch.float64):  # numpy's cast rounds to nearest, as torch's
         npd = np.float32 if dtype == torch.float32 else np.float64
         return Warp(*(torch.from_numpy(np.ascontiguousarray(a, dtype=npd)) for a in out))
