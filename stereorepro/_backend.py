@@ -8,8 +8,9 @@ tested). A request is one of:
 * ``"native"``: native, or RuntimeError saying why not;
 * ``"reference"``, or its synonyms ``"torch"`` and ``"numpy"``: the reference path.
 
-The environment variable ``STEREOREPRO_BACKEND``, when set, overrides the request of every op and tracer alike
-(case-insensitive, same names).
+The reprojection ops accept :data:`OP_NAMES` and the path tracer :data:`TRACER_NAMES` (each names its reference
+path after its library). The environment variable ``STEREOREPRO_BACKEND``, when set, overrides the request of every
+op and tracer alike (case-insensitive, any of :data:`NAMES`).
 """
 
 from __future__ import annotations
@@ -17,12 +18,24 @@ from __future__ import annotations
 import os
 from typing import Callable
 
-__all__ = ["ENV_VAR", "NAMES", "REFERENCE_NAMES", "resolve"]
+__all__ = ["ENV_VAR", "NAMES", "OP_NAMES", "REFERENCE_NAMES", "TRACER_NAMES", "check", "resolve"]
 
 ENV_VAR = "STEREOREPRO_BACKEND"
 #: Names of the reference path (the ops call it torch, the tracer numpy).
 REFERENCE_NAMES = ("reference", "torch", "numpy")
+#: Every name the environment variable accepts.
 NAMES = ("auto", "native") + REFERENCE_NAMES
+#: The ``backend`` argument of the reprojection ops and modules.
+OP_NAMES = ("auto", "torch", "native")
+#: The ``backend`` argument of the path tracer (``"torch"`` also names its numpy reference).
+TRACER_NAMES = ("auto", "numpy", "native", "torch")
+
+
+def check(backend: str, choices: tuple[str, ...], who: str = "") -> str:
+    """``backend`` itself when it is one of ``choices``, else ValueError (``who`` prefixes the message)."""
+    if backend not in choices:
+        raise ValueError(f"{who}backend must be one of {choices}, got {backend!r}")
+    return backend
 
 
 def _canonical(name: str) -> str:
@@ -45,8 +58,7 @@ def resolve(backend: str, choices: tuple[str, ...], why_not_native: Callable[[],
         ValueError: unknown name in ``backend`` or in ``STEREOREPRO_BACKEND``.
         RuntimeError: native asked for (argument or environment) but ``why_not_native`` gives a reason.
     """
-    if backend not in choices:
-        raise ValueError(f"{who}backend must be one of {choices}, got {backend!r}")
+    check(backend, choices, who)
     env = os.environ.get(ENV_VAR, "").strip().lower()
     if env:
         if env not in NAMES:
