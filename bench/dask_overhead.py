@@ -15,7 +15,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from _common import header, save
+from _bench_common import header, save
 
 from stereorepro.cli.demo import DEFAULTS
 from stereorepro.measure.experiment import ExperimentConfig, run_experiment

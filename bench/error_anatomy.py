@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from _common import RESULTS, header, save
+from _bench_common import RESULTS, header, save
 
 from stereorepro.accumulate import SpatiotemporalReprojection
 from stereorepro.camera import has_surface

@@ -30,8 +30,8 @@ from types import SimpleNamespace
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import _common  # noqa: E402
-from _common import copy_floor, floor_bytes, header, save, time_interleaved  # noqa: E402
+import _bench_common  # noqa: E402
+from _bench_common import copy_floor, floor_bytes, header, save, time_interleaved  # noqa: E402
 
 from stereorepro import StereoReprojection, TemporalReprojection, export_onnx  # noqa: E402
 from stereorepro.io.onnx import example_inputs  # noqa: E402
@@ -331,7 +331,7 @@ def main(argv=None) -> int:
     print(md)
     if save_name:
         if args.results_dir:
-            _common.RESULTS = Path(args.results_dir)
+            _bench_common.RESULTS = Path(args.results_dir)
         j, m = save(save_name, record, md)
         print(f"wrote {j} and {m}")
     else:

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from _common import header, save, time_interleaved, time_ms
+from _bench_common import header, save, time_interleaved, time_ms
 from stereorepro import TemporalReprojection, camera_motion, load_scene
 from stereorepro.io.onnx import example_inputs
 from stereorepro.render import PathTracer

@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import header, save  # noqa: E402
+from _bench_common import header, save  # noqa: E402
 
 from stereorepro.cli import parse_resolution  # noqa: E402
 from stereorepro.measure.experiment import ExperimentConfig, run_experiment  # noqa: E402

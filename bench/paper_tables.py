@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import header, save  # noqa: E402
+from _bench_common import header, save  # noqa: E402
 from paper import PAPER_NAME, PAPER_T1, PAPER_T2  # noqa: E402
 
 

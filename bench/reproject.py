@@ -18,7 +18,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import (copy_floor, floor_bytes, header, paired_ratio, peak_rss_delta, save,  # noqa: E402
+from _bench_common import (copy_floor, floor_bytes, header, paired_ratio, peak_rss_delta, save,  # noqa: E402
                      time_interleaved)
 
 from stereorepro import StereoReprojection, TemporalReprojection, export_onnx  # noqa: E402
@@ -67,7 +67,7 @@ def ort_session(module, path, lean: bool = True):
 
 def memory_child(case: str, impl: str, H: int, W: int) -> dict:
     """In this (fresh) process: the peak resident memory one call of ``impl`` on ``case`` adds, the inputs built
-    and the session created first (bench/_common.peak_rss_delta); the bytes of its inputs and outputs."""
+    and the session created first (bench/_bench_common.peak_rss_delta); the bytes of its inputs and outputs."""
     name, cls, kw, motion, _ = next(c for c in CASES if c[0] == case)
     m = cls(**THRESHOLDS, **kw, backend="native" if impl == "native" else "torch")
     inp = example_inputs(m, batch=1, height=H, width=W, head_motion=motion)

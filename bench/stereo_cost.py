@@ -16,7 +16,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import header, save, time_ms  # noqa: E402
+from _bench_common import header, save, time_ms  # noqa: E402
 
 from stereorepro import PathTracer, StereoReprojection, load_scene, native  # noqa: E402
 from stereorepro.cli import parse_resolution  # noqa: E402

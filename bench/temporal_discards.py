@@ -24,7 +24,7 @@ import math
 
 import numpy as np
 import torch
-from _common import header, save
+from _bench_common import header, save
 
 from stereorepro.camera import camera_motion, has_surface
 from stereorepro.measure.experiment.config import RIGHT

@@ -25,7 +25,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from _common import time_interleaved, time_ms  # noqa: E402  (bench/ is the script's directory, first on sys.path)
+from _bench_common import time_interleaved, time_ms  # noqa: E402  (bench/ is the script's directory, first on sys.path)
 
 from stereorepro.render import PathTracer  # noqa: E402
 from stereorepro.render.tracer import native_available  # noqa: E402

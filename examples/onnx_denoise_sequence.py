@@ -35,7 +35,7 @@ import time
 from pathlib import Path
 
 # Nothing at module level imports torch or stereorepro: the onnxruntime pass (``--ort-only``) runs without them.
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # denoiser_preprocess, _common (imported where used)
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # denoiser_preprocess, _example_common (imported where used)
 
 STATE = ("history_color", "history_len", "prev_depth", "prev_normal", "prev_K", "prev_cam_from_world")
 FRAME = ("current_color", "depth", "normal", "K", "cam_from_world")
@@ -136,7 +136,7 @@ def train_denoiser(model, clip: dict, steps: int, batch: int, crop: int, lr: flo
     references; ``model.denoiser`` is trained in place."""
     import torch
 
-    from _common import cpu_training_threads
+    from _example_common import cpu_training_threads
 
     feats, _ = run_torch(model, clip, features=True)
     x, target = feats["out"][:, 0], clip["reference"][:, 0]  # (F, C, H, W)

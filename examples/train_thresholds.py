@@ -33,7 +33,7 @@ from stereorepro import (PathTracer, TemporalReprojection, effective_spp_many, l
                          temporal_step)
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import cpu_training_threads  # noqa: E402
+from _example_common import cpu_training_threads  # noqa: E402
 
 REFERENCE_OFFSET = 1 << 24  # sample index of the references' stream: disjoint from the inputs and ladders
 

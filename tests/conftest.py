@@ -1,4 +1,7 @@
+import importlib.util
 import os
+import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -41,6 +44,25 @@ def backend(request, monkeypatch):
 def backend_arg(backend: str) -> str:
     """The ops' ``backend`` argument for a value of the ``backend`` fixture."""
     return "native" if backend == "native" else "torch"
+
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def load_script(folder: str, name: str):
+    """``<folder>/<name>.py`` of the repository (a bench or example script) as the module ``<folder>_<name>``, run
+    as the script would run: its folder first on ``sys.path`` while it imports (its helpers, ``_bench_common`` or
+    ``_example_common``, have names of their own, so the folders' helpers never shadow each other). The folder
+    stays on ``sys.path`` only where the script puts it there itself."""
+    spec = importlib.util.spec_from_file_location(f"{folder}_{name}", ROOT / folder / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses resolve annotations through sys.modules
+    sys.path.insert(0, str(ROOT / folder))
+    try:
+        spec.loader.exec_module(module)
+    finally:
+        sys.path.remove(str(ROOT / folder))  # the first entry: this one, or the script's own insertion
+    return module
 
 
 def pytest_collection_modifyitems(config, items):

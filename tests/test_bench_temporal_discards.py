@@ -3,36 +3,13 @@ reason split that its table rests on."""
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import pytest
 import torch
 
+from conftest import load_script
 from stereorepro import load_scene
 
-BENCH = Path(__file__).resolve().parent.parent / "bench"
-
-
-def _load_bench_script():
-    """bench/temporal_discards.py as a module, its ``_common`` (bench's) imported for it alone: examples/ has a
-    ``_common`` of its own, which later tests must still find."""
-    saved_path, saved_common = list(sys.path), sys.modules.pop("_common", None)
-    sys.path.insert(0, str(BENCH))
-    try:
-        spec = importlib.util.spec_from_file_location("bench_temporal_discards", BENCH / "temporal_discards.py")
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-        return module
-    finally:
-        sys.path[:] = saved_path
-        sys.modules.pop("_common", None)
-        if saved_common is not None:
-            sys.modules["_common"] = saved_common
-
-
-td = _load_bench_script()
+td = load_script("bench", "temporal_discards")
 
 
 class TestTemporalDiscards:

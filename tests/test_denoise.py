@@ -3,17 +3,15 @@ example that deploys it (examples/onnx_denoise_sequence.py) in smoke mode."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 from torch import nn
 
+from conftest import load_script
 from stereorepro import (CameraError, ReprojectionDenoiser, ShapeError, TemporalReprojection, denoise_features,
                          empty_history, export_onnx, reproject_denoise, reprojection_features, stereo_reproject,
                          temporal_step)
@@ -21,7 +19,6 @@ from stereorepro.denoise import FEATURES, OTHER_NAMES, STEREO_FEATURES, denoiser
 from stereorepro.io.onnx import onnx_input_dims
 from stereorepro.synthetic import camera_pair, default_scene, raycast
 
-EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 THR = (0.05, 0.2)  # at these sizes about half the example inputs' pixels keep their history
 H, W = 24, 32
 
@@ -246,11 +243,7 @@ class TestReprojectionDenoiser:
 
 # ---------------------------------------------------------------------------------------------- the example
 def load_example(name: str):
-    spec = importlib.util.spec_from_file_location(f"examples_{name}", EXAMPLES / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("examples", name)
 
 
 @pytest.mark.onnx

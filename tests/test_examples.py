@@ -6,27 +6,19 @@ each on 2 cores); assertions are on the JSON it writes.
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
+from conftest import load_script
 from stereorepro import StereoReprojection, TemporalReprojection, export_onnx, temporal_reproject
 from stereorepro.io.onnx import example_inputs
 
-EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
-
 
 def load_example(name: str):
-    spec = importlib.util.spec_from_file_location(f"examples_{name}", EXAMPLES / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod  # dataclasses resolve annotations through sys.modules
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("examples", name)
 
 
 class TestExamples:
