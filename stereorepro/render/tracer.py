@@ -97,7 +97,7 @@ except ImportError:  # pragma: no cover - depends on the build
 __all__ = ["PathTracer", "RenderResult", "ray_epsilon", "native_available", "resolve_backend", "BACKENDS",
            "ENV_VAR", "PIXEL_SAMPLINGS"]
 
-BACKENDS = ("auto", "numpy", "native", "torch")
+BACKENDS = _backend.TRACER_NAMES
 #: ``PathTracer.render(pixel_sampling=...)``: a uniform position in the pixel per sample, or the pixel centre.
 PIXEL_SAMPLINGS = ("box", "center")
 ENV_VAR = _backend.ENV_VAR
