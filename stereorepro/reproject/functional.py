@@ -55,8 +55,9 @@ __all__ = ["BACKENDS", "backward_reproject", "stereo_reproject", "temporal_blend
            "select_backend", "native_unsupported", "warp_values", "reproject_history", "as_thresholds", "stereo_views",
            "temporal_views"]
 
-#: Backend names the ops accept (``STEREOREPRO_BACKEND`` also accepts ``numpy`` and ``reference`` for torch).
-BACKENDS = ("auto", "torch", "native")
+#: Backend names the ops accept (:data:`stereorepro._backend.OP_NAMES`; ``STEREOREPRO_BACKEND`` also accepts
+#: ``numpy`` and ``reference`` for torch).
+BACKENDS = _backend.OP_NAMES
 
 #: Whether the torch backend may take the inference fast path (tests switch it off to exercise the general path).
 FAST_PATH = True

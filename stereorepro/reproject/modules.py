@@ -7,6 +7,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from .. import _backend
 from .._checks import check_sampling, check_thresholds
 from . import _flat
 from .functional import BACKENDS, stereo_reproject, temporal_reproject
@@ -28,9 +29,7 @@ class _ReprojectionBase(nn.Module):
     def __init__(self, position_threshold: float, normal_threshold: float, sampling: str, soft: bool,
                  temperature: float, backend: str = "auto"):
         super().__init__()
-        if backend not in BACKENDS:
-            raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
-        self.backend = backend
+        self.backend = _backend.check(backend, BACKENDS)
         check_sampling(sampling)
         check_thresholds(position_threshold, normal_threshold, tracing=False)
         if soft and not temperature > 0:
