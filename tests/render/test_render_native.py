@@ -158,6 +158,24 @@ class TestStages:
                     assert x.shape == y.shape and np.array_equal(_bits(x), _bits(y))
 
 
+class TestStageSequence:
+    @pytest.mark.parametrize("backend", ["numpy", "native"])
+    def test_one_sequence_of_named_stages(self, tracers, backend):
+        """Both backends run tracer.STAGES, each once per batch, in that order (one worker, one batch), and the
+        stage profile names exactly those stages (plus the frame's accumulation)."""
+        scene = tracers["living_room"][0]
+        tr = PathTracer(scene, seed=7, backend=backend, workers=1)
+        cam = scene.stereo_cameras(0, W, H)[0]
+        calls = []
+        for name in tracer_mod.STAGES:
+            real = getattr(tr._stages, name)
+            setattr(tr._stages, name, lambda b, _real=real, _name=name: calls.append(_name) or _real(b))
+        tr._stage_times = {}
+        r = tr.render(cam, 0, 2, gbuffers=False)
+        assert calls == list(tracer_mod.STAGES)
+        assert set(tr._stage_times) == set(tracer_mod.STAGES) | {"accumulate_frame"}
+        assert r.ray_counts["primary"] == 2 * W * H and r.ray_counts["shadow"] > 0
+
 class TestFrames:
     @pytest.mark.parametrize("clamp", ["auto", None])
     def test_whole_frame_bit_identical(self, tracers, clamp):
