@@ -17,6 +17,8 @@ Conventions
 * **Motion vectors** point to the previous frame: ``prev_pixel = pixel + motion`` (pixels, these axes and pixel
   centres), ``P_prev = P + motion_world`` (world units); NaN where there is no surface (:func:`camera_motion`
   gives the motion of static geometry).
+* **Eyes** are :class:`Eye` values: ``Eye.LEFT == "left"`` (index 0) sits at -x of the head (cyclopean) camera,
+  ``Eye.RIGHT == "right"`` (index 1) at +x, :data:`DEFAULT_BASELINE` apart unless a rig says otherwise.
 * **Sub-pixel jitter** (TAA-style, off unless asked for): frame ``f`` of a sequence uses the offset
   :func:`jitter_offset` ``(dx, dy) = (halton(i, 2) - 0.5, halton(i, 3) - 0.5)`` with ``i = f % length + 1`` (index 0,
   the offset (-0.5, -0.5), is skipped), the same for both eyes. The jittered camera (:func:`jitter_intrinsics`,
@@ -40,6 +42,7 @@ import math
 import operator
 import warnings
 from dataclasses import dataclass
+from enum import Enum
 from typing import NamedTuple
 
 import torch
@@ -48,6 +51,9 @@ from torch import Tensor
 from ._checks import check_camera, check_scalar, check_shape, tracing
 
 __all__ = [
+    "DEFAULT_BASELINE",
+    "DEFAULT_RESOLUTION",
+    "Eye",
     "rectify_warp",
     "has_surface",
     "pixel_centers",
@@ -66,6 +72,14 @@ __all__ = [
     "PinholeCamera",
     "StereoRig",
 ]
+
+#: Default eye separation of a :class:`StereoRig`, in scene units: 0.065 = 6.5 cm when the units are metres (an
+#: adult's typical interpupillary distance).
+DEFAULT_BASELINE = 0.065
+
+#: Default image size ``(width, height)`` in pixels of the command line, the experiment and the benchmarks; the
+#: scene files' thresholds are tuned for images of about this many rows.
+DEFAULT_RESOLUTION = (320, 180)
 
 
 def has_surface(depth: Tensor) -> Tensor:
@@ -575,18 +589,57 @@ class PinholeCamera:
         return (R_wc @ d_cam).reshape(B, 3, H, W)
 
 
+class Eye(str, Enum):
+    """One eye of a stereo pair: the package's one representation of "which eye".
+
+    A string enum, so an eye compares and hashes equal to its name (``Eye.LEFT == "left"``), formats as it
+    (``f"{frame:04d}_{eye}.exr"``) and is written as it to JSON: the names of file names, ``cameras.json`` keys
+    and the command line. ``int(eye)`` is its index, 0 left and 1 right: the order of
+    :meth:`StereoRig.cameras` and the eye field of the path tracer's random-number key. ``Eye(x)`` takes an
+    :class:`Eye`, a name or an index.
+
+    >>> Eye("right") is Eye(1) is Eye.RIGHT
+    True
+    >>> Eye.LEFT == "left", int(Eye.RIGHT), f"0007_{Eye.LEFT}.exr", Eye.LEFT.other
+    (True, 1, '0007_left.exr', <Eye.RIGHT: 'right'>)
+    """
+
+    LEFT = "left"
+    RIGHT = "right"
+
+    def __str__(self) -> str:  # also what format() and f-strings give
+        return self.value
+
+    def __int__(self) -> int:
+        return 0 if self is Eye.LEFT else 1
+
+    @property
+    def other(self) -> "Eye":
+        """The other eye of the pair."""
+        return Eye.RIGHT if self is Eye.LEFT else Eye.LEFT
+
+    @classmethod
+    def _missing_(cls, value):  # by index: Eye(0), Eye(1) (a bool is not an index here)
+        try:
+            i = operator.index(value)
+        except TypeError:
+            return None
+        return (cls.LEFT, cls.RIGHT)[i] if i in (0, 1) and not isinstance(value, bool) else None
+
+
 @dataclass(frozen=True)
 class StereoRig:
     """A parallel (sensor-shift) stereo rig: two cameras translated along the head's x axis only.
 
     Attributes:
-        eye_separation: distance between the eyes in scene units (0.065 = 6.5 cm when units are metres).
+        eye_separation: distance between the eyes in scene units (:data:`DEFAULT_BASELINE` = 0.065 = 6.5 cm when
+            units are metres).
         convergence_distance: distance (scene units) at which the views converge through a sensor shift
             (principal points shifted, optical axes stay parallel: no keystoning). ``None`` = parallel
             views converging at infinity.
     """
 
-    eye_separation: float = 0.065
+    eye_separation: float = DEFAULT_BASELINE
     convergence_distance: float | None = None
 
     def __post_init__(self):
@@ -604,7 +657,8 @@ class StereoRig:
             K: (B, 3, 3) intrinsics of the head camera; each eye gets its own sensor shift.
 
         Returns:
-            (left, right) :class:`PinholeCamera`; the left eye sits at x = -s/2, the right at +s/2 in head space.
+            (left, right) :class:`PinholeCamera` (indexed by ``int(eye)``, :class:`Eye`); the left eye sits at
+            x = -s/2, the right at +s/2 in head space.
         """
         check_camera(K, cam_from_world_head, "head")
         half = 0.5 * self.eye_separation

@@ -87,6 +87,11 @@ class TestStereoRig:
         ur, _ = right.project(p)
         assert torch.allclose(ul, ur, atol=1e-9)  # zero disparity at the convergence distance
 
+    def test_default_baseline(self):
+        from stereorepro.camera import DEFAULT_BASELINE
+
+        assert StereoRig().eye_separation == DEFAULT_BASELINE == 0.065
+
     def test_exceptions(self):
         with pytest.raises(ValueError):
             StereoRig(-1.0)
@@ -94,6 +99,42 @@ class TestStereoRig:
             StereoRig().cameras(_head(), torch.eye(3), 4, 4)
         with pytest.raises(ValueError, match="cam_from_world"):
             PinholeCamera(torch.eye(3)[None], torch.eye(3)[None], 4, 4)
+
+
+class TestEye:
+    """One eye type: a string enum whose names are the file/JSON/CLI names and whose int is the index."""
+
+    def test_names_and_indices(self):
+        import json
+
+        from stereorepro.camera import Eye
+
+        assert list(Eye) == ["left", "right"] and [int(e) for e in Eye] == [0, 1]
+        assert {"left": 0, "right": 1}[Eye.RIGHT] == 1 and Eye.LEFT in ("left",)  # equal and same hash as names
+        assert f"{7:04d}_{Eye.LEFT}.exr" == "0007_left.exr" and str(Eye.RIGHT) == "right"
+        assert json.dumps({Eye.LEFT: Eye.RIGHT}) == '{"left": "right"}'
+        assert Eye.LEFT.other is Eye.RIGHT and Eye.RIGHT.other is Eye.LEFT
+
+    def test_constructor(self):
+        import numpy as np
+
+        from stereorepro.camera import Eye
+
+        for e in Eye:
+            assert Eye(e) is e and Eye(e.value) is e and Eye(int(e)) is e and Eye(np.int64(int(e))) is e
+        for bad in ("LEFT", "centre", 2, -1, 1.0, True, None):
+            with pytest.raises(ValueError, match="not a valid Eye"):
+                Eye(bad)
+
+    def test_index_is_the_rig_order_and_the_rng_field(self):
+        from stereorepro.camera import Eye
+        from stereorepro.render.rng import stream_key
+
+        K = intrinsics_from_fov(60.0, 64, 48, dtype=torch.float64)
+        cams = StereoRig().cameras(_head(), K, 48, 64)
+        head_x_axis = invert_rigid(_head())[0, :3, 0]  # the head's x axis in world coordinates
+        assert ((cams[int(Eye.RIGHT)].center_world - cams[int(Eye.LEFT)].center_world) @ head_x_axis).item() > 0
+        assert [stream_key(7, 3, e) for e in Eye] == [stream_key(7, 3, 0), stream_key(7, 3, 1)]
 
 
 class TestJitter:
@@ -155,7 +196,7 @@ class TestJitter:
         jl, jr = left.jittered(*d), right.jittered(*d)  # both eyes alike
         warp = compose_warp(jr.K, jr.cam_from_world, jl.K, jl.cam_from_world, torch.float64)
         rectify_warp(warp, 48, 64)  # raises CameraError for a pair that is not rectified
-        assert torch.equal(warp.P[0, 1:], torch.eye(3, dtype=torch.float64)[1:])
+        assert torch.equal(warp.pixel_src_from_pixel_dst[0, 1:], torch.eye(3, dtype=torch.float64)[1:])
 
     def test_jitter_gradients_reach_K(self):
         from stereorepro.camera import jitter_intrinsics
