@@ -37,6 +37,7 @@ from torch.nn import functional as F
 
 from stereorepro import (PathTracer, TemporalReprojection, effective_spp_many, ladder_rmse, load_scene, rmse,
                          temporal_step)
+from stereorepro.camera import Eye
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _example_common import cpu_training_threads  # noqa: E402
@@ -71,19 +72,19 @@ def render_clip(scene_name: str, frames: range, s: Settings, ladder: bool, seed:
     out: dict[str, list] = {k: [] for k in ("color", "depth", "normal", "albedo", "K", "T", "reference", "ladder")}
     for f in frames:
         _, cam = scene.stereo_cameras(f, s.width, s.height)
-        r = tracer.render(cam, f, 1, sample_offset=0, eye=1)
+        r = tracer.render(cam, f, 1, sample_offset=0, eye=Eye.RIGHT)
         out["color"].append(r.radiance)
         out["depth"].append(r.depth)
         out["normal"].append(r.normal)
         out["albedo"].append(r.albedo)
         out["K"].append(cam.K)
         out["T"].append(cam.cam_from_world)
-        out["reference"].append(tracer.render(cam, f, s.reference_spp, sample_offset=REFERENCE_OFFSET, eye=1,
+        out["reference"].append(tracer.render(cam, f, s.reference_spp, sample_offset=REFERENCE_OFFSET, eye=Eye.RIGHT,
                                               gbuffers=False).radiance)
         if ladder:  # prefixes of the input's own sample stream: rung n = mean of samples 0..n-1
             total, rungs = r.radiance.double(), [r.radiance]
             for k in range(1, s.ladder_spp):
-                total = total + tracer.render(cam, f, 1, sample_offset=k, eye=1, gbuffers=False).radiance.double()
+                total = total + tracer.render(cam, f, 1, sample_offset=k, eye=Eye.RIGHT, gbuffers=False).radiance.double()
                 rungs.append((total / (k + 1)).float())
             out["ladder"].append(torch.stack(rungs))  # Nx1x3xHxW
     res = {k: torch.cat(v) for k, v in out.items() if v and k != "ladder"}

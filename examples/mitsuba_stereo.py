@@ -54,6 +54,7 @@ def main(argv=None) -> dict:
 
     mi.set_variant("scalar_rgb")
     from stereorepro import StereoRig, intrinsics_from_fov, look_at
+    from stereorepro.camera import Eye
     from stereorepro.cli import main as cli
     from stereorepro.io.mitsuba import sensor_to_camera
     from stereorepro.render import read_exr, write_exr
@@ -70,7 +71,7 @@ def main(argv=None) -> dict:
     for i in range(frames):
         head = look_at(t([0.4 + 0.05 * i, 0.8, -3.2]), t([0.0, 0.3, 0.0]), t([0.0, 1.0, 0.0]))
         rec = {}
-        for eye, cam in zip(("left", "right"), StereoRig(0.065).cameras(head, K, H, W)):
+        for eye, cam in zip(Eye, StereoRig().cameras(head, K, H, W)):
             # our camera -> a Mitsuba sensor: to_world maps Mitsuba's x-left, y-up frame to the world
             to_world = mi.ScalarTransform4f(np.linalg.inv(cam.cam_from_world[0].numpy()) @ np.diag([-1.0, -1, 1, 1]))
             scene = mi.load_dict(scene_dict(to_world, x_fov, W, H, aov=True, spp=1))
@@ -78,7 +79,7 @@ def main(argv=None) -> dict:
             path = d / f"{i:04d}_{eye}.exr"
             scene.sensors()[0].film().bitmap().write(str(path))  # Mitsuba's own film: R,G,B, dd.T, nn.*, pp.*
             noisy = np.array(mi.render(mi.load_dict(scene_dict(to_world, x_fov, W, H, aov=False, spp=1)), spp=1,
-                                       seed=2 * i + (eye == "right")), np.float32)
+                                       seed=2 * i + int(eye)), np.float32)
             ch = read_exr(path)
             ch.update(R=noisy[..., 0], G=noisy[..., 1], B=noisy[..., 2])
             write_exr(path, ch)

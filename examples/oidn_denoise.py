@@ -57,6 +57,7 @@ def rmse(a: torch.Tensor, b: torch.Tensor) -> float:
 
 def run_scene(name: str, W: int, H: int, frames: int, n_eval: int, ref_spp: int, seed: int) -> dict:
     from stereorepro import SpatiotemporalReprojection, load_scene
+    from stereorepro.camera import Eye
     from stereorepro.render import PathTracer
 
     scene = load_scene(name)
@@ -70,8 +71,8 @@ def run_scene(name: str, W: int, H: int, frames: int, n_eval: int, ref_spp: int,
     for k in range(frames):
         f = first + k
         left_cam, right_cam = scene.stereo_cameras(f, W, H)
-        R = tracer.render(right_cam, f, 1, eye=1)
-        L = tracer.render(left_cam, f, 1, eye=0)
+        R = tracer.render(right_cam, f, 1, eye=Eye.RIGHT)
+        L = tracer.render(left_cam, f, 1, eye=Eye.LEFT)
         t0 = time.perf_counter()
         tr_right = plain.right(R.radiance, R.depth, R.normal, right_cam.K, right_cam.cam_from_world)
         plain.left_trace_mask(L.depth, L.normal, left_cam.K, left_cam.cam_from_world)
@@ -84,10 +85,10 @@ def run_scene(name: str, W: int, H: int, frames: int, n_eval: int, ref_spp: int,
         if k < frames - n_eval:
             continue
         per_eye = {
-            "left": (left_cam, 0, L.radiance, {
+            "left": (left_cam, Eye.LEFT, L.radiance, {
                 "1 spp": L.radiance, "OIDN(1 spp)": dL, "stereo+temporal": st,
                 "OIDN(stereo+temporal)": oidn(st, L.albedo, L.normal, t_oidn), "OIDN, then stereo+temporal": then}),
-            "right": (right_cam, 1, R.radiance, {
+            "right": (right_cam, Eye.RIGHT, R.radiance, {
                 "1 spp": R.radiance, "OIDN(1 spp)": dR, "temporal": tr_right,
                 "OIDN(temporal)": oidn(tr_right, R.albedo, R.normal, t_oidn), "OIDN, then temporal": then_right})}
         rows.append({"frame": f, **{eye: score(tracer, cam, f, key, one, images, ref_spp)
@@ -106,7 +107,7 @@ def run_scene(name: str, W: int, H: int, frames: int, n_eval: int, ref_spp: int,
             "ms_oidn_median": statistics.median(t_oidn), "ms_reprojection_median": statistics.median(t_rep)}
 
 
-def score(tracer, cam, f: int, eye: int, one_spp: torch.Tensor, images: dict, ref_spp: int) -> dict:
+def score(tracer, cam, f: int, eye, one_spp: torch.Tensor, images: dict, ref_spp: int) -> dict:
     """RMSE and effective spp of ``images`` against a ``ref_spp`` reference of one eye, and the reference's own
     noise (from its two independent halves) as a share of the best method's MSE."""
     from stereorepro import effective_spp

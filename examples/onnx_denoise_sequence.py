@@ -93,13 +93,14 @@ def render_clip(scene, frames, width: int, height: int, reference_spp: int, seed
     import torch
 
     from stereorepro import PathTracer
+    from stereorepro.camera import Eye
 
     tracer = PathTracer(scene, seed=seed, workers=2)
     out: dict = {k: [] for k in (*FRAME, "reference")}
     for f in frames:
         _, cam = scene.stereo_cameras(f, width, height)
-        r = tracer.render(cam, f, 1, eye=1)
-        ref = tracer.render(cam, f, reference_spp, sample_offset=REFERENCE_OFFSET, eye=1, gbuffers=False)
+        r = tracer.render(cam, f, 1, eye=Eye.RIGHT)
+        ref = tracer.render(cam, f, reference_spp, sample_offset=REFERENCE_OFFSET, eye=Eye.RIGHT, gbuffers=False)
         for k, v in zip(out, (r.radiance, r.depth, r.normal, cam.K, cam.cam_from_world, ref.radiance)):
             out[k].append(v.float())
     return {k: torch.stack(v) for k, v in out.items()}

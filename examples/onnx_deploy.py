@@ -150,9 +150,10 @@ def main(argv=None) -> dict:
     import numpy as np
 
     from stereorepro import StereoReprojection, TemporalReprojection, export_onnx, load_scene
+    from stereorepro.camera import DEFAULT_RESOLUTION
     from stereorepro.io.frames import export_sequence
 
-    frames, (W, H) = (6, (64, 36)) if args.smoke else (24, (320, 180))
+    frames, (W, H) = (6, (64, 36)) if args.smoke else (24, DEFAULT_RESOLUTION)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     scene = load_scene(args.scene)

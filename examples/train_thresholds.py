@@ -31,6 +31,7 @@ from torch import Tensor
 
 from stereorepro import (PathTracer, TemporalReprojection, effective_spp_many, ladder_rmse, load_scene, rmse,
                          temporal_step)
+from stereorepro.camera import Eye
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _example_common import cpu_training_threads  # noqa: E402
@@ -62,16 +63,16 @@ def render_clip(scene, frames: range, s: Settings, ladder: bool, seed: int = 0) 
     out: dict[str, list] = {k: [] for k in ("color", "depth", "normal", "K", "T", "reference", "ladder")}
     for f in frames:
         _, cam = scene.stereo_cameras(f, s.width, s.height)
-        r = tracer.render(cam, f, 1, sample_offset=0, eye=1)
+        r = tracer.render(cam, f, 1, sample_offset=0, eye=Eye.RIGHT)
         for k, v in (("color", r.radiance), ("depth", r.depth), ("normal", r.normal), ("K", cam.K),
                      ("T", cam.cam_from_world)):
             out[k].append(v)
-        out["reference"].append(tracer.render(cam, f, s.reference_spp, sample_offset=REFERENCE_OFFSET, eye=1,
+        out["reference"].append(tracer.render(cam, f, s.reference_spp, sample_offset=REFERENCE_OFFSET, eye=Eye.RIGHT,
                                               gbuffers=False).radiance)
         if ladder:
             total, rungs = r.radiance.double(), [r.radiance]
             for k in range(1, s.ladder_spp):
-                total = total + tracer.render(cam, f, 1, sample_offset=k, eye=1, gbuffers=False).radiance.double()
+                total = total + tracer.render(cam, f, 1, sample_offset=k, eye=Eye.RIGHT, gbuffers=False).radiance.double()
                 rungs.append((total / (k + 1)).float())
             out["ladder"].append(torch.stack(rungs))
     res = {k: torch.cat(v) for k, v in out.items() if v and k != "ladder"}
