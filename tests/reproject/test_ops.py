@@ -3,10 +3,15 @@ are tested in test_reproject.py)."""
 
 from __future__ import annotations
 
+import math
+
+import numpy as np
 import pytest
 import torch
 
 from base import BaseTester
+from reference import reference_backward_reproject
+from test_reproject import scene_pair
 from stereorepro import StereoReprojection, TemporalReprojection, backward_reproject, stereo_reproject, temporal_blend
 from stereorepro.errors import ShapeError
 from stereorepro.io.onnx import example_inputs
@@ -22,6 +27,75 @@ def _stereo_inputs(dtype=torch.float32, device="cpu", H=12, W=16, seed=0, C=3):
     return [xs[n].to(device=device, dtype=dtype if n not in ("src_K", "dst_K", "src_cam_from_world",
                                                              "dst_cam_from_world") else torch.float64)
             for n in m.input_names]
+
+
+def _reference_cases() -> dict:
+    """Tiny inputs (6x5 and 4x7 destinations) for the comparison with the reference: a moving stereo pair of the
+    analytic scene (kept, position, normal and out-of-frame discards), the same with special values (NaN / inf /
+    zero / negative depths, NaN / inf colours, NaN and inf normal components), a source camera turned so that part
+    of the points are behind it, and a batch of two rigs with five channels and a smaller source image."""
+    def scene(H=6, W=5, **kw):
+        inp, *_ = scene_pair(H=H, W=W, **kw)
+        return [inp[k] for k in ("src_color", "src_depth", "src_normal", "src_K", "src_cam_from_world", "dst_depth",
+                                 "dst_normal", "dst_K", "dst_cam_from_world")]
+
+    def special():
+        a = [x.clone() for x in scene(forward=0.1, yaw=1.5, baseline=0.2)]
+        a[0][0, 1, 2, 3], a[0][0, 0, 1, 1], a[0][0, 2, 4, 2] = float("nan"), float("inf"), -float("inf")
+        a[1][0, 0, 0, 2], a[1][0, 0, 3, 4], a[1][0, 0, 2, 0] = float("nan"), 0.0, -1.0
+        a[1][0, 0, 5, 4] = float("inf")
+        a[2][0, 0, 1, 3], a[2][0, 2, 3, 3] = float("nan"), float("inf")
+        a[2][0, :, 4, 1] = torch.tensor([1.0, 0.0, 0.0])  # a normal turned 90°
+        a[5][0, 0, 1, 1], a[5][0, 0, 2, 4], a[5][0, 0, 4, 0] = float("nan"), 0.0, float("inf")
+        a[6][0, 1, 0, 0] = float("nan")
+        return a
+
+    def turned():
+        a = scene(baseline=0.1)
+        c, s = math.cos(math.radians(100.0)), math.sin(math.radians(100.0))
+        turn = torch.tensor([[c, 0, s, 0], [0, 1, 0, 0], [-s, 0, c, 0], [0, 0, 0, 1]], dtype=a[4].dtype)
+        a[4] = turn @ a[4]
+        return a
+
+    def batch():
+        one, two = scene(H=4, W=7, forward=0.2, yaw=2.0), scene(H=4, W=7, baseline=0.4, yaw=-3.0)
+        a = [torch.cat([x, y]) for x, y in zip(one, two)]
+        src = [torch.cat([x, y]) for x, y in zip(scene(H=5, W=5, forward=0.2, yaw=2.0),
+                                                 scene(H=5, W=5, baseline=0.4, yaw=-3.0))]
+        a[:5] = src[:5]
+        a[0] = torch.rand(2, 5, 5, 5, generator=torch.Generator().manual_seed(3))
+        return a
+
+    return {"scene": (scene(forward=0.2, yaw=2.0, baseline=0.3), 0.3, 0.1, "bilinear"),
+            "scene_nearest": (scene(forward=0.2, yaw=2.0, baseline=0.3), 0.3, 0.1, "nearest"),
+            "tight": (scene(forward=-0.1, yaw=-1.0), 0.15, 0.05, "bilinear"),
+            "special": (special(), 0.3, 0.1, "bilinear"),
+            "special_nearest": (special(), 0.3, 0.1, "nearest"),
+            "turned": (turned(), 1.0, 1.0, "bilinear"),
+            "batch_channels": (batch(), 0.6, 0.1, "bilinear")}
+
+
+REFERENCE_CASES = _reference_cases()
+#: Decisions closer than this to their boundary (scene units, or pixels for the taps' edges) are not compared: there
+#: float32 rounding may decide either way.
+REFERENCE_MARGIN = 1e-4
+
+
+def assert_matches_reference(got, ref, what="", min_compared=0.9):
+    """``got``: a backend's (values, valid, reason, confidence); ``ref``: the reference's (values, valid, reason,
+    confidence, margin). valid and reason exactly, values and confidence within float32 rounding, on every pixel
+    whose decisions are not within REFERENCE_MARGIN of a boundary (at least ``min_compared`` of them)."""
+    values, valid, reason, conf = (x.detach().cpu().double().numpy() if x.is_floating_point() else x.cpu().numpy()
+                                   for x in got)
+    r_values, r_valid, r_reason, r_conf, margin = ref
+    sure = margin > REFERENCE_MARGIN
+    assert sure.mean() >= min_compared, f"{what}: only {sure.mean():.2f} of the pixels are clear of the boundaries"
+    assert (valid[sure] == r_valid[sure]).all(), f"{what}: valid differs at {np.argwhere(sure & (valid != r_valid))}"
+    bad = sure & (reason != r_reason)
+    assert not bad.any(), f"{what}: reason {reason[bad]} where the reference says {r_reason[bad]}"
+    sure_c = np.broadcast_to(sure, values.shape)
+    np.testing.assert_allclose(values[sure_c], r_values[sure_c], rtol=1e-5, atol=1e-6, err_msg=what)
+    np.testing.assert_allclose(conf[sure], r_conf[sure], rtol=1e-5, atol=1e-6, err_msg=what)
 
 
 class TestBackwardReproject(BaseTester):
@@ -66,8 +140,33 @@ class TestBackwardReproject(BaseTester):
 
         assert torch.autograd.gradcheck(f, (values, depth), eps=1e-6, atol=1e-5)
 
+    @pytest.mark.parametrize("case", sorted(REFERENCE_CASES))
+    def test_matches_reference(self, case, backend, monkeypatch):
+        """Each backend (torch general path, torch fast path, native) against the per-pixel reference of
+        tests/reproject/reference.py, on tiny images where every reason code occurs."""
+        from stereorepro.reproject import _fast
+
+        args, pos, nrm, sampling = REFERENCE_CASES[case]
+        calls = []
+        fast = _fast.fast_reproject
+        monkeypatch.setattr(_fast, "fast_reproject", lambda *a, **k: calls.append(1) or fast(*a, **k))
+        with torch.no_grad():
+            got = backward_reproject(*args, pos, nrm, sampling, backend=self.backend_arg(backend))
+        assert bool(calls) == (backend == "fast"), "the backend fixture's path was not the one taken"
+        ref = reference_backward_reproject(*args, pos, nrm, sampling)
+        assert_matches_reference(got, ref, f"{backend} {case}")
+
+    def test_reference_cases_cover_every_reason(self):
+        """The cases above reach every discard reason of the reference (the comparison is not vacuous)."""
+        seen = set()
+        for args, pos, nrm, sampling in REFERENCE_CASES.values():
+            _, valid, reason, _, margin = reference_backward_reproject(*args, pos, nrm, sampling)
+            seen |= set(np.unique(reason[margin > REFERENCE_MARGIN]).tolist())
+        assert seen == {int(r) for r in Reason if r != Reason.NO_HISTORY}, sorted(seen)
+
     def test_backends_identical(self, backend):
-        """Each backend gives the bytes of the torch general path (hard tests)."""
+        """Each backend gives the bytes of the torch reference on a larger scene (hard tests; the torch reference
+        itself is checked against the per-pixel reference in test_matches_reference)."""
         args = _stereo_inputs(H=20, W=28, seed=3)
         with torch.no_grad():
             got = backward_reproject(*args, 0.05, 0.3, backend=self.backend_arg(backend))
