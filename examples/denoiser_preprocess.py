@@ -84,7 +84,8 @@ def render_clip(scene_name: str, frames: range, s: Settings, ladder: bool, seed:
         if ladder:  # prefixes of the input's own sample stream: rung n = mean of samples 0..n-1
             total, rungs = r.radiance.double(), [r.radiance]
             for k in range(1, s.ladder_spp):
-                total = total + tracer.render(cam, f, 1, sample_offset=k, eye=Eye.RIGHT, gbuffers=False).radiance.double()
+                sample = tracer.render(cam, f, 1, sample_offset=k, eye=Eye.RIGHT, gbuffers=False).radiance
+                total = total + sample.double()
                 rungs.append((total / (k + 1)).float())
             out["ladder"].append(torch.stack(rungs))  # Nx1x3xHxW
     res = {k: torch.cat(v) for k, v in out.items() if v and k != "ladder"}
