@@ -67,12 +67,9 @@ and in the fit, the estimate depends on ``MSE - b``, so ``b`` must stay small co
 variance ``a / n_last`` or the flat region swallows the resolvable range: with
 ``N_ref = k * n_last`` the last rung carries ``b / MSE_last = 1 / (k + 1)`` of its error as floor. For
 ``"extrapolated_high"`` estimates use ``k >= 8``; the paper's 4096 spp reference leaves ``b`` at < 0.4 % of the
-16-spp rung's error. Inside the ladder the cancellation holds in practice down to ``k = 1/2``: measured on the three
-real scenes at 1280×720 with a 1..32-spp ladder (``experiment --reference-chunk-spp``: every ladder scored against
-the reference's prefixes; README, Tables 1–2, item 4), the three schemes' average effective spp moved by at most
-0.9 / 0.6 / 1.6 % (Living Room / Classroom / Sponza) between references of 16, 32, 64, 128 and 256 spp (3 frames),
-and by at most 0.7 / 1.2 / 0.3 % between 16 and 32 spp over 30 frames. Hence :func:`suggest_reference_spp`'s
-default ``k = 1``.
+16-spp rung's error. Inside the ladder the cancellation holds in practice down to ``k = 1/2`` (the reference-spp
+study of ``experiment --reference-chunk-spp``, which scores every ladder against the reference's prefixes; results in
+``bench/results/paper720.md``). Hence :func:`suggest_reference_spp`'s default ``k = 1``.
 
 Shapes: B batch, C channels, H height, W width, N ladder rungs, F frames (one effective spp per frame).
 """
@@ -523,9 +520,8 @@ def suggest_reference_spp(max_ladder_spp: float, ratio: float = 1.0) -> int:
     ``ratio * max_ladder_spp``.
 
     Effective spp matched inside the ladder does not depend on the reference's noise to first order (module
-    docstring, *Reference noise*), and measured on three real scenes at 1280×720 with a 32-spp ladder (README, Tables
-    1–2, item 4) the schemes' averages moved by at most 1.6 % between references of 16 and 256 spp, 0.9 % from 32
-    spp on: ``ratio = 1`` (the default) is enough there. Estimates above the ladder's top rung
+    docstring, *Reference noise*), so ``ratio = 1`` (the default) is enough there (the reference-spp study in
+    ``bench/results/paper720.md``). Estimates above the ladder's top rung
     (``"extrapolated_high"``) depend on the floor ``b = s2 / N_ref``, ``1 / (ratio + 1)`` of the last rung's MSE:
     use ``ratio >= 8`` when those matter.
 
