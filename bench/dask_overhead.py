@@ -18,7 +18,7 @@ from pathlib import Path
 from _bench_common import header, save
 
 from stereorepro.cli.demo import DEFAULTS
-from stereorepro.measure.experiment import ExperimentConfig, run_experiment
+from stereorepro.workflows.experiment import ExperimentConfig, run_experiment
 
 
 def one(scheduler: str | None, frames: int, root: Path) -> tuple[float, dict]:

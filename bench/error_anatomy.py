@@ -30,10 +30,10 @@ from _bench_common import RESULTS, header, save
 from stereorepro.accumulate import SpatiotemporalReprojection
 from stereorepro.camera import has_surface
 from stereorepro.measure.anatomy import edge_mask, error_concentration, error_shares, squared_error, two_rung_spp
-from stereorepro.measure.experiment import ExperimentConfig
-from stereorepro.measure.experiment.config import RIGHT, metric_image
-from stereorepro.measure.experiment.inputs import RenderContext, render_eye, spec_for
-from stereorepro.measure.experiment.run import WARMUP_FRAMES
+from stereorepro.workflows.experiment import ExperimentConfig
+from stereorepro.workflows.experiment.config import RIGHT, metric_image
+from stereorepro.workflows.experiment.inputs import RenderContext, render_eye, spec_for
+from stereorepro.workflows.experiment.run import WARMUP_FRAMES
 from stereorepro.reproject import Reason
 from stereorepro.scenes import load_scene, threshold_scale
 

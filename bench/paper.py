@@ -15,7 +15,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _bench_common import header, save  # noqa: E402
 
 from stereorepro.cli import parse_resolution  # noqa: E402
-from stereorepro.measure.experiment import ExperimentConfig, run_experiment  # noqa: E402
+from stereorepro.workflows.experiment import ExperimentConfig, run_experiment  # noqa: E402
 
 # Mäkitalo et al., Table 1 (discard %, avg/min/max) and Table 2 (effective spp, avg/min/max); 720p, 60 frames.
 PAPER_T1 = {

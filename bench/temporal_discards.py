@@ -27,7 +27,7 @@ import torch
 from _bench_common import header, save
 
 from stereorepro.camera import camera_motion, has_surface
-from stereorepro.measure.experiment.config import RIGHT
+from stereorepro.workflows.experiment.config import RIGHT
 from stereorepro.render import PathTracer
 from stereorepro.reproject import Reason, backward_reproject
 from stereorepro.scenes import load_scene

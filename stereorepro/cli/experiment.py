@@ -1,4 +1,4 @@
-"""Sub-command ``stereorepro experiment``: the paper's experiment (:mod:`stereorepro.measure.experiment`)."""
+"""Sub-command ``stereorepro experiment``: the paper's experiment (:mod:`stereorepro.workflows.experiment`)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from ..errors import UserError
-from ..measure.experiment import ExperimentConfig, run_experiment, tables_markdown
+from ..workflows.experiment import ExperimentConfig, run_experiment, tables_markdown
 from ._args import alpha_list, parse_resolution, positive_int, threshold_scale
 
 __all__ = ["add_arguments", "config_from_args", "run_command", "register"]

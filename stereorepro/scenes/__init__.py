@@ -11,8 +11,8 @@ from .loader import (
     Scene,
     SceneError,
     SceneGeometry,
-    _expand_path,
     catmull_rom,
+    expand_path,
     list_scenes,
     load_scene,
     scenes_dir,
@@ -22,4 +22,4 @@ from .loader import (
 
 __all__ = ["Scene", "SceneError", "SceneGeometry", "list_scenes", "load_scene", "scenes_dir", "shared_scenes_dir",
            "KNOWN_EFFECTS", "BUILTIN_SCENES", "EXTERNAL_SCENES", "SHARED_ENV", "THRESHOLD_ROWS", "threshold_scale",
-           "catmull_rom"]
+           "catmull_rom", "expand_path"]

@@ -310,6 +310,11 @@ class Scene:
     _animations: list = field(default_factory=list, repr=False)
     _pivots: np.ndarray | None = field(default=None, repr=False)
 
+    @property
+    def spec(self) -> dict:
+        """The scene file's contents, with the files it ``extends`` merged in (what the scene was built from)."""
+        return self._data
+
     def thresholds(self, height: int, scale: float | None = None) -> tuple[float, float]:
         """(position, normal) thresholds for images of ``height`` rows: the position threshold times ``scale``,
         by default :func:`threshold_scale` (``max(1, 180 / height)``); the normal threshold as it is."""
@@ -441,7 +446,9 @@ def _sidecar_materials(path: Path, glossy: bool, file: str) -> tuple[list[_Mater
     return mats, dropped
 
 
-def _expand_path(s: str, base: Path) -> Path:
+def expand_path(s: str, base: Path) -> Path:
+    """A path as a scene file writes it: ``$STEREOREPRO_SHARED_SCENES`` (or ``${...}``) and ``~`` expanded; a
+    relative path is relative to ``base`` (the scene file's folder)."""
     s = s.replace("${" + SHARED_ENV + "}", str(shared_scenes_dir())).replace("$" + SHARED_ENV,
                                                                               str(shared_scenes_dir()))
     p = Path(os.path.expanduser(s))
@@ -495,7 +502,7 @@ def _build_geometry(scene: Scene) -> SceneGeometry:
 def _load_mesh(scene: Scene, geo: dict, file: str):
     import trimesh
 
-    path = _expand_path(geo["mesh"], scene.source.parent)
+    path = expand_path(geo["mesh"], scene.source.parent)
     if not path.is_file():
         raise SceneError(f"{file}: geometry.mesh: file not found: {path} (set {SHARED_ENV} to the folder of the "
                          "shared scenes, or pass --shared-scenes to the CLI)")
@@ -563,8 +570,8 @@ def load_scene(name_or_path: str | os.PathLike) -> Scene:
     mesh_dropped: set[int] = set()
     mesh_count = 1
     if "mesh" in geo:
-        mesh_path = _expand_path(geo["mesh"], path.parent)
-        side = _expand_path(geo["sidecar"], path.parent) if "sidecar" in geo else mesh_path.with_suffix(".json")
+        mesh_path = expand_path(geo["mesh"], path.parent)
+        side = expand_path(geo["sidecar"], path.parent) if "sidecar" in geo else mesh_path.with_suffix(".json")
         if side.is_file() or "sidecar" in geo:
             materials, mesh_dropped = _sidecar_materials(side, glossy, file)
             mesh_count = max(len(materials), 1)

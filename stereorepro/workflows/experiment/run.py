@@ -15,7 +15,7 @@ import torch
 from ... import __version__
 from ...accumulate import SpatiotemporalReprojection
 from ...camera import has_surface
-from ..metrics import effective_spp_many, flip, flip_available, rmse, ssim
+from ...measure.metrics import effective_spp_many, flip, flip_available, rmse, ssim
 from .cache import RenderCache
 from .config import LEFT, RIGHT, ExperimentConfig, metric_image, validate_config
 from .config import schemes as all_schemes

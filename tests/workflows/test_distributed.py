@@ -13,9 +13,9 @@ import pytest
 
 pytest.importorskip("distributed")
 
-from stereorepro.measure.experiment import ExperimentConfig, RenderCache, run_experiment  # noqa: E402
-from stereorepro.measure.experiment import distributed as dist  # noqa: E402
-from stereorepro.measure.experiment.inputs import RenderSpec, eye_tasks  # noqa: E402
+from stereorepro.workflows.experiment import ExperimentConfig, RenderCache, run_experiment  # noqa: E402
+from stereorepro.workflows.experiment import distributed as dist  # noqa: E402
+from stereorepro.workflows.experiment.inputs import RenderSpec, eye_tasks  # noqa: E402
 
 SMALL = dict(scene="living_room", frames=2, width=160, height=90, reference_spp=16, reference_chunk_spp=8,
              ladder_spp=4, progress=False, alphas=(0.5,), flip=False)

@@ -43,13 +43,13 @@ def code_version() -> str:
 def scene_fingerprint(scene) -> str:
     """Hash of the scene's resolved description and of every file it references (path, size, mtime)."""
     h = hashlib.sha256(str(getattr(scene, "name", "")).encode())
-    data = getattr(scene, "_data", None)
+    data = getattr(scene, "spec", None)
     h.update(json.dumps(data, sort_keys=True, default=str).encode())
     src = getattr(scene, "source", None)
     if src and Path(src).is_file():
         h.update(Path(src).read_bytes())
 
-    from ...scenes.loader import _expand_path
+    from ...scenes import expand_path
 
     base = Path(src).parent if src else Path.cwd()
 
@@ -61,7 +61,7 @@ def scene_fingerprint(scene) -> str:
             for v in x:
                 yield from files(v)
         elif isinstance(x, (str, Path)) and str(x).lower().endswith((".ply", ".obj", ".glb", ".gltf", ".json")):
-            f = _expand_path(str(x), base)
+            f = expand_path(str(x), base)
             yield f
             if f.suffix.lower() == ".ply":
                 yield f.with_suffix(".json")  # the default material sidecar

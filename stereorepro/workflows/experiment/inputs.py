@@ -18,7 +18,7 @@ what a Dask worker needs to rebuild the scene and the tracer) and of the frame a
   against the reference and against each of its power-of-two chunk prefixes (:func:`reference_prefixes`), under
   both metrics. The rungs themselves are not stored: measured at 1280×720, an eye-frame's cache is 48 MB
   (G-buffer 15, ladder 22, reference 11) instead of 367 MB with one entry per 1-spp sample (34 × 10.8 MB), with
-  bit-identical tables (tests/measure/test_experiment.py).
+  bit-identical tables (tests/workflows/test_experiment.py).
 
 In-process runs call the tasks directly (:func:`render_eye` returns the frame's :class:`EyeData`); distributed runs
 submit them to a Dask cluster first (:mod:`.distributed`) and then read the same entries.
@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..metrics import rmse
+from ...measure.metrics import rmse
 from .cache import RenderCache
 from .config import METRICS, REFERENCE_OFFSET, metric_image
 

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from stereorepro.cli import main
-from stereorepro.measure.experiment import ExperimentConfig, RenderCache, run_experiment, tables_markdown
+from stereorepro.workflows.experiment import ExperimentConfig, RenderCache, run_experiment, tables_markdown
 
 SMALL = dict(scene="living_room", frames=3, width=48, height=27, reference_spp=16, ladder_spp=4, progress=False,
              alphas=(0.5,))
@@ -75,13 +75,13 @@ class TestExperiment:
         off = run_experiment(ExperimentConfig(out=str(tmp_path), cache_dir=str(out / "cache"), ssim=False,
                                               **dict(SMALL, frames=1)))
         assert off["ssim"] is None and off["per_frame"][0]["ssim"] == {}
-        from stereorepro.measure.experiment.config import RIGHT
-        from stereorepro.measure.experiment.inputs import RenderContext, reference, spec_for
+        from stereorepro.workflows.experiment.config import RIGHT
+        from stereorepro.workflows.experiment.inputs import RenderContext, reference, spec_for
         from stereorepro.scenes import load_scene
 
         cfg = ExperimentConfig(out=str(out), **SMALL)
         ctx = RenderContext(spec_for(cfg, load_scene(cfg.scene), out / "cache"))
-        from stereorepro.measure.experiment.inputs import ladder_task
+        from stereorepro.workflows.experiment.inputs import ladder_task
 
         one = torch.from_numpy(ladder_task(ctx, 0, RIGHT)[0]["first"])
         assert f0 == float(ssim(one, reference(ctx, 0, RIGHT)[0], tonemap="clamp")[0])
@@ -217,12 +217,12 @@ class TestExperimentMovingObjects:
 
 
 class TestRenderTasks:
-    """The render tasks behind the experiment (:mod:`stereorepro.measure.experiment.inputs`): the lean ladder, the
+    """The render tasks behind the experiment (:mod:`stereorepro.workflows.experiment.inputs`): the lean ladder, the
     chunked reference and the cache footprint."""
 
     @staticmethod
     def ctx(tmp_path, **kw):
-        from stereorepro.measure.experiment.inputs import RenderContext, RenderSpec
+        from stereorepro.workflows.experiment.inputs import RenderContext, RenderSpec
 
         spec = dict(scene="living_room", width=40, height=24, seed=3, ladder_spp=5, reference_spp=8,
                     reference_chunk_spp=8, base_key=json.dumps({"t": 1}), cache_dir=str(tmp_path))
@@ -233,8 +233,8 @@ class TestRenderTasks:
         """The lean entry holds exactly what the analysis used to compute from every cached 1-spp rung."""
         import torch
 
-        from stereorepro.measure.experiment.config import METRICS, metric_image
-        from stereorepro.measure.experiment.inputs import ladder_task, reference
+        from stereorepro.workflows.experiment.config import METRICS, metric_image
+        from stereorepro.workflows.experiment.inputs import ladder_task, reference
         from stereorepro.measure.metrics import ladder_rmse
 
         ctx = self.ctx(tmp_path)
@@ -257,8 +257,8 @@ class TestRenderTasks:
         """The reference is the mean of its chunk means in chunk order; its prefixes score the ladder too."""
         import torch
 
-        from stereorepro.measure.experiment.config import REFERENCE_OFFSET
-        from stereorepro.measure.experiment.inputs import ladder_task, reference, reference_prefixes
+        from stereorepro.workflows.experiment.config import REFERENCE_OFFSET
+        from stereorepro.workflows.experiment.inputs import ladder_task, reference, reference_prefixes
 
         ctx = self.ctx(tmp_path, reference_spp=8, reference_chunk_spp=2)
         assert reference_prefixes(ctx.spec) == [2, 4, 8]
@@ -329,7 +329,7 @@ class TestRenderTasks:
         assert j0["rmse"]["stereo"] != f0["rmse"]["stereo"]
         mid = [r for r in jit["per_frame"] if "masked_trace_matches" in r]
         assert mid and all(r["masked_trace_matches"] for r in mid)  # the left fill traces the jittered centres
-        from stereorepro.measure.experiment.inputs import RenderSpec, eye_tasks
+        from stereorepro.workflows.experiment.inputs import RenderSpec, eye_tasks
 
         spec = RenderSpec(scene="x", width=8, height=8, seed=0, ladder_spp=2, reference_spp=4, reference_chunk_spp=2,
                           base_key="{}", cache_dir=str(tmp_path), jitter=True)

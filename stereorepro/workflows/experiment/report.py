@@ -207,7 +207,7 @@ def _write_outputs(out: Path, results: dict, per_frame, keep, cfg) -> None:
                "![cost](fig_cost.png)", "", "## Figures", "", "![fig1](fig1_discards.png)", "",
                "![fig3](fig3_rmse.png)", "", "![fig4](fig4_comparison.png)", "",
                f"Effective-spp flags (stereo+temporal): {flags}. `extrapolated_high` means the value lies beyond "
-               f"the ladder's top rung and was extrapolated on a fit of the ladder (see stereorepro.metrics).", ""]
+               f"the ladder's top rung and was extrapolated on a fit of the ladder (see stereorepro.measure.metrics).", ""]
     atomic_write(out / "report.md", "\n".join(report))
 
 

@@ -22,7 +22,7 @@ say which it used; its numbers fit display-referred images. Both are one flag ap
 
 Variants (nearest sampling, other alphas) run on the same renders, so what each step of accuracy costs shows
 side by side. Quality is RMSE against the reference turned into effective spp with the eye's ladder
-(:mod:`stereorepro.metrics`); matching against a ladder scored on the same reference cancels the reference's
+(:mod:`stereorepro.measure.metrics`); matching against a ladder scored on the same reference cancels the reference's
 own noise to first order.
 
 Renders are cached by content (scene file, mesh file, frame, eye, sample range, resolution, seed, renderer source),
