@@ -16,6 +16,7 @@ import torch
 
 from _bench_common import header, save, time_interleaved, time_ms
 from stereorepro import TemporalReprojection, camera_motion, load_scene
+from stereorepro.camera import Eye
 from stereorepro.io.onnx import example_inputs
 from stereorepro.render import PathTracer
 from stereorepro.render._embree import TriangleBVH
@@ -45,7 +46,7 @@ def bvh_costs(W=320, H=180) -> dict:
         "query: primary rays, whole scene": lambda: full_bvh.intersect(o, d),
         "query: primary rays, moving faces only": lambda: small_bvh.intersect(o, d),
     }, repeats=9, warmup=2)
-    render = time_ms(lambda: tr.render(cam, 17, 1, eye=1, gbuffers=False), repeats=5, warmup=1)
+    render = time_ms(lambda: tr.render(cam, 17, 1, eye=Eye.RIGHT, gbuffers=False), repeats=5, warmup=1)
     out = {"scene": scene.name, "triangles": int(len(tr.faces)), "moving_triangles": int(moving.sum()),
            "static_triangles": int(len(static_faces)), "resolution": f"{W}x{H}", "timings": t,
            "render_1spp_one_eye": render}

@@ -19,6 +19,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _bench_common import header, save, time_ms  # noqa: E402
 
 from stereorepro import PathTracer, StereoReprojection, load_scene, native  # noqa: E402
+from stereorepro.camera import Eye  # noqa: E402
 from stereorepro.cli import parse_resolution  # noqa: E402
 
 
@@ -34,7 +35,7 @@ def main(argv=None) -> int:
     tracer = PathTracer(scene)
     left, right = scene.stereo_cameras(args.frame, W, H)
     R = args.repeats
-    r = tracer.render(right, args.frame, 1, eye=1)
+    r = tracer.render(right, args.frame, 1, eye=Eye.RIGHT)
     gl = tracer.gbuffer(left, args.frame)
     backend = "native" if native.available() else "torch"
     m = StereoReprojection(*scene.thresholds(H), backend=backend)
@@ -44,11 +45,12 @@ def main(argv=None) -> int:
         _, valid, _ = m(*inputs)
     mask = ~valid[0, 0]
     t = {
-        "trace 1 spp, one eye (with G-buffers)": time_ms(lambda: tracer.render(right, args.frame, 1, eye=1), R, 1),
+        "trace 1 spp, one eye (with G-buffers)": time_ms(
+            lambda: tracer.render(right, args.frame, 1, eye=Eye.RIGHT), R, 1),
         "G-buffer only, one eye": time_ms(lambda: tracer.gbuffer(left, args.frame), R, 1),
         f"reprojection R→L ({backend})": time_ms(lambda: m(*inputs), max(R, 7), 2),
         "trace left discarded pixels only": time_ms(
-            lambda: tracer.render(left, args.frame, 1, eye=0, pixel_mask=mask, gbuffers=False), R, 1),
+            lambda: tracer.render(left, args.frame, 1, eye=Eye.LEFT, pixel_mask=mask, gbuffers=False), R, 1),
     }
     ms = {k: v["median_ms"] for k, v in t.items()}
     trace = ms["trace 1 spp, one eye (with G-buffers)"]
