@@ -1,4 +1,4 @@
-"""Which pixels decide a scene's temporal effective spp (issue #15's Classroom question).
+"""Which pixels decide a scene's temporal effective spp (e.g. why Classroom's is low).
 
 Runs the temporal scheme (right eye, EMA at each ``--alphas`` weight) over an experiment's cached renders (or renders
 them), and after the warm-up frames splits the LDR squared error by region:
@@ -28,7 +28,7 @@ import torch
 from _bench_common import RESULTS, header, save
 
 from stereorepro.accumulate import SpatiotemporalReprojection
-from stereorepro.camera import has_surface
+from stereorepro.camera import DEFAULT_RESOLUTION, has_surface
 from stereorepro.measure.anatomy import edge_mask, error_concentration, error_shares, squared_error, two_rung_spp
 from stereorepro.workflows.experiment import ExperimentConfig
 from stereorepro.workflows.experiment.config import RIGHT, metric_image
@@ -62,7 +62,7 @@ def regions(ref: torch.Tensor, surface: torch.Tensor, hist: torch.Tensor, reason
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", default="classroom")
-    ap.add_argument("--resolution", default="320x180")
+    ap.add_argument("--resolution", default="{}x{}".format(*DEFAULT_RESOLUTION))
     ap.add_argument("--frames", type=int, default=20)
     ap.add_argument("--reference-spp", type=int, default=64)
     ap.add_argument("--reference-chunk-spp", type=int, default=None)

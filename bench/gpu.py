@@ -1,4 +1,4 @@
-"""The prepared GPU check (issue #14): the CUDA tests, then the reprojection ops' speed on the GPU against its copy
+"""The prepared GPU check: the CUDA tests, then the reprojection ops' speed on the GPU against its copy
 floor (and onnxruntime's CUDAExecutionProvider when onnxruntime-gpu is installed), within a time budget.
 Writes bench/results/gpu.{json,md}.
 

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The prepared GPU check (issue #14): the CUDA tests, then the reprojection ops' speed on the GPU (torch eager and,
+# The prepared GPU check: the CUDA tests, then the reprojection ops' speed on the GPU (torch eager and,
 # when onnxruntime-gpu is installed, onnxruntime's CUDAExecutionProvider) against the device's copy floor, at
 # 1280x720, 1920x1080 and 3840x2160 -> bench/results/gpu.{json,md}. At most 5 minutes; installs nothing.
 #

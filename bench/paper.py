@@ -14,6 +14,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _bench_common import header, save  # noqa: E402
 
+from stereorepro.camera import DEFAULT_RESOLUTION  # noqa: E402
 from stereorepro.cli import parse_resolution  # noqa: E402
 from stereorepro.workflows.experiment import ExperimentConfig, run_experiment  # noqa: E402
 
@@ -48,7 +49,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", nargs="+", required=True)
     ap.add_argument("--frames", type=int, default=30)
-    ap.add_argument("--resolution", type=parse_resolution, default=(320, 180))
+    ap.add_argument("--resolution", type=parse_resolution, default=DEFAULT_RESOLUTION)
     ap.add_argument("--reference-spp", type=int, default=128)
     ap.add_argument("--ladder-spp", type=int, default=16)
     ap.add_argument("--out", default="runs/paper")

@@ -58,8 +58,8 @@ def ort_session(module, path, lean: bool = True):
         functional.EXPORT_LEAN = saved
     so = ort.SessionOptions()
     so.intra_op_num_threads = torch.get_num_threads()
-    # onnxruntime's default spin-waiting between the graph's nodes, stopped when a run ends (spinning threads
-    # would take the cores from the calls timed next): measured 5-16 % faster than no spinning at all
+    # onnxruntime's default spin-waiting between the graph's nodes (faster than none), stopped when a run ends
+    # (spinning threads would take the cores from the calls timed next)
     so.add_session_config_entry("session.intra_op.allow_spinning", "1")
     so.add_session_config_entry("session.force_spinning_stop", "1")
     return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
@@ -179,7 +179,7 @@ def main(argv=None) -> int:
     # floor sees the same cache pressure as the op (timed back to back on its own, part of it stays in the 32 MB L3
     # and it reads ~1.7x faster). Implementations are not interleaved with each other: torch's and _core's OpenMP
     # runtimes (and onnxruntime's pool) keep their threads spinning for a while after a call, which takes the cores
-    # from whatever runs next in the same process (measured: native medians +10-50 % when interleaved with torch).
+    # from whatever runs next in the same process.
     # native fp16 is timed with the floors of its own bytes ("copy floor fp16").
     floor_labels = ("copy floor", "copy floor fp16")
     impls = sorted({impl for (_, impl) in fns if impl not in floor_labels})

@@ -1,4 +1,4 @@
-"""Why a scene's temporal discards are what they are (issue #15's Sponza question): the right eye's temporal
+"""Why a scene's temporal discards are what they are (e.g. Sponza's, above the paper's): the right eye's temporal
 discards split by reason, against how fast the camera moves.
 
 For each scene and each ``--slowdowns`` factor k, the scene's camera path is sampled k times more densely (the
