@@ -11,7 +11,7 @@ frame I/O are imported on first use of their names (``stereorepro.PathTracer``, 
 
 import importlib as _importlib
 
-__version__ = "0.1.0"
+from ._version import __version__
 
 from .accumulate import EyeState, SpatiotemporalReprojection, temporal_step
 from .camera import (

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ... import __version__
+from ..._version import __version__
 from ...io.atomic import atomic_path, sweep
 
 __all__ = ["RenderCache", "code_version", "scene_fingerprint"]

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ... import __version__
+from ..._version import __version__
 from ...accumulate import SpatiotemporalReprojection
 from ...camera import has_surface
 from ...measure.metrics import effective_spp_many, flip, flip_available, rmse, ssim
