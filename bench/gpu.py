@@ -8,7 +8,7 @@ Writes bench/results/gpu.{json,md}.
 Without a CUDA device it says so and exits 0 without writing anything. It installs nothing.
 
 Rows per size (1280x720, 1920x1080, 3840x2160; B = 1, float32, the realistic inputs of
-:func:`stereorepro.io.onnx.example_inputs`): "stereo" (a parallel rig, same instant: ``head_motion=False``),
+:func:`stereorepro._testing.example_inputs`): "stereo" (a parallel rig, same instant: ``head_motion=False``),
 "stereo + head motion" and "temporal" (head motion), each as torch eager (``backend="torch"``, inference mode) and
 onnxruntime, against a device-to-device copy of the bytes the op reads and writes (bench/reproject.py's floor,
 on the device). Times are medians after warm-up, the device synchronised before and after each call, every
@@ -34,7 +34,7 @@ import _bench_common  # noqa: E402
 from _bench_common import copy_floor, floor_bytes, header, save, time_interleaved  # noqa: E402
 
 from stereorepro import StereoReprojection, TemporalReprojection, export_onnx  # noqa: E402
-from stereorepro.io.onnx import example_inputs  # noqa: E402
+from stereorepro._testing import example_inputs  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 SIZES = {"720p": (1280, 720), "1080p": (1920, 1080), "2160p": (3840, 2160)}

@@ -17,7 +17,7 @@ import torch
 from _bench_common import header, save, time_interleaved, time_ms
 from stereorepro import TemporalReprojection, camera_motion, load_scene
 from stereorepro.camera import Eye
-from stereorepro.io.onnx import example_inputs
+from stereorepro._testing import example_inputs
 from stereorepro.render import PathTracer
 from stereorepro.render._embree import TriangleBVH
 from stereorepro.reproject import _native

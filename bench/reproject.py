@@ -22,7 +22,7 @@ from _bench_common import (copy_floor, floor_bytes, header, paired_ratio, peak_r
                      time_interleaved)
 
 from stereorepro import StereoReprojection, TemporalReprojection, export_onnx  # noqa: E402
-from stereorepro.io.onnx import example_inputs  # noqa: E402
+from stereorepro._testing import example_inputs  # noqa: E402
 from stereorepro.reproject import functional  # noqa: E402
 
 #: (row label, module class, module keywords, head motion, floor). "stereo" is the paper's same-instant case (a

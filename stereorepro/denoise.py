@@ -454,7 +454,7 @@ def denoiser_example_inputs(module: ReprojectionDenoiser, batch: int = 1, height
     """Synthetic inputs for ``module``'s forward, in the order of its ``input_names`` (for export and tests):
     :func:`stereorepro.io.onnx.example_inputs`' temporal inputs (a stereo pair with head motion, one eye as the
     previous frame), and with ``stereo`` the other camera of that pair as the other eye."""
-    from .io.onnx import example_inputs
+    from ._testing import example_inputs
 
     kw = dict(batch=batch, height=height, width=width, dtype=dtype)
     temporal = example_inputs(TemporalReprojection(1.0, 1.0), seed=seed, **kw)

@@ -10,7 +10,7 @@ from conftest import backend_arg
 from stereorepro import (PinholeCamera, SpatiotemporalReprojection, stereo_reproject, temporal_blend,
                          temporal_reproject)
 from stereorepro.accumulate import EyeState, blend_histories, temporal_step, warp_history
-from stereorepro.synthetic import camera_pair, default_scene, raycast
+from stereorepro._testing import camera_pair, default_scene, raycast
 
 H, W = 36, 48
 THR = (0.2, 0.3)  # ~1.5 pixel footprints at these sizes

@@ -17,7 +17,7 @@ from stereorepro import (CameraError, ReprojectionDenoiser, ShapeError, Temporal
                          temporal_step)
 from stereorepro.denoise import FEATURES, OTHER_NAMES, STEREO_FEATURES, denoiser_example_inputs, feature_channels
 from stereorepro.io.onnx import onnx_input_dims
-from stereorepro.synthetic import camera_pair, default_scene, raycast
+from stereorepro._testing import camera_pair, default_scene, raycast
 
 THR = (0.05, 0.2)  # at these sizes about half the example inputs' pixels keep their history
 H, W = 24, 32

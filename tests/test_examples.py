@@ -14,7 +14,7 @@ import torch
 
 from conftest import load_script
 from stereorepro import StereoReprojection, TemporalReprojection, export_onnx, temporal_reproject
-from stereorepro.io.onnx import example_inputs
+from stereorepro._testing import example_inputs
 
 
 def load_example(name: str):

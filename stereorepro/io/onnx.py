@@ -21,7 +21,7 @@ from torch import Tensor, nn
 
 from .atomic import atomic_path
 
-__all__ = ["export_onnx", "example_inputs", "onnx_input_dims"]
+__all__ = ["export_onnx", "onnx_input_dims"]
 
 # Symbolic dimension names per input, by its role. Cameras keep (B, 3, 3) / (B, 4, 4).
 _IMAGE_DIMS = {0: "B", 2: "H", 3: "W"}
@@ -37,45 +37,6 @@ def _dims_for(name: str) -> dict[int, str]:
     return _IMAGE_DIMS
 
 
-def example_inputs(module: nn.Module, batch: int = 1, height: int = 24, width: int = 32,
-                   dtype: torch.dtype = torch.float32, seed: int = 0, head_motion: bool = True) -> tuple[Tensor, ...]:
-    """Realistic inputs for a module's forward: :func:`stereorepro.synthetic.default_scene` seen by a stereo
-    pair with a little head motion (occlusions, disocclusions, out-of-frame taps, background without surface).
-
-    ``head_motion=False`` gives the paper's same-instant case instead: a parallel rig (6.5 cm baseline), whose
-    epipolar lines are image rows.
-
-    Returns a tuple in the order of ``module.input_names``.
-    """
-    from ..synthetic import camera_pair, default_scene, raycast
-
-    motion = dict(forward=0.05, yaw_deg=0.5) if head_motion else {}
-    dst, src = camera_pair(height, width, batch, baseline=0.065, **motion)
-    scene = default_scene()
-    gd, gs = raycast(dst, scene), raycast(src, scene)
-    g = torch.Generator().manual_seed(seed)
-    noisy = gs["color"] * (0.5 + torch.rand(gs["color"].shape, generator=g, dtype=gs["color"].dtype))  # 1-spp-like
-    f = {k: v.to(dtype) for k, v in gd.items()}
-    s = {k: v.to(dtype) for k, v in gs.items()}
-    by_name = {
-        "src_color": noisy.to(dtype), "src_depth": s["depth"], "src_normal": s["normal"], "src_K": src.K.to(dtype),
-        "src_cam_from_world": src.cam_from_world.to(dtype),
-        "dst_depth": f["depth"], "dst_normal": f["normal"], "dst_K": dst.K.to(dtype),
-        "dst_cam_from_world": dst.cam_from_world.to(dtype),
-        "current_color": (f["color"] * (0.5 + torch.rand(f["color"].shape, generator=g, dtype=f["color"].dtype))),
-        "depth": f["depth"], "normal": f["normal"], "K": dst.K.to(dtype), "cam_from_world": dst.cam_from_world.to(dtype),
-        "history_color": s["color"], "history_len": torch.full_like(s["depth"], 3.0),
-        "prev_depth": s["depth"], "prev_normal": s["normal"], "prev_K": src.K.to(dtype),
-        "prev_cam_from_world": src.cam_from_world.to(dtype),
-    }
-    if "motion" in module.input_names:  # static geometry: the motion of the cameras, no world motion
-        from ..camera import camera_motion
-
-        by_name["motion"] = camera_motion(gd["depth"], dst.K, dst.cam_from_world, src.K, src.cam_from_world).to(dtype)
-        by_name["motion_world"] = torch.zeros_like(f["normal"])
-    return tuple(by_name[n] for n in module.input_names)
-
-
 def export_onnx(module: nn.Module, path, opset: int = 18, inputs: tuple[Tensor, ...] | None = None,
                 check_symbolic: bool = True) -> Path:
     """Export a stateless reprojection module to ONNX with symbolic B, H, W (and Hp, Wp for source images).
@@ -85,7 +46,7 @@ def export_onnx(module: nn.Module, path, opset: int = 18, inputs: tuple[Tensor, 
             module with ``input_names`` / ``output_names``).
         path: output file; written atomically (:func:`stereorepro.io.atomic.atomic_path`).
         opset: ONNX opset, ≥ 17.
-        inputs: example inputs (default :func:`example_inputs`).
+        inputs: example inputs (default: ``stereorepro._testing.example_inputs``, an analytic scene).
         check_symbolic: verify that the exported image inputs really have symbolic B/H/W (the dynamo exporter
             can silently specialise them) and raise otherwise.
 
@@ -97,7 +58,11 @@ def export_onnx(module: nn.Module, path, opset: int = 18, inputs: tuple[Tensor, 
     names = list(getattr(module, "input_names", []))
     if not names:
         raise TypeError(f"{type(module).__name__} has no `input_names`; cannot export")
-    inputs = example_inputs(module) if inputs is None else tuple(inputs)
+    if inputs is None:
+        from .._testing import example_inputs
+
+        inputs = example_inputs(module)
+    inputs = tuple(inputs)
     if len(inputs) != len(names):
         raise ValueError(f"expected {len(names)} inputs ({', '.join(names)}), got {len(inputs)}")
     path = Path(path)

@@ -11,7 +11,8 @@ import torch
 from stereorepro import StereoReprojection, TemporalReprojection, export_onnx, stereo_reproject, temporal_blend
 from stereorepro.camera import compose_warp, rectify_warp
 from stereorepro.errors import CameraError
-from stereorepro.io.onnx import example_inputs, onnx_input_dims
+from stereorepro._testing import example_inputs
+from stereorepro.io.onnx import onnx_input_dims
 from stereorepro.reproject import _general, _lean, functional
 
 from base import BaseTester

@@ -14,7 +14,7 @@ from reference import reference_backward_reproject
 from test_reproject import scene_pair
 from stereorepro import StereoReprojection, TemporalReprojection, backward_reproject, stereo_reproject, temporal_blend
 from stereorepro.errors import ShapeError
-from stereorepro.io.onnx import example_inputs
+from stereorepro._testing import example_inputs
 from stereorepro.reproject import Reason
 
 

@@ -1,7 +1,7 @@
 """Reprojection core: stereo and temporal backward warping with discard masks.
 
 Inputs are analytic (fronto-parallel planes with exact pixel shifts, and the ray-cast scene of
-stereorepro.synthetic), so expected answers are known without a renderer.
+stereorepro._testing), so expected answers are known without a renderer.
 """
 
 import math
@@ -26,8 +26,8 @@ from stereorepro import (
 from stereorepro.camera import compose_warp
 from stereorepro.errors import ShapeError
 from stereorepro.camera import PinholeCamera, look_at
-from stereorepro.io.onnx import example_inputs, onnx_input_dims
-from stereorepro.synthetic import camera_pair, default_scene, raycast
+from stereorepro.io.onnx import onnx_input_dims
+from stereorepro._testing import camera_pair, default_scene, example_inputs, raycast
 
 ARGS = ["src_color", "src_depth", "src_normal", "src_K", "src_cam_from_world",
         "dst_depth", "dst_normal", "dst_K", "dst_cam_from_world"]

@@ -10,7 +10,7 @@ import torch
 from base import BaseTester
 from stereorepro import SpatiotemporalReprojection, TemporalReprojection, camera_motion, intrinsics_from_fov
 from stereorepro.errors import ShapeError
-from stereorepro.io.onnx import example_inputs
+from stereorepro._testing import example_inputs
 from stereorepro.reproject import Reason
 from stereorepro.reproject.functional import backward_reproject, temporal_reproject
 

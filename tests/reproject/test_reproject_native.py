@@ -26,7 +26,7 @@ from stereorepro.reproject import (
     temporal_blend,
     temporal_reproject,
 )
-from stereorepro.synthetic import camera_pair, default_scene, raycast
+from stereorepro._testing import camera_pair, default_scene, raycast
 
 if not native.available():
     pytest.skip("stereorepro._core without the reprojection kernels", allow_module_level=True)
@@ -540,7 +540,7 @@ class TestBackendSelection:
         import onnxruntime as ort
 
         from stereorepro import export_onnx
-        from stereorepro.io.onnx import example_inputs
+        from stereorepro._testing import example_inputs
 
         monkeypatch.setenv(native.ENV_VAR, "native")
         module = StereoReprojection(0.3, 0.3)

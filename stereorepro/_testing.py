@@ -1,4 +1,5 @@
-"""Analytic G-buffers: planes and spheres ray-cast in torch, with a smooth procedural texture.
+"""Test inputs, not part of the public API: analytic G-buffers (planes and spheres ray-cast in torch, with a smooth
+procedural texture) and the example inputs of the reprojection modules built from them (:func:`example_inputs`).
 
 These give reprojection tests, examples and benchmarks inputs with known answers and no renderer: depth, world
 normal and colour are exact functions of the camera, and the same world point has the same colour from every
@@ -12,11 +13,12 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
-from .camera import PinholeCamera, StereoRig, intrinsics_from_fov, look_at
+from .camera import PinholeCamera, StereoRig, camera_motion, intrinsics_from_fov, look_at
 
-__all__ = ["Plane", "Sphere", "AnalyticScene", "default_scene", "raycast", "texture", "camera_pair"]
+__all__ = ["Plane", "Sphere", "AnalyticScene", "default_scene", "raycast", "texture", "camera_pair",
+           "example_inputs"]
 
 
 @dataclass(frozen=True)
@@ -137,3 +139,38 @@ def camera_pair(height: int, width: int, batch: int = 1, baseline: float = 0.065
                           dtype=dtype)  # head_new_from_head_old in camera axes
     _, right = rig.cameras(motion @ head, K, height, width)
     return left, right
+
+
+def example_inputs(module: nn.Module, batch: int = 1, height: int = 24, width: int = 32,
+                   dtype: torch.dtype = torch.float32, seed: int = 0, head_motion: bool = True) -> tuple[Tensor, ...]:
+    """Realistic inputs for a module's forward: :func:`default_scene` seen by a stereo pair with a little head
+    motion (occlusions, disocclusions, out-of-frame taps, background without surface).
+
+    ``head_motion=False`` gives the paper's same-instant case instead: a parallel rig (6.5 cm baseline), whose
+    epipolar lines are image rows.
+
+    Returns a tuple in the order of ``module.input_names``.
+    """
+    motion = dict(forward=0.05, yaw_deg=0.5) if head_motion else {}
+    dst, src = camera_pair(height, width, batch, baseline=0.065, **motion)
+    scene = default_scene()
+    gd, gs = raycast(dst, scene), raycast(src, scene)
+    g = torch.Generator().manual_seed(seed)
+    noisy = gs["color"] * (0.5 + torch.rand(gs["color"].shape, generator=g, dtype=gs["color"].dtype))  # 1-spp-like
+    f = {k: v.to(dtype) for k, v in gd.items()}
+    s = {k: v.to(dtype) for k, v in gs.items()}
+    by_name = {
+        "src_color": noisy.to(dtype), "src_depth": s["depth"], "src_normal": s["normal"], "src_K": src.K.to(dtype),
+        "src_cam_from_world": src.cam_from_world.to(dtype),
+        "dst_depth": f["depth"], "dst_normal": f["normal"], "dst_K": dst.K.to(dtype),
+        "dst_cam_from_world": dst.cam_from_world.to(dtype),
+        "current_color": (f["color"] * (0.5 + torch.rand(f["color"].shape, generator=g, dtype=f["color"].dtype))),
+        "depth": f["depth"], "normal": f["normal"], "K": dst.K.to(dtype), "cam_from_world": dst.cam_from_world.to(dtype),
+        "history_color": s["color"], "history_len": torch.full_like(s["depth"], 3.0),
+        "prev_depth": s["depth"], "prev_normal": s["normal"], "prev_K": src.K.to(dtype),
+        "prev_cam_from_world": src.cam_from_world.to(dtype),
+    }
+    if "motion" in module.input_names:  # static geometry: the motion of the cameras, no world motion
+        by_name["motion"] = camera_motion(gd["depth"], dst.K, dst.cam_from_world, src.K, src.cam_from_world).to(dtype)
+        by_name["motion_world"] = torch.zeros_like(f["normal"])
+    return tuple(by_name[n] for n in module.input_names)
