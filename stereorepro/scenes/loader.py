@@ -542,6 +542,39 @@ def load_scene(name_or_path: str | os.PathLike) -> Scene:
     Raises:
         SceneError: unknown name, missing file, unknown key, wrong type or inconsistent declaration.
     """
+    path = _scene_path(name_or_path)
+    data = _read_toml(path)
+    file = str(path)
+    effects, num_frames = _effects_and_frames(data, file)
+    geo = _req(data, "geometry", file, "geometry.generator or geometry.mesh")
+    if "generator" not in geo and "mesh" not in geo and not geo.get("quads") and not geo.get("boxes"):
+        raise SceneError(f"{file}: key 'geometry': expected 'generator', 'mesh', 'quads' or 'boxes'")
+    glossy = "glossy" in effects
+    materials, mesh_count, mesh_dropped = _mesh_materials(geo, path, glossy, file)
+    materials += [_parse_material(m, f"{file}: materials.{name}", name, glossy)
+                  for name, m in data.get("materials", {}).items()]
+    if glossy and not any(max(m.specular) > 0 for m in materials):
+        raise SceneError(f"{file}: key 'effects': declares 'glossy' but no material has a specular lobe")
+    lights = [_parse_light(li, f"{file}: lights[{i}]", effects) for i, li in enumerate(data.get("lights", []))]
+    if "moving_light" in effects and not any(len(li.keyframes) > 1 for li in lights):
+        raise SceneError(f"{file}: key 'effects': declares 'moving_light' but no light has keyframes")
+    vfov, stereo = _camera_and_rig(data, file)
+    pt, nt = _thresholds(data, file)
+    clamp, dmin = _render_settings(data, file)
+    scene = Scene(name=data.get("name", path.stem), effects=effects, num_frames=num_frames, vfov_deg=vfov,
+                  rig=stereo, position_threshold=pt, normal_threshold=nt, source=path,
+                  description=data.get("description", ""), radiance_clamp=clamp, point_light_min_distance=dmin,
+                  _data=data, _materials=materials, _lights=lights)
+    scene._mesh_material_offset = 0  # the mesh's materials come first
+    scene._mesh_material_count = mesh_count
+    scene._mesh_dropped = mesh_dropped
+    scene._animations = parse_animations(data, file, materials, num_frames)
+    _check_camera_path(scene, file)
+    return scene
+
+
+def _scene_path(name_or_path: str | os.PathLike) -> Path:
+    """The scene file of a built-in name or a path (resolved)."""
     s = str(name_or_path)
     if s.endswith(".toml") or os.sep in s or "/" in s:
         path = Path(s)
@@ -550,9 +583,10 @@ def load_scene(name_or_path: str | os.PathLike) -> Scene:
     else:
         raise SceneError(f"unknown scene {s!r}: expected one of {', '.join(list_scenes(True, True))} or a .toml "
                          "path")
-    path = path.resolve()
-    data = _read_toml(path)
-    file = str(path)
+    return path.resolve()
+
+
+def _effects_and_frames(data: dict, file: str) -> tuple[frozenset, int]:
     effects = frozenset(data.get("effects", []))
     bad = sorted(effects - KNOWN_EFFECTS)
     if bad:
@@ -561,60 +595,63 @@ def load_scene(name_or_path: str | os.PathLike) -> Scene:
     num_frames = int(data.get("num_frames", 60))
     if num_frames < 1:
         raise SceneError(f"{file}: key 'num_frames': expected a positive integer, got {num_frames}")
-    geo = _req(data, "geometry", file, "geometry.generator or geometry.mesh")
-    if "generator" not in geo and "mesh" not in geo and not geo.get("quads") and not geo.get("boxes"):
-        raise SceneError(f"{file}: key 'geometry': expected 'generator', 'mesh', 'quads' or 'boxes'")
-    glossy = "glossy" in effects
+    return effects, num_frames
 
+
+def _mesh_materials(geo: dict, path: Path, glossy: bool, file: str) -> tuple[list[_Material], int, set[int]]:
+    """The materials of ``geometry.mesh`` (from its sidecar, else one grey default), how many the mesh's material
+    ids index, and the sidecar materials whose faces are dropped; none without a mesh."""
+    if "mesh" not in geo:
+        return [], 1, set()
     materials: list[_Material] = []
-    mesh_dropped: set[int] = set()
-    mesh_count = 1
-    if "mesh" in geo:
-        mesh_path = expand_path(geo["mesh"], path.parent)
-        side = expand_path(geo["sidecar"], path.parent) if "sidecar" in geo else mesh_path.with_suffix(".json")
-        if side.is_file() or "sidecar" in geo:
-            materials, mesh_dropped = _sidecar_materials(side, glossy, file)
-            mesh_count = max(len(materials), 1)
-        if not materials:
-            materials = [_Material("mesh_default", (0.6, 0.6, 0.6))]
-    mesh_offset = 0
-    for mname, m in data.get("materials", {}).items():
-        where = f"{file}: materials.{mname}"
-        albedo = _vec(m.get("albedo", [0.0, 0.0, 0.0]))
-        spec = _vec(m.get("specular", [0.0, 0.0, 0.0]))
-        if min(albedo + spec) < 0 or max(a + b for a, b in zip(albedo, spec)) > 1.0:
-            raise SceneError(f"{where}: expected albedo + specular in [0, 1] per channel (energy conservation), "
-                             f"got albedo {albedo} and specular {spec}")
-        if max(spec) > 0 and not glossy:
-            raise SceneError(f"{where}.specular: a glossy lobe needs the scene to declare effects = [\"glossy\"]")
-        exponent = float(m.get("exponent", 1.0))
-        if exponent < 0:
-            raise SceneError(f"{where}.exponent: expected a number >= 0, got {exponent}")
-        emission = _vec(m.get("emission", [0.0, 0.0, 0.0]))
-        if min(emission) < 0:
-            raise SceneError(f"{where}.emission: expected non-negative values, got {emission}")
-        materials.append(_Material(mname, albedo, spec, exponent, emission))
-    if glossy and not any(max(m.specular) > 0 for m in materials):
-        raise SceneError(f"{file}: key 'effects': declares 'glossy' but no material has a specular lobe")
+    dropped: set[int] = set()
+    count = 1
+    mesh_path = expand_path(geo["mesh"], path.parent)
+    side = expand_path(geo["sidecar"], path.parent) if "sidecar" in geo else mesh_path.with_suffix(".json")
+    if side.is_file() or "sidecar" in geo:
+        materials, dropped = _sidecar_materials(side, glossy, file)
+        count = max(len(materials), 1)
+    if not materials:
+        materials = [_Material("mesh_default", (0.6, 0.6, 0.6))]
+    return materials, count, dropped
 
-    lights = []
-    for i, li in enumerate(data.get("lights", [])):
-        where = f"{file}: lights[{i}]"
-        if li.get("type", "point") != "point":
-            raise SceneError(f"{where}.type: expected 'point', got {li['type']!r}")
-        inten = np.array(_req(li, "intensity", where, "RGB intensity in W/sr"), np.float64)
-        if "position" in li and "keyframes" in li:
-            raise SceneError(f"{where}: expected either 'position' or 'keyframes', not both")
-        if "keyframes" in li:
-            if "moving_light" not in effects:
-                raise SceneError(f"{where}.keyframes: a moving light needs effects = [\"moving_light\"]")
-            kf = np.array(li["keyframes"], np.float64)
-        else:
-            kf = np.array([_req(li, "position", where, "position or keyframes")], np.float64)
-        lights.append(_PointLight(inten, kf))
-    if "moving_light" in effects and not any(len(li.keyframes) > 1 for li in lights):
-        raise SceneError(f"{file}: key 'effects': declares 'moving_light' but no light has keyframes")
 
+def _parse_material(m: dict, where: str, name: str, glossy: bool) -> _Material:
+    """``[materials.NAME]``: albedo + specular within [0, 1] per channel, a glossy lobe only in glossy scenes."""
+    albedo = _vec(m.get("albedo", [0.0, 0.0, 0.0]))
+    spec = _vec(m.get("specular", [0.0, 0.0, 0.0]))
+    if min(albedo + spec) < 0 or max(a + b for a, b in zip(albedo, spec)) > 1.0:
+        raise SceneError(f"{where}: expected albedo + specular in [0, 1] per channel (energy conservation), "
+                         f"got albedo {albedo} and specular {spec}")
+    if max(spec) > 0 and not glossy:
+        raise SceneError(f"{where}.specular: a glossy lobe needs the scene to declare effects = [\"glossy\"]")
+    exponent = float(m.get("exponent", 1.0))
+    if exponent < 0:
+        raise SceneError(f"{where}.exponent: expected a number >= 0, got {exponent}")
+    emission = _vec(m.get("emission", [0.0, 0.0, 0.0]))
+    if min(emission) < 0:
+        raise SceneError(f"{where}.emission: expected non-negative values, got {emission}")
+    return _Material(name, albedo, spec, exponent, emission)
+
+
+def _parse_light(li: dict, where: str, effects: frozenset) -> _PointLight:
+    """``[[lights]]``: a point light with an intensity and a position, or keyframes (``moving_light`` scenes)."""
+    if li.get("type", "point") != "point":
+        raise SceneError(f"{where}.type: expected 'point', got {li['type']!r}")
+    inten = np.array(_req(li, "intensity", where, "RGB intensity in W/sr"), np.float64)
+    if "position" in li and "keyframes" in li:
+        raise SceneError(f"{where}: expected either 'position' or 'keyframes', not both")
+    if "keyframes" in li:
+        if "moving_light" not in effects:
+            raise SceneError(f"{where}.keyframes: a moving light needs effects = [\"moving_light\"]")
+        kf = np.array(li["keyframes"], np.float64)
+    else:
+        kf = np.array([_req(li, "position", where, "position or keyframes")], np.float64)
+    return _PointLight(inten, kf)
+
+
+def _camera_and_rig(data: dict, file: str) -> tuple[float, StereoRig]:
+    """``[camera]`` (its keys present, the vertical field of view) and the ``[rig]``."""
     cam = _req(data, "camera", file, "camera path")
     for k in ("positions", "targets", "vfov_deg"):
         _req(cam, k, f"{file}: camera", k)
@@ -626,12 +663,21 @@ def load_scene(name_or_path: str | os.PathLike) -> Scene:
         stereo = StereoRig(float(rig.get("eye_separation", 0.065)), rig.get("convergence_distance"))
     except ValueError as e:
         raise SceneError(f"{file}: rig: {e}") from None
+    return vfov, stereo
+
+
+def _thresholds(data: dict, file: str) -> tuple[float, float]:
+    """``[reprojection]``: the position and normal thresholds, both positive."""
     rep = _req(data, "reprojection", file, "position_threshold and normal_threshold")
     pt = float(_req(rep, "position_threshold", f"{file}: reprojection", "scene units"))
     nt = float(_req(rep, "normal_threshold", f"{file}: reprojection", "unit-normal distance"))
     if not (pt > 0 and nt > 0):
         raise SceneError(f"{file}: reprojection: thresholds must be positive, got {pt}, {nt}")
+    return pt, nt
 
+
+def _render_settings(data: dict, file: str) -> tuple[float, float | None]:
+    """``[render]``: the radiance clamp (0 = auto) and the point lights' minimum distance (None = per frame)."""
     ren = data.get("render", {})
     clamp = float(ren.get("radiance_clamp", 0.0))
     if clamp < 0:
@@ -639,18 +685,7 @@ def load_scene(name_or_path: str | os.PathLike) -> Scene:
     dmin = ren.get("point_light_min_distance")
     if dmin is not None and not float(dmin) > 0:
         raise SceneError(f"{file}: render.point_light_min_distance: expected a positive number, got {dmin}")
-
-    scene = Scene(name=data.get("name", path.stem), effects=effects, num_frames=num_frames, vfov_deg=vfov,
-                  rig=stereo, position_threshold=pt, normal_threshold=nt, source=path,
-                  description=data.get("description", ""), radiance_clamp=clamp,
-                  point_light_min_distance=None if dmin is None else float(dmin),
-                  _data=data, _materials=materials, _lights=lights)
-    scene._mesh_material_offset = mesh_offset
-    scene._mesh_material_count = mesh_count
-    scene._mesh_dropped = mesh_dropped
-    scene._animations = parse_animations(data, file, materials, num_frames)
-    _check_camera_path(scene, file)
-    return scene
+    return clamp, None if dmin is None else float(dmin)
 
 
 def _check_camera_path(scene: Scene, file: str) -> None:
