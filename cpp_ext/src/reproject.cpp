@@ -12,8 +12,9 @@
 //   q  = ((M[i,0]*u + M[i,1]*v) + M[i,2]) * z + t[i]
 //   px = z_s * ((Ki00*ut + Ki01*vt) + Ki02),  py = z_s * (Ki11*vt + Ki12)
 //   d² = ((qx-px)² + (qy-py)²) + (qz-z_s)²,   |dn|² = (dn0² + dn1²) + dn2²
-// The camera matrices (P, kt, M, t, Ks_inv) are composed in Python by reproject._compose_cameras (float64, then
-// cast), the same helper the torch path uses. Layout: NCHW, C-contiguous, CPU.
+// The camera matrices (P, kt, M, t, Ks_inv: the fields pixel_src_from_pixel_dst, K_src_t, ray_src_from_pixel_dst,
+// t_src_from_dst, K_src_inv of stereorepro.camera.Warp) are composed in Python by stereorepro.camera.compose_warp
+// (float64, then cast), the same helper the torch path uses. Layout: NCHW, C-contiguous, CPU.
 //
 // Image dtypes: every image plane (colour / values, depths, normals, history length, current colour) is float32
 // or float16, each on its own (mixed inputs need no conversion); float16 planes are widened exactly on load
@@ -39,6 +40,7 @@
 #include <stdexcept>
 #include <string>
 #include <type_traits>
+#include <utility>
 #include <vector>
 
 #if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
@@ -48,7 +50,7 @@
 #define SR_AVX2 __attribute__((target("avx2,f16c")))
 #endif
 // The per-tap helpers must be inlined into the row loops (the instantiations per dtype layout would otherwise
-// exceed the compiler's inlining budget, measured 15 % slower).
+// exceed the compiler's inlining budget, and the calls cost time).
 #if defined(__GNUC__) || defined(__clang__)
 #define SR_INLINE inline __attribute__((always_inline))
 #define SR_LAMBDA_INLINE __attribute__((always_inline))
@@ -73,6 +75,13 @@ enum : uint8_t { KEPT = 0, NO_SURFACE_DST = 1, BEHIND_CAMERA = 2, OUT_OF_FRAME =
                  POSITION = 5, NORMAL = 6, NONFINITE = 7 };
 
 constexpr int kMaxStackChannels = 16;
+
+// Mirrors of stereorepro/reproject/_constants.py (exported as _core.reproject_constants, and compared with the
+// Python values by tests/reproject/test_constants.py).
+// Projected source coordinates are clamped to [-kCoordMargin, Ws + kCoordMargin] (COORD_MARGIN).
+constexpr float kCoordMargin = 4.0f;
+// Integers up to this are exact in float32; larger images leave the vector path (F32_EXACT_INT).
+constexpr int64_t kF32ExactInt = int64_t(1) << 24;
 
 // ---- shape checks (the Python layer checks first; these guard direct calls) ---------------------------------
 template <class A>
@@ -282,8 +291,8 @@ inline void warp_pixel(const Source &s, const Dest &d, const Camera &cam, const 
     if (!(wz > 0.0f)) return invalid(BEHIND_CAMERA, 0.0f);
     float u = wx / wz, v = wy / wz;
     if (!(finitef(u) & finitef(v))) return invalid(BEHIND_CAMERA, 0.0f);
-    u = std::min(std::max(u, -4.0f), (float)s.Ws + 4.0f);
-    v = std::min(std::max(v, -4.0f), (float)s.Hs + 4.0f);
+    u = std::min(std::max(u, -kCoordMargin), (float)s.Ws + kCoordMargin);
+    v = std::min(std::max(v, -kCoordMargin), (float)s.Hs + kCoordMargin);
     const float qx = ((M[0] * uc + M[1] * vc) + M[2]) * zr + t[0];
     const float qy = ((M[3] * uc + M[4] * vc) + M[5]) * zr + t[1];
     const float qz = ((M[6] * uc + M[7] * vc) + M[8]) * zr + t[2];
@@ -402,8 +411,8 @@ SR_AVX2 SR_INLINE void gather_taps(const Source &s, const Consts &k, __m256 xi, 
 // The horizontally adjacent taps (x0, yi) and (x0 + 1, yi) of 8 pixels with one 64-bit load per pixel and plane
 // (half the gathered elements). Needs Ws >= 2. The pair starts at xp = clamp(x0, 0, Ws - 2); where x0 = Ws - 1 the
 // x0 tap is the pair's second element, where x0 = -1 the x0 + 1 tap is its first; other out-of-frame taps read
-// some in-frame pixel and are masked by the caller. A float16 pair is one 32-bit load (an 8-lane 32-bit gather of
-// the pairs measured 25 % slower).
+// some in-frame pixel and are masked by the caller. A float16 pair is one 32-bit load (cheaper than an 8-lane
+// 32-bit gather of the pairs).
 template <int NC, class L>
 SR_AVX2 SR_INLINE void gather_pairs(const Source &s, const Consts &k, __m256 x0, __m256 yi, Taps<NC> &a,
                                     Taps<NC> &b) {
@@ -418,7 +427,7 @@ SR_AVX2 SR_INLINE void gather_pairs(const Source &s, const Consts &k, __m256 x0,
     const __m256 b_from_a = _mm256_cmp_ps(x0, zero, _CMP_LT_OQ);    // x0 = -1
     const bool edge = _mm256_movemask_ps(_mm256_or_ps(a_from_b, b_from_a)) != 0;
     // Scalar 8-byte loads (two adjacent floats each; the 8 indices are extracted once for all planes) are cheaper
-    // than 8-lane gathers on the CPUs measured here.
+    // than 8-lane gathers.
     auto load = [&](const Plane &p, auto kind, __m256 &va, __m256 &vb) SR_AVX2 SR_LAMBDA_INLINE {
         __m256 ea, eb;
         if (halfp<decltype(kind)::value>(p)) {
@@ -507,106 +516,148 @@ SR_AVX2 SR_INLINE void tap(const Source &s, const Consts &k, const Taps<NC> &g, 
     for (int64_t c = 0; c < C; ++c) num[c] = add(num[c], mul(ws, band(g.vals[c], finite)));
 }
 
+// The camera of a batch item broadcast to 8 lanes, and the per-row constants of the tap tests.
+struct Warp8 {
+    __m256 P[9], M[9], kt[3], t[3];
+    __m256 umax, vmax;  // upper clamps of the source coordinates
+};
+
+SR_AVX2 SR_INLINE void broadcast_camera(const Source &s, const Camera &cam, const Tests &th, Warp8 &w, Consts &k) {
+    for (int i = 0; i < 9; ++i) w.P[i] = set(cam.P[i]), w.M[i] = set(cam.M[i]);
+    for (int i = 0; i < 3; ++i) w.kt[i] = set(cam.kt[i]), w.t[i] = set(cam.t[i]);
+    w.umax = set((float)s.Ws + kCoordMargin), w.vmax = set((float)s.Hs + kCoordMargin);
+    k.Ki0 = set(cam.Ki[0]), k.Ki1 = set(cam.Ki[1]), k.Ki2 = set(cam.Ki[2]), k.Ki4 = set(cam.Ki[4]);
+    k.Ki5 = set(cam.Ki[5]);
+    k.wm1 = set((float)(s.Ws - 1)), k.wm2 = set((float)(s.Ws - 2)), k.hm1 = set((float)(s.Hs - 1));
+    k.thr_p = set(th.pos_thr2), k.thr_n = set(th.nrm_thr2);
+    k.Wsi = _mm256_set1_epi32((int32_t)s.Ws);
+}
+
+// 8 destination pixels projected into the source camera (the scalar warp_pixel's arithmetic).
+struct Pixels8 {
+    __m256 dst_ok, front, pixel_ok;  // masks: a surface; in front of the source camera with finite (u, v); both
+    __m256 u, v;                     // source coordinates, clamped (the lower clamp where not front)
+    __m256 qx, qy, qz;               // the destination point in the source camera frame
+    __m256 nd0, nd1, nd2;            // the destination normal, non-finite components 0
+};
+
+template <class L>
+SR_AVX2 SR_INLINE void project8(const Dest &d, const Warp8 &w, int64_t p, __m256 uc, __m256 vc, Pixels8 &px) {
+    const __m256 zero = _mm256_setzero_ps(), one = set(1.0f), lo = set(-kCoordMargin);
+    const __m256 zr = ld8<L::depth>(d.depth, p);
+    px.dst_ok = band(isfinite(zr), gt(zr, zero));
+    const __m256 z = sel(px.dst_ok, zr, one);
+    const __m256 inv_z = _mm256_div_ps(one, z);
+    const __m256 *P = w.P, *M = w.M, *kt = w.kt, *t = w.t;
+    const __m256 wx = add(add(add(mul(P[0], uc), mul(P[1], vc)), P[2]), mul(kt[0], inv_z));
+    const __m256 wy = add(add(add(mul(P[3], uc), mul(P[4], vc)), P[5]), mul(kt[1], inv_z));
+    __m256 wz = add(add(add(mul(P[6], uc), mul(P[7], vc)), P[8]), mul(kt[2], inv_z));
+    __m256 front = gt(wz, zero);
+    wz = sel(front, wz, one);
+    const __m256 u = _mm256_div_ps(wx, wz), v = _mm256_div_ps(wy, wz);
+    front = band(front, band(isfinite(u), isfinite(v)));
+    px.front = front;
+    px.u = _mm256_min_ps(_mm256_max_ps(sel(front, u, lo), lo), w.umax);
+    px.v = _mm256_min_ps(_mm256_max_ps(sel(front, v, lo), lo), w.vmax);
+    px.qx = add(mul(add(add(mul(M[0], uc), mul(M[1], vc)), M[2]), z), t[0]);
+    px.qy = add(mul(add(add(mul(M[3], uc), mul(M[4], vc)), M[5]), z), t[1]);
+    px.qz = add(mul(add(add(mul(M[6], uc), mul(M[7], vc)), M[8]), z), t[2]);
+    px.nd0 = fin0(ld8<L::normals>(d.n0, p));
+    px.nd1 = fin0(ld8<L::normals>(d.n1, p));
+    px.nd2 = fin0(ld8<L::normals>(d.n2, p));
+    px.pixel_ok = band(px.dst_ok, front);
+}
+
+// What the taps of 8 pixels accumulate: the accepted weight, the weighted values and (with codes) the worst code.
+template <int NC>
+struct Sums8 {
+    __m256 den, worst;
+    __m256 num[NC > 0 ? NC : kMaxStackChannels];
+};
+
+// All taps of 8 pixels (ok_bits: the lanes with pixel_ok): accumulates den / num and, with CODES, the worst code.
+template <int NC, bool BILINEAR, bool CODES, class L>
+SR_AVX2 SR_INLINE void taps8(const Source &s, const Consts &k, const Pixels8 &px, int ok_bits, Taps<NC> &ga,
+                             Taps<NC> &gb, Sums8<NC> &acc) {
+    const int64_t C = NC > 0 ? NC : s.C;
+    const __m256 zero = _mm256_setzero_ps(), one = set(1.0f), half = set(0.5f);
+    acc.den = zero;
+    acc.worst = zero;
+    for (int64_t c = 0; c < C; ++c) acc.num[c] = zero;
+    if (ok_bits == 0) return;  // no lane to warp (e.g. sky): no taps
+    if (BILINEAR) {
+        const __m256 fxs = sub(px.u, half), fys = sub(px.v, half);
+        const __m256 x0 = _mm256_floor_ps(fxs), y0 = _mm256_floor_ps(fys);
+        const __m256 fx = sub(fxs, x0), fy = sub(fys, y0);
+        const __m256 x1 = add(x0, one), y1 = add(y0, one);
+        const __m256 gx = sub(one, fx), gy = sub(one, fy);
+        const __m256 ys[2] = {y0, y1}, wy[2] = {gy, fy};
+        // Rectified stereo (epipolar lines = rows) gives fy = 0: the y1 taps then have weight 0 in every lane and
+        // would add exactly +0 to den and num (and code 0), so skipping them changes no bit.
+        const int rows = _mm256_movemask_ps(gt(fy, zero)) != 0 ? 2 : 1;
+        for (int r = 0; r < rows; ++r) {  // taps in torch's order: (x0, y0), (x1, y0), (x0, y1), (x1, y1)
+            if (s.Ws >= 2) {
+                gather_pairs<NC, L>(s, k, x0, ys[r], ga, gb);
+            } else {
+                gather_taps<NC, L>(s, k, x0, ys[r], ga);
+                gather_taps<NC, L>(s, k, x1, ys[r], gb);
+            }
+            tap<NC, CODES>(s, k, ga, x0, ys[r], mul(gx, wy[r]), px.pixel_ok, px.qx, px.qy, px.qz, px.nd0, px.nd1,
+                           px.nd2, acc.den, acc.num, acc.worst);
+            tap<NC, CODES>(s, k, gb, x1, ys[r], mul(fx, wy[r]), px.pixel_ok, px.qx, px.qy, px.qz, px.nd0, px.nd1,
+                           px.nd2, acc.den, acc.num, acc.worst);
+        }
+    } else {
+        const __m256 xi = _mm256_floor_ps(px.u), yi = _mm256_floor_ps(px.v);
+        gather_taps<NC, L>(s, k, xi, yi, ga);
+        tap<NC, CODES>(s, k, ga, xi, yi, one, px.pixel_ok, px.qx, px.qy, px.qz, px.nd0, px.nd1, px.nd2, acc.den,
+                       acc.num, acc.worst);
+    }
+}
+
+// Writes the results of 8 pixels at position x of the row outputs.
+template <int NC>
+SR_AVX2 SR_INLINE void store8(const Source &s, const RowOut &o, int64_t x, const Pixels8 &px, const Sums8<NC> &acc,
+                              __m256 has_w) {
+    const int64_t C = NC > 0 ? NC : s.C;
+    const __m256 safe_den = sel(has_w, acc.den, set(1.0f));
+    for (int64_t c = 0; c < C; ++c) st8(o.num[c], x, band(_mm256_div_ps(acc.num[c], safe_den), has_w));
+    _mm256_storeu_ps(o.den + x, acc.den);
+    __m256 reason = sel(px.front, acc.worst, set(BEHIND_CAMERA));
+    reason = sel(px.dst_ok, reason, set(NO_SURFACE_DST));
+    reason = _mm256_andnot_ps(has_w, reason);
+    alignas(32) int32_t r[8];
+    _mm256_store_si256((__m256i *)r, _mm256_cvttps_epi32(reason));
+    const int vm = _mm256_movemask_ps(has_w);
+    for (int l = 0; l < 8; ++l) {
+        o.reason[x + l] = (uint8_t)r[l];
+        o.valid[x + l] = (uint8_t)((vm >> l) & 1);
+    }
+}
+
 // Warps pixels [0, W - W % 8) of row y; returns the first pixel not done.
 template <int NC, bool BILINEAR, class L>
 SR_AVX2 int64_t warp_row(const Source &s, const Dest &d, const Camera &cam, const Tests &th, int64_t y,
                          const RowOut &o) {
-    const int64_t C = NC > 0 ? NC : s.C;
-    const __m256 zero = _mm256_setzero_ps(), one = set(1.0f), m4 = set(-4.0f), half = set(0.5f);
-    __m256 P[9], M[9], kt[3], t[3];
-    for (int i = 0; i < 9; ++i) P[i] = set(cam.P[i]), M[i] = set(cam.M[i]);
-    for (int i = 0; i < 3; ++i) kt[i] = set(cam.kt[i]), t[i] = set(cam.t[i]);
+    Warp8 w;
     Consts k;
-    k.Ki0 = set(cam.Ki[0]), k.Ki1 = set(cam.Ki[1]), k.Ki2 = set(cam.Ki[2]), k.Ki4 = set(cam.Ki[4]);
-    k.Ki5 = set(cam.Ki[5]);
-    k.wm1 = set((float)(s.Ws - 1)), k.wm2 = set((float)(s.Ws - 2)), k.hm1 = set((float)(s.Hs - 1));
-    const bool pairs = s.Ws >= 2;
+    broadcast_camera(s, cam, th, w, k);
     Taps<NC> ga, gb;
-    k.thr_p = set(th.pos_thr2), k.thr_n = set(th.nrm_thr2);
-    k.Wsi = _mm256_set1_epi32((int32_t)s.Ws);
-    const __m256 umax = set((float)s.Ws + 4.0f), vmax = set((float)s.Hs + 4.0f);
-    const __m256 vc = set((float)y + 0.5f);
+    Sums8<NC> acc;
+    Pixels8 px;
+    const __m256 vc = set((float)y + 0.5f), half = set(0.5f), zero = _mm256_setzero_ps();
     const __m256i iota = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
     int64_t x = 0;
     for (; x + 8 <= d.W; x += 8) {
-        const int64_t p = y * d.W + x;
         const __m256 uc = add(_mm256_cvtepi32_ps(_mm256_add_epi32(_mm256_set1_epi32((int32_t)x), iota)), half);
-        const __m256 zr = ld8<L::depth>(d.depth, p);
-        const __m256 dst_ok = band(isfinite(zr), gt(zr, zero));
-        const __m256 z = sel(dst_ok, zr, one);
-        const __m256 inv_z = _mm256_div_ps(one, z);
-        const __m256 wx = add(add(add(mul(P[0], uc), mul(P[1], vc)), P[2]), mul(kt[0], inv_z));
-        const __m256 wy = add(add(add(mul(P[3], uc), mul(P[4], vc)), P[5]), mul(kt[1], inv_z));
-        __m256 wz = add(add(add(mul(P[6], uc), mul(P[7], vc)), P[8]), mul(kt[2], inv_z));
-        __m256 front = gt(wz, zero);
-        wz = sel(front, wz, one);
-        __m256 u = _mm256_div_ps(wx, wz), v = _mm256_div_ps(wy, wz);
-        front = band(front, band(isfinite(u), isfinite(v)));
-        u = _mm256_min_ps(_mm256_max_ps(sel(front, u, m4), m4), umax);
-        v = _mm256_min_ps(_mm256_max_ps(sel(front, v, m4), m4), vmax);
-        const __m256 qx = add(mul(add(add(mul(M[0], uc), mul(M[1], vc)), M[2]), z), t[0]);
-        const __m256 qy = add(mul(add(add(mul(M[3], uc), mul(M[4], vc)), M[5]), z), t[1]);
-        const __m256 qz = add(mul(add(add(mul(M[6], uc), mul(M[7], vc)), M[8]), z), t[2]);
-        const __m256 nd0 = fin0(ld8<L::normals>(d.n0, p));
-        const __m256 nd1 = fin0(ld8<L::normals>(d.n1, p));
-        const __m256 nd2 = fin0(ld8<L::normals>(d.n2, p));
-        const __m256 pixel_ok = band(dst_ok, front);
-        const int ok_bits = _mm256_movemask_ps(pixel_ok);
-        __m256 den, worst;
-        __m256 num[NC > 0 ? NC : kMaxStackChannels];
-        // All taps of the 8 pixels: accumulates den / num and, with codes, the worst reason code.
-        auto run_taps = [&](auto codes) SR_AVX2 {
-            constexpr bool CODES = decltype(codes)::value;
-            den = zero;
-            worst = zero;
-            for (int64_t c = 0; c < C; ++c) num[c] = zero;
-            if (ok_bits == 0) return;  // no lane to warp (e.g. sky): no taps
-            if (BILINEAR) {
-                const __m256 fxs = sub(u, half), fys = sub(v, half);
-                const __m256 x0 = _mm256_floor_ps(fxs), y0 = _mm256_floor_ps(fys);
-                const __m256 fx = sub(fxs, x0), fy = sub(fys, y0);
-                const __m256 x1 = add(x0, one), y1 = add(y0, one);
-                const __m256 gx = sub(one, fx), gy = sub(one, fy);
-                const __m256 ys[2] = {y0, y1}, wy[2] = {gy, fy};
-                // Rectified stereo (epipolar lines = rows) gives fy = 0: the y1 taps then have weight 0 in every
-                // lane and would add exactly +0 to den and num (and code 0), so skipping them changes no bit.
-                const int rows = _mm256_movemask_ps(gt(fy, zero)) != 0 ? 2 : 1;
-                for (int r = 0; r < rows; ++r) {  // taps in torch's order: (x0, y0), (x1, y0), (x0, y1), (x1, y1)
-                    if (pairs) {
-                        gather_pairs<NC, L>(s, k, x0, ys[r], ga, gb);
-                    } else {
-                        gather_taps<NC, L>(s, k, x0, ys[r], ga);
-                        gather_taps<NC, L>(s, k, x1, ys[r], gb);
-                    }
-                    tap<NC, CODES>(s, k, ga, x0, ys[r], mul(gx, wy[r]), pixel_ok, qx, qy, qz, nd0, nd1, nd2, den,
-                                   num, worst);
-                    tap<NC, CODES>(s, k, gb, x1, ys[r], mul(fx, wy[r]), pixel_ok, qx, qy, qz, nd0, nd1, nd2, den,
-                                   num, worst);
-                }
-            } else {
-                const __m256 xi = _mm256_floor_ps(u), yi = _mm256_floor_ps(v);
-                gather_taps<NC, L>(s, k, xi, yi, ga);
-                tap<NC, CODES>(s, k, ga, xi, yi, one, pixel_ok, qx, qy, qz, nd0, nd1, nd2, den, num, worst);
-            }
-        };
-        run_taps(std::false_type{});
-        __m256 has_w = gt(den, zero);
+        project8<L>(d, w, y * d.W + x, uc, vc, px);
+        const int ok_bits = _mm256_movemask_ps(px.pixel_ok);
+        taps8<NC, BILINEAR, false, L>(s, k, px, ok_bits, ga, gb, acc);
+        const __m256 has_w = gt(acc.den, zero);
         // A pixel that was warped but kept nothing reports the code of its most nearly accepted tap: only for such
         // groups (a few %) are the taps run again with codes (same arithmetic, so den and num come out the same).
-        if (ok_bits & ~_mm256_movemask_ps(has_w)) run_taps(std::true_type{});
-        const __m256 safe_den = sel(has_w, den, one);
-        for (int64_t c = 0; c < C; ++c) st8(o.num[c], x, band(_mm256_div_ps(num[c], safe_den), has_w));
-        _mm256_storeu_ps(o.den + x, den);
-        __m256 reason = sel(front, worst, set(BEHIND_CAMERA));
-        reason = sel(dst_ok, reason, set(NO_SURFACE_DST));
-        reason = _mm256_andnot_ps(has_w, reason);
-        alignas(32) int32_t r[8];
-        _mm256_store_si256((__m256i *)r, _mm256_cvttps_epi32(reason));
-        const int vm = _mm256_movemask_ps(has_w);
-        for (int l = 0; l < 8; ++l) {
-            o.reason[x + l] = (uint8_t)r[l];
-            o.valid[x + l] = (uint8_t)((vm >> l) & 1);
-        }
+        if (ok_bits & ~_mm256_movemask_ps(has_w)) taps8<NC, BILINEAR, true, L>(s, k, px, ok_bits, ga, gb, acc);
+        store8<NC>(s, o, x, px, acc, has_w);
     }
     return x;
 }
@@ -735,8 +786,9 @@ void run_rows(const Batch &bt, const Tests &th, const Sink &sink) {
     const int64_t rows = bt.B * bt.H, HWs = bt.Hs * bt.Ws, HW = bt.H * bt.W;
     bool vector = false;
 #ifdef SR_AVX2_PATH
-    vector = use_avx2() && HWs < (int64_t(1) << 31) && bt.Ws < (int64_t(1) << 24) && bt.Hs < (int64_t(1) << 24) &&
-             bt.W < (int64_t(1) << 24);
+    // int32 gather indices; coordinates exact in float32
+    vector = use_avx2() && HWs < (int64_t(1) << 31) && bt.Ws < kF32ExactInt && bt.Hs < kF32ExactInt &&
+             bt.W < kF32ExactInt;
 #endif
 #ifdef STEREOREPRO_OPENMP
 #pragma omp parallel
@@ -898,16 +950,32 @@ void temporal_reproject(CA current, CA history_color, CA history_len, CA prev_de
 }  // namespace
 
 void bind_reproject(nb::module_ &m) {
+    // The mirrored constants, for the test that they equal stereorepro.reproject._constants.MIRRORED_IN_CORE.
+    nb::dict constants;
+    constants["COORD_MARGIN"] = nb::cast(kCoordMargin);
+    constants["F32_EXACT_INT"] = nb::cast(kF32ExactInt);
+    const std::pair<const char *, uint8_t> reasons[] = {
+        {"REASON_KEPT", KEPT},
+        {"REASON_NO_SURFACE_DST", NO_SURFACE_DST},
+        {"REASON_BEHIND_CAMERA", BEHIND_CAMERA},
+        {"REASON_OUT_OF_FRAME", OUT_OF_FRAME},
+        {"REASON_NO_SURFACE_SRC", NO_SURFACE_SRC},
+        {"REASON_POSITION", POSITION},
+        {"REASON_NORMAL", NORMAL},
+        {"REASON_NONFINITE", NONFINITE}};
+    for (const auto &[name, code] : reasons) constants[name] = nb::cast(int(code));
+    m.attr("reproject_constants") = constants;
     m.def("reproject", &reproject, nb::arg("src_values").noconvert(), nb::arg("src_depth").noconvert(),
           nb::arg("src_normal").noconvert(), nb::arg("P").noconvert(), nb::arg("kt").noconvert(),
           nb::arg("M").noconvert(), nb::arg("t").noconvert(), nb::arg("Ks_inv").noconvert(),
           nb::arg("dst_depth").noconvert(), nb::arg("dst_normal").noconvert(), nb::arg("pos_thr2"),
           nb::arg("nrm_thr2"), nb::arg("bilinear"), nb::arg("out_values").noconvert(),
-          nb::arg("out_valid").noconvert(), nb::arg("out_reason").noconvert(), nb::arg("out_confidence").noconvert().none(),
+          nb::arg("out_valid").noconvert(), nb::arg("out_reason").noconvert(),
+          nb::arg("out_confidence").noconvert().none(),
           "Fused hard backward reprojection (NCHW, C-contiguous CPU arrays; no copies are made). Image arrays "
           "(values, depths, normals, out_values) are float32 or float16, each on its own; compute is float32.\n"
           "Camera arrays P, M, Ks_inv are (B, 9) row-major and kt, t are (B, 3), composed by "
-          "stereorepro.reproject._compose_cameras. pos_thr2 / nrm_thr2 are the float32 squared thresholds.\n"
+          "stereorepro.camera.compose_warp. pos_thr2 / nrm_thr2 are the float32 squared thresholds.\n"
           "Writes out_values (B, C, H, W), out_valid (B, 1, H, W) bool, out_reason (B, 1, H, W) uint8 and "
           "out_confidence (B, 1, H, W) in place; out_confidence may be None (not computed).");
     m.def("temporal_reproject", &temporal_reproject, nb::arg("current").noconvert(),

@@ -1,12 +1,13 @@
 """The fast path of the backward reprojection: hard tests when no autograd graph is needed and nothing traces
 the call (and the squared thresholds are finite). Wherever a result depends on it, it performs the per-element float
 arithmetic of warp_pixels, so values, valid, reason and confidence are identical to the general path
-(tests/reproject/test_functional.py::TestFastPath); what changes is the memory traffic, which bounds this op on a CPU:
+(``TestFastPath`` in ``tests/reproject/test_reproject.py``); what changes is the memory traffic, which bounds this
+op on a CPU:
 
 * the source is sanitised once into a padded gather table (fast_source_table) holding, per pixel, the values,
   the source-camera point (px, py, z) (the per-tap formula of warp_pixels evaluated once per pixel: the same
-  bits) and the normal. A pixel no tap may accept (no surface, non-finite values, the _PAD border) has a NaN or
-  infinite point, which fails the position test: no per-tap frame, surface or finiteness tests, no index
+  bits) and the normal. A pixel no tap may accept (no surface, non-finite values, the TABLE_PAD border) has a NaN
+  or infinite point, which fails the position test: no per-tap frame, surface or finiteness tests, no index
   clamping. Invalid destination pixels are sent to the border the same way;
 * accept tests are float arithmetic (a comparison into a float tensor is vectorised, into a bool one it is not);
 * one gather of all taps' table rows per row block; one pass of float ops over (channel, tap, pixel) arrays;
@@ -24,17 +25,15 @@ import torch
 from torch import Tensor
 
 from ..camera import Warp, has_surface
-from ._general import pixel_centres, raw_reader, warp_pixels
+from ._constants import COORD_MARGIN, F32_EXACT_INT, TABLE_PAD
+from ._general import DstPixels, SourceTaps, TapTests, pixel_centres, raw_reader, warp_pixels
 from .reason import Reason
 
 #: Destination pixels per block in the fast path (its per-block working set is larger than the general path's).
 FAST_BLOCK_PIXELS = 1 << 15
 
-#: Border of the fast path's source table: taps of coordinates clamped to [-4, Ws + 4] read pixels -5 .. Ws + 4.
-_PAD = 5
-
-#: Integers up to this are exact in float32 (larger source tables get float64 index arithmetic).
-_F32_EXACT = 2 ** 24
+#: Table sizes from which the table-index arithmetic runs in float64 (module-level so that a test can lower it).
+_F32_EXACT = F32_EXACT_INT
 
 
 class _Scratch:
@@ -58,9 +57,9 @@ class _Scratch:
         return self._views[key]
 
 
-def fast_source_table(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, Ks_inv: Tensor,
-                       wdt: torch.dtype) -> Tensor:
-    """The fast path's gather table: (B, C+6, Hp·Wp) with Hp, Wp = Hs + 2·_PAD, Ws + 2·_PAD.
+def fast_source_table(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, K_src_inv: Tensor,
+                      wdt: torch.dtype) -> Tensor:
+    """The fast path's gather table: (B, C+6, Hp·Wp) with Hp, Wp = Hs + 2·TABLE_PAD, Ws + 2·TABLE_PAD.
 
     Channels: values (all 0 for a pixel with any non-finite value), the pixel's point in the source camera frame
     px, py, z (NaN or ±inf where no tap may be accepted: no surface, non-finite values, the border), normal
@@ -68,7 +67,7 @@ def fast_source_table(src_values: Tensor, src_depth: Tensor, src_normal: Tensor,
     """
     B, C, Hs, Ws = src_values.shape
     dev = src_values.device
-    p = _PAD
+    p = TABLE_PAD
     tab = torch.empty(B, C + 6, Hs + 2 * p, Ws + 2 * p, dtype=wdt, device=dev)
     for border in (tab[:, :, :p], tab[:, :, p + Hs:], tab[:, :, p:p + Hs, :p], tab[:, :, p:p + Hs, p + Ws:]):
         border.fill_(0.0)
@@ -81,7 +80,7 @@ def fast_source_table(src_values: Tensor, src_depth: Tensor, src_normal: Tensor,
     sz = src_depth.to(wdt)
     surface = torch.gt(sz, 0.0, out=torch.empty_like(sz))  # 1.0 / 0.0
     zm = torch.sub(sz, s0).div_(surface)  # z where z > 0 and the values are finite; NaN or ±inf elsewhere
-    ki = Ks_inv.reshape(B, 9, 1, 1)
+    ki = K_src_inv.reshape(B, 9, 1, 1)
     ut = torch.arange(Ws, dtype=wdt, device=dev).view(1, 1, 1, Ws) + 0.5
     vt = torch.arange(Hs, dtype=wdt, device=dev).view(1, 1, Hs, 1) + 0.5
     torch.mul(zm, ki[:, 0:1] * ut + ki[:, 1:2] * vt + ki[:, 2:3], out=inner[:, C:C + 1])  # px, as in warp_pixels
@@ -94,11 +93,12 @@ def fast_source_table(src_values: Tensor, src_depth: Tensor, src_normal: Tensor,
 class _RowGeometry(NamedTuple):
     """What :func:`fast_geometry` needs of the whole frame (computed once per call of :func:`fast_reproject`)."""
 
-    proj_point: Tensor  #: (B, 6, 3) [P; M]: rows 0-2 give the homogeneous source pixel, rows 3-5 the point
+    proj_point: Tensor  #: (B, 6, 3) [pixel_src_from_pixel_dst; ray_src_from_pixel_dst]: rows 0-2 give the
+    #: homogeneous source pixel, rows 3-5 the point
     proj_point_u: Tensor  #: (B, 6, 1, W) column 0 of proj_point times the destination pixel centres u
     v_c: Tensor  #: (1, 1, H, 1) destination pixel centres v
-    kt: Tensor  #: (B, 3, 1) K_src t
-    t: Tensor  #: (B, 3, 1)
+    K_src_t: Tensor  #: (B, 3, 1)
+    t_src_from_dst: Tensor  #: (B, 3, 1)
     lo: Tensor  #: (1, 2, 1) lower clamp of the taps' (x, y)
     hi: Tensor  #: (1, 2, 1) upper clamp
     one: Tensor  #: 1 in the work dtype
@@ -121,12 +121,13 @@ def fast_geometry(geo: _RowGeometry, z: Tensor, n: Tensor, r0: int, r1: int, uv_
         point_normal: (B, 6, N) the destination point in the source camera frame and the sanitised destination normal.
         wts: (B, 2, 2, N) bilinear weights of the taps (y0 | y0 + 1, x0 | x0 + 1), None for nearest sampling.
         corner: (B, 1, N) y0·Wp + x0 for tap (x0, y0) (nearest: the tap), exact in its float dtype; the table
-            index of a tap is this plus _PAD·Wp + _PAD plus its offset from (x0, y0).
+            index of a tap is this plus TABLE_PAD·Wp + TABLE_PAD plus its offset from (x0, y0).
 
     Invalid pixels need no flag: no surface (z <= 0 -> 1/z = inf, NaN z) or behind the camera (wz <= 0 ->
     w / 0) make u, v non-finite, sanitised to the border, so every tap is rejected; z = +inf gives an infinite q.
     """
-    pp, kt, t, one, Wp, idx_dtype = geo.proj_point, geo.kt, geo.t, geo.one, geo.padded_width, geo.idx_dtype
+    pp, kt, t, one, Wp, idx_dtype = (geo.proj_point, geo.K_src_t, geo.t_src_from_dst, geo.one, geo.padded_width,
+                                     geo.idx_dtype)
     B, h, W = z.shape[0], r1 - r0, geo.proj_point_u.shape[-1]
     N, wdt = h * W, pp.dtype
     v = sc.views(("geometry", N), [("zc", (B, 1, N), wdt), ("inv", (B, 1, N), wdt), ("base", (B, 6, h, W), wdt),
@@ -135,19 +136,21 @@ def fast_geometry(geo: _RowGeometry, z: Tensor, n: Tensor, r0: int, r1: int, uv_
                                    ("corner", (B, 1, N), idx_dtype)])
     zc = torch.clamp_min(z.to(wdt), 0.0, out=v["zc"])
     inv = torch.reciprocal(zc, out=v["inv"])
-    # [P; M] @ [u, v, 1] as in warp_pixels: (c0·u + c1·v) + c2 over the columns c of [P; M], c0·u precomputed
+    # proj_point @ [u, v, 1] as in warp_pixels: (c0·u + c1·v) + c2 over the columns c of proj_point, c0·u
+    # precomputed
     base = torch.add(geo.proj_point_u, pp[:, :, 1, None, None] * geo.v_c[:, :, r0:r1], out=v["base"])
     base = base.add_(pp[:, :, 2, None, None]).view(B, 6, N)
-    w = torch.mul(kt, inv, out=v["w"]).add_(base[:, :3])  # P @ [u, v, 1] + (K_src t) / z
+    w = torch.mul(kt, inv, out=v["w"]).add_(base[:, :3])  # pixel_src_from_pixel_dst @ [u, v, 1] + K_src_t / z
     point_normal = v["point_normal"]
-    torch.mul(base[:, 3:], zc, out=point_normal[:, :3]).add_(t)  # (M @ [u, v, 1]) z + t
+    torch.mul(base[:, 3:], zc, out=point_normal[:, :3]).add_(t)  # (ray_src_from_pixel_dst @ [u, v, 1]) z + t
     torch.nan_to_num(n.to(wdt), 0.0, 0.0, 0.0, out=point_normal[:, 3:])
     torch.div(w[:, :2], torch.clamp_min(w[:, 2:3], 0.0, out=inv), out=uv_raw)  # wz <= 0: ±inf or NaN
-    # the taps' x = clamp(u, -4, Ws + 4) - 0.5 in warp_pixels; here u - 0.5 clamped to [-5, Ws + 3] (with integer
-    # bounds, so that pixels off the frame have f = 0): the same bits wherever a tap can be in the frame
+    # the taps' x = clamp(u, -COORD_MARGIN, Ws + COORD_MARGIN) - 0.5 in warp_pixels; here u - 0.5 clamped to
+    # [-COORD_MARGIN - 1, Ws + COORD_MARGIN - 1] (integer bounds, so that pixels off the frame have f = 0): the same
+    # bits wherever a tap can be in the frame. Non-finite coordinates go below the lower bound, then to it.
     bilinear = geo.sampling == "bilinear"
     uv = torch.sub(uv_raw, 0.5 if bilinear else 0.0, out=v["uv"])
-    uv.nan_to_num_(-5.0, -5.0, -5.0).clamp_(geo.lo, geo.hi)
+    uv.nan_to_num_(-float(TABLE_PAD), -float(TABLE_PAD), -float(TABLE_PAD)).clamp_(geo.lo, geo.hi)
     xy0 = torch.floor(uv, out=v["xy0"])
     wts = None
     if bilinear:
@@ -201,8 +204,7 @@ def _gather_pixels(x: Tensor, b: int, p: Tensor, yy: Tensor, xx: Tensor) -> Tens
 
 
 def fast_reasons(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, dst_depth: Tensor, dst_normal: Tensor,
-                  warp: Warp, position_threshold, normal_threshold, sampling: str, b: int, p: Tensor,
-                  uv: Tensor) -> Tensor:
+                 warp: Warp, tests: TapTests, b: int, p: Tensor, uv: Tensor) -> Tensor:
     """Reason codes (K,) uint8 of the invalid destination pixels ``p`` (flat indices) of batch item ``b``.
 
     ``uv`` (2, K) is their unclamped source pixel from :func:`fast_geometry`. No surface, behind the camera and
@@ -210,14 +212,14 @@ def fast_reasons(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, dst_
     :func:`warp_pixels`; the others (occlusions, ...) go through :func:`warp_pixels` on those pixels only.
     """
     C, Hs, Ws = src_values.shape[1:]
-    wdt, dev = warp[0].dtype, dst_depth.device
+    wdt, dev = warp.K_src_inv.dtype, dst_depth.device
     W, K = dst_depth.shape[-1], p.numel()
     yy, xx = p // W, p % W
     z = _gather_pixels(dst_depth, b, p, yy, xx).to(wdt).view(K)
     dst_ok = has_surface(z)
     front = torch.isfinite(uv).all(0)  # with a surface: as `front` in warp_pixels
-    u, v = uv[0].clamp(-4.0, Ws + 4.0), uv[1].clamp(-4.0, Hs + 4.0)
-    if sampling == "bilinear":  # taps x0, x0 + 1 (y0, y0 + 1) all outside [0, Ws - 1] ([0, Hs - 1])
+    u, v = uv[0].clamp(-COORD_MARGIN, Ws + COORD_MARGIN), uv[1].clamp(-COORD_MARGIN, Hs + COORD_MARGIN)
+    if tests.sampling == "bilinear":  # taps x0, x0 + 1 (y0, y0 + 1) all outside [0, Ws - 1] ([0, Hs - 1])
         x0, y0 = torch.floor(u - 0.5), torch.floor(v - 0.5)
         outside = (x0 < -1) | (x0 > Ws - 1) | (y0 < -1) | (y0 > Hs - 1)
     else:
@@ -230,11 +232,10 @@ def fast_reasons(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, dst_
     rest = torch.nonzero(code == int(Reason.KEPT)).squeeze(1)
     if rest.numel():
         k, p, yy, xx = rest.numel(), p[rest], yy[rest], xx[rest]
-        _, _, reason, _ = warp_pixels(
-            raw_reader(src_values, src_depth, src_normal, b, wdt), C, Hs, Ws, Warp(*(c[b:b + 1] for c in warp)),
-            z[rest].view(1, 1, 1, k), _gather_pixels(dst_normal, b, p, yy, xx).view(1, 3, 1, k),
-            (xx.to(wdt) + 0.5).view(1, 1, 1, k), (yy.to(wdt) + 0.5).view(1, 1, 1, k), position_threshold,
-            normal_threshold, sampling, False, 0.1, wdt)
+        source = SourceTaps(raw_reader(src_values, src_depth, src_normal, b, wdt), C, Hs, Ws)
+        pixels = DstPixels(z[rest].view(1, 1, 1, k), _gather_pixels(dst_normal, b, p, yy, xx).view(1, 3, 1, k),
+                           (xx.to(wdt) + 0.5).view(1, 1, 1, k), (yy.to(wdt) + 0.5).view(1, 1, 1, k))
+        _, _, reason, _ = warp_pixels(source, Warp(*(c[b:b + 1] for c in warp)), pixels, tests, wdt)
         code[rest] = reason.view(k)
     return code
 
@@ -242,23 +243,23 @@ def fast_reasons(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, dst_
 def fast_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, dst_depth: Tensor,
                     dst_normal: Tensor, warp: Warp, thr2: Tensor, position_threshold, normal_threshold,
                     sampling: str) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """:func:`backward_reproject` for hard tests without autograd or tracing (see the notes above _PAD)."""
-    M, t, P, kt, Ks_inv = warp
-    wdt, dev = M.dtype, dst_depth.device
+    """:func:`backward_reproject` for hard tests without autograd or tracing (see the module notes)."""
+    hom = warp.pixel_src_from_pixel_dst
+    wdt, dev = hom.dtype, dst_depth.device
     B, C, Hs, Ws = src_values.shape
     H, W = dst_depth.shape[-2:]
-    F, Wp = C + 6, Ws + 2 * _PAD
+    F, Wp = C + 6, Ws + 2 * TABLE_PAD
     bilinear = sampling == "bilinear"
-    tab = fast_source_table(src_values, src_depth, src_normal, Ks_inv, wdt)
+    tab = fast_source_table(src_values, src_depth, src_normal, warp.K_src_inv, wdt)
     Np = tab.shape[-1]
     # table indices are computed in floating point: exact below 2^24 in float32
     idx_dtype = wdt if wdt == torch.float64 or Np + Wp < _F32_EXACT else torch.float64
     off = -1.0 if bilinear else 0.0  # see fast_geometry
-    lo = torch.full((1, 2, 1), -4.0 + off, dtype=wdt, device=dev)
-    hi = torch.tensor([Ws + 4.0 + off, Hs + 4.0 + off], dtype=wdt, device=dev).view(1, 2, 1)
-    pp = torch.cat([P, M], 1)  # (B, 6, 3)
-    centres = pixel_centres(0, H, W, wdt, dev)
-    geo = _RowGeometry(pp, pp[:, :, 0, None, None] * centres["u_c"], centres["v_c"], kt, t, lo, hi,
+    lo = torch.full((1, 2, 1), -COORD_MARGIN + off, dtype=wdt, device=dev)
+    hi = torch.tensor([Ws + COORD_MARGIN + off, Hs + COORD_MARGIN + off], dtype=wdt, device=dev).view(1, 2, 1)
+    pp = torch.cat([hom, warp.ray_src_from_pixel_dst], 1)  # (B, 6, 3)
+    u_c, v_c = pixel_centres(0, H, W, wdt, dev)
+    geo = _RowGeometry(pp, pp[:, :, 0, None, None] * u_c, v_c, warp.K_src_t, warp.t_src_from_dst, lo, hi,
                        torch.ones((), dtype=wdt, device=dev), sampling, Wp, idx_dtype)
     sc = _Scratch(dev)
 
@@ -267,12 +268,12 @@ def fast_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, ds
     den = torch.empty(B, 1, H, W, dtype=wdt, device=dev)
     uv_raw = torch.empty(B, 2, H * W, dtype=wdt, device=dev)  # for the reasons of invalid pixels
     offsets = torch.tensor([[0.0, 1.0], [Wp, Wp + 1.0]] if bilinear else [[0.0]], dtype=idx_dtype, device=dev)
-    offsets += _PAD * Wp + _PAD  # (0, 0) of the source image in the padded table
-    # v_s = v + P[1, 2] for every pixel (P[1] = (0, 1, ·), P[2] = (0, 0, 1), kt_y = kt_z = 0): bilinear taps may all
-    # have fy = 0 (rectified stereo), checked per block; otherwise the check would only cost time
-    rectified = bilinear and bool((P[:, 1, :2] == torch.tensor([0.0, 1.0], dtype=wdt, device=dev)).all()
-                                  & (P[:, 2] == torch.tensor([0.0, 0.0, 1.0], dtype=wdt, device=dev)).all()
-                                  & (kt[:, 1:] == 0).all())
+    offsets += TABLE_PAD * Wp + TABLE_PAD  # (0, 0) of the source image in the padded table
+    # v_s = v + hom[1, 2] for every pixel (hom[1] = (0, 1, ·), hom[2] = (0, 0, 1), K_src_t y = z = 0): bilinear taps
+    # may all have fy = 0 (rectified stereo), checked per block; otherwise the check would only cost time
+    rectified = bilinear and bool((hom[:, 1, :2] == torch.tensor([0.0, 1.0], dtype=wdt, device=dev)).all()
+                                  & (hom[:, 2] == torch.tensor([0.0, 0.0, 1.0], dtype=wdt, device=dev)).all()
+                                  & (warp.K_src_t[:, 1:] == 0).all())
     rows = max(1, FAST_BLOCK_PIXELS // max(1, B * W))
     for r0 in range(0, H, rows):
         r1 = min(H, r0 + rows)
@@ -289,8 +290,8 @@ def fast_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, ds
                                       ("taps", (B, F, T * N), wdt)])
         idx = v["idx"].copy_(torch.add(corner, offs.view(1, T, 1), out=v["fidx"]))
         taps = torch.gather(tab, 2, idx.view(B, 1, T * N).expand(B, F, T * N), out=v["taps"])
-        fast_accept(taps.view(B, F, *offs.shape, N), point_normal, wts, thr2, sc, (N, T), values[:, :, r0:r1].view(B, C, N),
-                     valid[:, :, r0:r1].view(B, 1, N), den[:, :, r0:r1].view(B, 1, N))
+        fast_accept(taps.view(B, F, *offs.shape, N), point_normal, wts, thr2, sc, (N, T),
+                    values[:, :, r0:r1].view(B, C, N), valid[:, :, r0:r1].view(B, 1, N), den[:, :, r0:r1].view(B, 1, N))
 
     reason = torch.zeros(B, 1, H, W, dtype=torch.uint8, device=dev)
     for b in range(B):
@@ -298,6 +299,6 @@ def fast_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, ds
         if p.numel():
             values[b].view(C, H * W).index_fill_(1, p, 0.0)  # +0 where nothing is accepted, as the general path
             reason[b].view(H * W).index_copy_(0, p, fast_reasons(
-                src_values, src_depth, src_normal, dst_depth, dst_normal, warp, position_threshold,
-                normal_threshold, sampling, b, p, uv_raw[b].index_select(1, p)))
+                src_values, src_depth, src_normal, dst_depth, dst_normal, warp,
+                TapTests(position_threshold, normal_threshold, sampling), b, p, uv_raw[b].index_select(1, p)))
     return values.to(src_values.dtype), valid, reason, den

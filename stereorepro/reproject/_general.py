@@ -7,25 +7,16 @@ same per-element float arithmetic and are parity-tested against it. The discard 
 
 from __future__ import annotations
 
+from typing import Callable, NamedTuple
+
 import torch
 from torch import Tensor
 
 from .._checks import tracing
+from .._tensors import as_scalar, compute_dtype, finite_or_zero  # noqa: F401 (the torch paths' names)
 from ..camera import Warp, has_surface
+from ._constants import COORD_MARGIN, OFF_FRAME
 from .reason import Reason
-
-def compute_dtype(*tensors: Tensor) -> torch.dtype:
-    return torch.float64 if any(t.dtype == torch.float64 for t in tensors) else torch.float32
-
-
-def as_scalar(x, like: Tensor) -> Tensor:
-    if isinstance(x, Tensor):
-        return x.to(device=like.device, dtype=like.dtype).reshape(())
-    return torch.full((), float(x), device=like.device, dtype=like.dtype)
-
-
-def finite_or_zero(x: Tensor) -> Tensor:
-    return torch.where(torch.isfinite(x), x, torch.zeros((), dtype=x.dtype, device=x.device))
 
 
 #: Smallest accepted weight the soft path divides by (see :func:`backward_reproject`).
@@ -33,9 +24,6 @@ SOFT_DEN_FLOOR = 1e-3
 
 #: Destination pixels per block in blocked inference (see :func:`backward_reproject`).
 BLOCK_PIXELS = 1 << 16
-
-#: Destination pixels per block in the fast path (its per-block working set is larger).
-FAST_BLOCK_PIXELS = 1 << 15
 
 
 def inference_only(inputs) -> bool:
@@ -82,19 +70,13 @@ def _soft_distance2(diff: tuple[Tensor, Tensor, Tensor]) -> Tensor:
 
 def _soft_accept(d2: Tensor, thr2: Tensor, tau: float) -> Tensor:
     """``sigmoid((thr² − d²) / (2·tau·thr²))``, with d² capped where the logit passes ``-SOFT_LOGIT_FLOOR`` (the
-    weight is ~1e-26 there either way), thr² floored at 1e-30 and an infinite thr² giving 1, so that neither the value nor its gradients in
-    ``d2`` and ``thr2`` overflow (a huge but finite depth gave NaN threshold gradients)."""
+    weight is ~1e-26 there either way), thr² floored at 1e-30 and an infinite thr² giving 1, so that neither the
+    value nor its gradients in ``d2`` and ``thr2`` overflow (for a huge but finite depth too)."""
     unbounded = torch.isinf(thr2)  # an infinite threshold accepts everything: weight 1
     one = torch.ones((), dtype=d2.dtype, device=d2.device)
     t2 = torch.where(unbounded, one, thr2).clamp_min(max(torch.finfo(d2.dtype).tiny, 1e-30))
     d2 = torch.minimum(d2, t2 * (1.0 + 2.0 * tau * SOFT_LOGIT_FLOOR))
     return torch.where(unbounded, one, torch.sigmoid((t2 - d2) / (2 * tau * t2)))
-
-
-def pixel_centres(r0: int, r1: int, W: int, wdt: torch.dtype, dev) -> dict:
-    """Pixel centres of destination rows r0 .. r1 - 1 for :func:`warp_pixels`: u_c (1, 1, 1, W), v_c (1, 1, h, 1)."""
-    return dict(u_c=torch.arange(W, device=dev, dtype=wdt).view(1, 1, 1, W) + 0.5,
-                v_c=torch.arange(r1 - r0, device=dev, dtype=wdt).view(1, 1, r1 - r0, 1) + (r0 + 0.5))
 
 
 def source_features(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, wdt: torch.dtype) -> Tensor:
@@ -137,56 +119,97 @@ def raw_reader(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, b: int
     return read_taps
 
 
-def warp_pixels(read_taps, C: int, Hs: int, Ws: int, warp, dst_depth: Tensor, dst_normal: Tensor, u_c: Tensor,
-                 v_c: Tensor, position_threshold, normal_threshold, sampling: str, soft: bool, temperature: float,
-                 out_dtype: torch.dtype, motion: Tensor | None = None, motion_world: Tensor | None = None,
-                 src_rotation: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """The general path (differentiable, traceable): reproject destination pixels; see :func:`backward_reproject`.
+def pixel_centres(r0: int, r1: int, W: int, wdt: torch.dtype, dev) -> tuple[Tensor, Tensor]:
+    """Pixel centres of destination rows r0 .. r1 - 1: u_c (1, 1, 1, W), v_c (1, 1, h, 1)."""
+    return (torch.arange(W, device=dev, dtype=wdt).view(1, 1, 1, W) + 0.5,
+            torch.arange(r1 - r0, device=dev, dtype=wdt).view(1, 1, r1 - r0, 1) + (r0 + 0.5))
 
-    Args:
-        read_taps: index (B, T, *S) into the source pixels -> (B, C+5, T·prod(S)) :func:`source_features` rows.
-        dst_depth: (B, 1, *S), dst_normal: (B, 3, *S) with S = (h, W) rows or (1, K) a list of pixels.
-        u_c, v_c: their pixel centres, broadcastable to (1, 1, *S) (see :func:`pixel_centres`).
-        motion: (B, 2, *S) or None: source position = pixel centre + motion instead of the camera warp's.
-        motion_world: (B, 3, *S) or None (zeros): the destination point moved to the source instant; the
-            position test compares the source tap with it. Needs ``src_rotation`` (B, 3, 3), the rotation part of
-            the source ``cam_from_world``.
 
-    Returns:
-        values (B, C, *S), valid, reason, confidence (B, 1, *S).
-    """
-    M, t, P, kt, Ks_inv = warp
-    wdt = Ks_inv.dtype
-    dev = dst_depth.device
-    B = Ks_inv.shape[0]
-    H, W = dst_depth.shape[-2:]
-    m = M.reshape(B, 3, 3, 1, 1)  # m[:, :, j] is column j as (B, 3, 1, 1)
-    t = t.reshape(B, 3, 1, 1)
-    p = P.reshape(B, 9, 1, 1)  # p[:, 3*i+j : 3*i+j+1] is P[i, j]
-    kt = kt.reshape(B, 3, 1, 1)
-    # --- destination pixels → source pixels and source-camera points.
-    z_dst = dst_depth.to(wdt)
+class SourceTaps(NamedTuple):
+    """How :func:`warp_pixels` reads the source view."""
+
+    read: Callable[[Tensor], Tensor]  #: index (B, T, *S) into the source pixels -> (B, C+5, T·prod(S)) rows
+    channels: int  #: C, the number of carried values
+    height: int  #: Hs
+    width: int  #: Ws
+    rotation: Tensor | None = None  #: (B, 3, 3) rotation of the source ``cam_from_world`` (for ``motion_world``)
+
+
+class DstPixels(NamedTuple):
+    """The destination pixels :func:`warp_pixels` reprojects: S = (h, W) rows, or (1, K) a list of pixels."""
+
+    depth: Tensor  #: (B, 1, *S)
+    normal: Tensor  #: (B, 3, *S)
+    u_c: Tensor  #: pixel centres, broadcastable to (1, 1, *S)
+    v_c: Tensor
+    motion: Tensor | None = None  #: (B, 2, *S): source position = pixel centre + motion instead of the warp's
+    motion_world: Tensor | None = None  #: (B, 3, *S): the destination point moved to the source instant
+
+
+class TapTests(NamedTuple):
+    """The accept tests and the sampling (see :func:`~stereorepro.reproject.backward_reproject`)."""
+
+    position_threshold: object  #: float or 0-d tensor
+    normal_threshold: object
+    sampling: str  #: ``"bilinear"`` | ``"nearest"``
+    soft: bool = False
+    temperature: float = 0.1
+
+
+def dst_rows(dst_depth: Tensor, dst_normal: Tensor, motion: Tensor | None, motion_world: Tensor | None, r0: int,
+             r1: int, wdt: torch.dtype) -> DstPixels:
+    """Rows r0 .. r1 - 1 of the destination view as :class:`DstPixels`."""
+    def rows(x):
+        return None if x is None else x[:, :, r0:r1]
+
+    u_c, v_c = pixel_centres(r0, r1, dst_depth.shape[-1], wdt, dst_depth.device)
+    return DstPixels(rows(dst_depth), rows(dst_normal), u_c, v_c, rows(motion), rows(motion_world))
+
+
+class _Projection(NamedTuple):
+    u: Tensor  #: (B, 1, *S) source pixel x, clamped; OFF_FRAME where ``front`` is False
+    v: Tensor
+    q: Tensor  #: (B, 3, *S) the destination point in the source camera frame
+    front: Tensor  #: (B, 1, *S) in front of the source camera with finite (u, v)
+    dst_ok: Tensor  #: (B, 1, *S) the destination pixel has a surface
+
+
+def _project(warp: Warp, pixels: DstPixels, source: SourceTaps) -> _Projection:
+    """Destination pixels -> source pixels (u, v) and source-camera points q."""
+    wdt = warp.K_src_inv.dtype
+    dev = pixels.depth.device
+    B = warp.K_src_inv.shape[0]
+    u_c, v_c = pixels.u_c, pixels.v_c
+    ray = warp.ray_src_from_pixel_dst.reshape(B, 3, 3, 1, 1)  # ray[:, :, j] is column j as (B, 3, 1, 1)
+    t = warp.t_src_from_dst.reshape(B, 3, 1, 1)
+    hom = warp.pixel_src_from_pixel_dst.reshape(B, 9, 1, 1)  # hom[:, 3*i+j : 3*i+j+1] is entry (i, j)
+    kt = warp.K_src_t.reshape(B, 3, 1, 1)
+    z_dst = pixels.depth.to(wdt)
     dst_ok = has_surface(z_dst)  # Bx1xHxW
     one = torch.ones((), dtype=wdt, device=dev)
     z_dst = torch.where(dst_ok, z_dst, one)
     inv_z = _reciprocal(z_dst)
-    wx = p[:, 0:1] * u_c + p[:, 1:2] * v_c + p[:, 2:3] + kt[:, 0:1] * inv_z  # Bx1xHxW
-    wy = p[:, 3:4] * u_c + p[:, 4:5] * v_c + p[:, 5:6] + kt[:, 1:2] * inv_z
-    wz = p[:, 6:7] * u_c + p[:, 7:8] * v_c + p[:, 8:9] + kt[:, 2:3] * inv_z  # = q_z / z
+    wx = hom[:, 0:1] * u_c + hom[:, 1:2] * v_c + hom[:, 2:3] + kt[:, 0:1] * inv_z  # Bx1xHxW
+    wy = hom[:, 3:4] * u_c + hom[:, 4:5] * v_c + hom[:, 5:6] + kt[:, 1:2] * inv_z
+    wz = hom[:, 6:7] * u_c + hom[:, 7:8] * v_c + hom[:, 8:9] + kt[:, 2:3] * inv_z  # = q_z / z
     front = wz > 0
     wz = torch.where(front, wz, one)
     u = wx / wz
     v = wy / wz
-    q = (m[:, :, 0] * u_c + m[:, :, 1] * v_c + m[:, :, 2]) * z_dst + t  # Bx3xHxW
-    if motion is not None:  # the source position from the motion vectors, the source point moved with the object
-        u, v, q, front = _motion_source(motion, motion_world, src_rotation, u_c, v_c, q)
-    qz = q[:, 2:3]
+    q = (ray[:, :, 0] * u_c + ray[:, :, 1] * v_c + ray[:, :, 2]) * z_dst + t  # Bx3xHxW
+    if pixels.motion is not None:  # the source position from the motion vectors, the source point moved with it
+        u, v, q, front = _motion_source(pixels.motion, pixels.motion_world, source.rotation, u_c, v_c, q)
     front = front & torch.isfinite(u) & torch.isfinite(v)
     # Keep coordinates finite and in a small range: anything clamped is out of frame anyway.
-    u = torch.where(front, u, torch.full((), -4.0, dtype=wdt, device=dev)).clamp(-4.0, Ws + 4.0)
-    v = torch.where(front, v, torch.full((), -4.0, dtype=wdt, device=dev)).clamp(-4.0, Hs + 4.0)
+    off = torch.full((), OFF_FRAME, dtype=wdt, device=dev)
+    u = torch.where(front, u, off).clamp(-COORD_MARGIN, source.width + COORD_MARGIN)
+    v = torch.where(front, v, off).clamp(-COORD_MARGIN, source.height + COORD_MARGIN)
+    return _Projection(u, v, q, front, dst_ok)
 
-    # --- taps (T = 4 or 1) and their bilinear weights, shapes BxTxHxW.
+
+def _taps(u: Tensor, v: Tensor, sampling: str, Hs: int, Ws: int) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """The taps (T = 4 or 1) of source pixel (u, v): xi, yi, bilinear weights, in_frame and the flat source index
+    (clamped into the frame), each BxTxHxW."""
     if sampling == "bilinear":
         x = u - 0.5
         y = v - 0.5
@@ -201,69 +224,109 @@ def warp_pixels(read_taps, C: int, Hs: int, Ws: int, warp, dst_depth: Tensor, ds
         xi = torch.floor(u)
         yi = torch.floor(v)
         wts = torch.ones_like(u)
-    T = xi.shape[1]
     in_frame = (xi >= 0) & (xi <= Ws - 1) & (yi >= 0) & (yi <= Hs - 1)
     # integer arithmetic: float32 would be exact only below 2^24 source pixels
     index = yi.clamp(0, Hs - 1).to(torch.int64) * Ws + xi.clamp(0, Ws - 1).to(torch.int64)  # BxTxHxW
+    return xi, yi, wts, in_frame, index
 
-    zero = torch.zeros((), dtype=wdt, device=dev)
-    g = read_taps(index).reshape(B, C + 5, T, H, W)
-    g_val = g[:, :C]
+
+class _TapTerms(NamedTuple):
+    src_ok: Tensor  #: BxTxHxW the source tap has a surface
+    finite: Tensor  #: BxTxHxW its values are finite
+    diff: tuple[Tensor, Tensor, Tensor]  #: components of P_dst − P_src in the source camera frame
+    d_n2: Tensor  #: BxTxHxW |N_src − N_dst|²
+    pos_ok: Tensor
+    nrm_ok: Tensor
+    thr_p: Tensor  #: the thresholds as 0-d tensors of the compute dtype
+    thr_n: Tensor
+
+
+def _tap_terms(g: Tensor, C: int, xi: Tensor, yi: Tensor, K_src_inv: Tensor, q: Tensor, dst_normal: Tensor,
+               tests: TapTests) -> _TapTerms:
+    """The per-tap position and normal tests on the gathered source rows ``g`` (B, C+5, T, *S)."""
+    B = K_src_inv.shape[0]
     z_src = g[:, C]  # BxTxHxW, 1 where no surface
     n_src = g[:, C + 1:C + 4]  # Bx3xTxHxW
     g_flags = g[:, C + 4]
     src_ok = (g_flags == 1.0) | (g_flags == 3.0)
     finite = g_flags >= 2.0
-
-    ki = Ks_inv.reshape(B, 9, 1, 1)
+    ki = K_src_inv.reshape(B, 9, 1, 1)
     ut = xi + 0.5
     vt = yi + 0.5
     px = z_src * (ki[:, 0:1] * ut + ki[:, 1:2] * vt + ki[:, 2:3])
     py = z_src * (ki[:, 4:5] * vt + ki[:, 5:6])
-    diff = (q[:, 0:1] - px, q[:, 1:2] - py, qz - z_src)
+    diff = (q[:, 0:1] - px, q[:, 1:2] - py, q[:, 2:3] - z_src)
     d_pos2 = diff[0].square() + diff[1].square() + diff[2].square()
-    n_dst = finite_or_zero(dst_normal.to(wdt)).unsqueeze(2)  # Bx3x1xHxW
+    n_dst = finite_or_zero(dst_normal.to(K_src_inv.dtype)).unsqueeze(2)  # Bx3x1xHxW
     d_n2 = (n_src - n_dst).square().sum(1)  # BxTxHxW
+    thr_p = as_scalar(tests.position_threshold, d_pos2)
+    thr_n = as_scalar(tests.normal_threshold, d_n2)
+    return _TapTerms(src_ok, finite, diff, d_n2, d_pos2 <= thr_p * thr_p, d_n2 <= thr_n * thr_n, thr_p, thr_n)
 
-    thr_p = as_scalar(position_threshold, d_pos2)
-    thr_n = as_scalar(normal_threshold, d_n2)
-    pos_ok = d_pos2 <= thr_p * thr_p
-    nrm_ok = d_n2 <= thr_n * thr_n
 
-    pixel_ok = dst_ok & front  # Bx1xHxW
-    base_ok = pixel_ok & in_frame & src_ok & finite  # BxTxHxW: the tests that stay hard
-    hard = base_ok & pos_ok & nrm_ok
-    if soft:
-        tau = float(temperature)
-        a_soft = (_soft_accept(_soft_distance2(diff), thr_p * thr_p, tau)
-                  * _soft_accept(d_n2, thr_n * thr_n, tau))
+def _reasons(terms: _TapTerms, in_frame: Tensor, wts: Tensor, proj: _Projection, valid: Tensor) -> Tensor:
+    """Reason codes (uint8): first failing test per tap; an invalid pixel reports the max over its taps of
+    weight > 0."""
+    dev = valid.device
+
+    def u8(r: Reason) -> Tensor:
+        return torch.full((), int(r), dtype=torch.uint8, device=dev)
+
+    code = torch.where(terms.finite, u8(Reason.KEPT), u8(Reason.NONFINITE))
+    code = torch.where(terms.nrm_ok, code, u8(Reason.NORMAL))
+    code = torch.where(terms.pos_ok, code, u8(Reason.POSITION))
+    code = torch.where(terms.src_ok, code, u8(Reason.NO_SURFACE_SRC))
+    code = torch.where(in_frame & (wts > 0), code, torch.where(wts > 0, u8(Reason.OUT_OF_FRAME), u8(Reason.KEPT)))
+    reason = code.amax(1, keepdim=True)
+    reason = torch.where(proj.front, reason, u8(Reason.BEHIND_CAMERA))
+    reason = torch.where(proj.dst_ok, reason, u8(Reason.NO_SURFACE_DST))
+    return torch.where(valid, u8(Reason.KEPT), reason)
+
+
+def warp_pixels(source: SourceTaps, warp: Warp, pixels: DstPixels, tests: TapTests,
+                out_dtype: torch.dtype) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The general path (differentiable, traceable): reproject destination pixels; see :func:`backward_reproject`.
+
+    ``source.read`` returns :func:`source_features` rows; with ``pixels.motion_world``, ``source.rotation`` is
+    needed (the position test compares the source tap with the moved point).
+
+    Returns:
+        values (B, C, *S), valid, reason, confidence (B, 1, *S).
+    """
+    wdt = warp.K_src_inv.dtype
+    dev = pixels.depth.device
+    B = warp.K_src_inv.shape[0]
+    H, W = pixels.depth.shape[-2:]
+    C = source.channels
+    proj = _project(warp, pixels, source)
+    xi, yi, wts, in_frame, index = _taps(proj.u, proj.v, tests.sampling, source.height, source.width)
+    T = xi.shape[1]
+    zero = torch.zeros((), dtype=wdt, device=dev)
+    one = torch.ones((), dtype=wdt, device=dev)
+    g = source.read(index).reshape(B, C + 5, T, H, W)
+    terms = _tap_terms(g, C, xi, yi, warp.K_src_inv, proj.q, pixels.normal, tests)
+
+    pixel_ok = proj.dst_ok & proj.front  # Bx1xHxW
+    base_ok = pixel_ok & in_frame & terms.src_ok & terms.finite  # BxTxHxW: the tests that stay hard
+    hard = base_ok & terms.pos_ok & terms.nrm_ok
+    if tests.soft:
+        tau = float(tests.temperature)
+        a_soft = (_soft_accept(_soft_distance2(terms.diff), terms.thr_p * terms.thr_p, tau)
+                  * _soft_accept(terms.d_n2, terms.thr_n * terms.thr_n, tau))
         accept_w = torch.where(base_ok, a_soft, zero)
     else:
         accept_w = hard.to(wdt)
 
     ws = wts * accept_w  # BxTxHxW
     den = ws.sum(1, keepdim=True)  # Bx1xHxW
-    num = (ws.unsqueeze(1) * g_val).sum(2)  # BxCxHxW (g_val is finite: sanitised above)
+    num = (ws.unsqueeze(1) * g[:, :C]).sum(2)  # BxCxHxW (the gathered values are finite: sanitised above)
     has_w = den > 0
     # Soft weights can be tiny but positive; dividing by them gives gradients of ~num/den² that overflow. The soft
     # path renormalises by max(den, SOFT_DEN_FLOOR): a pixel that is all but rejected fades to 0 instead.
-    den_safe = den.clamp_min(SOFT_DEN_FLOOR) if soft else torch.where(has_w, den, one)
+    den_safe = den.clamp_min(SOFT_DEN_FLOOR) if tests.soft else torch.where(has_w, den, one)
     values = torch.where(has_w, num / den_safe, zero)
     valid = (wts * hard.to(wdt)).sum(1, keepdim=True) > 0
-
-    # --- reason codes (uint8): first failing test per tap; invalid pixel -> max over taps with weight > 0.
-    def u8(r: Reason) -> Tensor:
-        return torch.full((), int(r), dtype=torch.uint8, device=dev)
-
-    code = torch.where(finite, u8(Reason.KEPT), u8(Reason.NONFINITE))
-    code = torch.where(nrm_ok, code, u8(Reason.NORMAL))
-    code = torch.where(pos_ok, code, u8(Reason.POSITION))
-    code = torch.where(src_ok, code, u8(Reason.NO_SURFACE_SRC))
-    code = torch.where(in_frame & (wts > 0), code, torch.where(wts > 0, u8(Reason.OUT_OF_FRAME), u8(Reason.KEPT)))
-    reason = code.amax(1, keepdim=True)
-    reason = torch.where(front, reason, u8(Reason.BEHIND_CAMERA))
-    reason = torch.where(dst_ok, reason, u8(Reason.NO_SURFACE_DST))
-    reason = torch.where(valid, u8(Reason.KEPT), reason)
+    reason = _reasons(terms, in_frame, wts, proj, valid)
     return values.to(out_dtype), valid, reason, den
 
 
@@ -282,7 +345,7 @@ def _motion_source(motion: Tensor, motion_world: Tensor | None, src_rotation: Te
         mw = torch.where(ok, mw, zero)
         R = src_rotation.to(wdt).reshape(q.shape[0], 3, 3, *([1] * (q.dim() - 2)))
         q = q + (R[:, :, 0] * mw[:, 0:1] + R[:, :, 1] * mw[:, 1:2] + R[:, :, 2] * mw[:, 2:3])
-    far = torch.full((), -8.0, dtype=wdt, device=q.device)  # out of frame (clamped to -4 later)
+    far = torch.full((), OFF_FRAME, dtype=wdt, device=q.device)
     u = torch.where(ok, u_c + torch.where(ok, mo[:, 0:1], zero), far)
     v = torch.where(ok, v_c + torch.where(ok, mo[:, 1:2], zero), far)
     return u, v, q, q[:, 2:3] > 0
@@ -304,27 +367,20 @@ def general_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor,
     B, C, Hs, Ws = src_values.shape
     H, W = dst_depth.shape[-2:]
     feats = source_features(src_values, src_depth, src_normal, wdt)
-    args = dict(read_taps=feature_reader(feats), C=C, Hs=Hs, Ws=Ws, warp=warp,
-                position_threshold=position_threshold, normal_threshold=normal_threshold, sampling=sampling,
-                soft=soft, temperature=temperature, out_dtype=src_values.dtype)
+    source = SourceTaps(feature_reader(feats), C, Hs, Ws, src_rotation)
+    tests = TapTests(position_threshold, normal_threshold, sampling, soft, temperature)
     rows = max(1, BLOCK_PIXELS // max(1, B * W)) if inference else None
-    args["src_rotation"] = src_rotation
-
-    def block(x, r0, r1):  # rows r0:r1 of an optional per-pixel input
-        return None if x is None else x[:, :, r0:r1]
-
     if rows is None or rows >= H:
-        return warp_pixels(dst_depth=dst_depth, dst_normal=dst_normal, **pixel_centres(0, H, W, wdt, dev),
-                           motion=motion, motion_world=motion_world, **args)
+        return warp_pixels(source, warp, dst_rows(dst_depth, dst_normal, motion, motion_world, 0, H, wdt), tests,
+                           src_values.dtype)
     values = torch.empty(B, C, H, W, dtype=src_values.dtype, device=dev)
     valid = torch.empty(B, 1, H, W, dtype=torch.bool, device=dev)
     reason = torch.empty(B, 1, H, W, dtype=torch.uint8, device=dev)
     den = torch.empty(B, 1, H, W, dtype=wdt, device=dev)
     for r0 in range(0, H, rows):
         r1 = min(H, r0 + rows)
-        out = warp_pixels(dst_depth=dst_depth[:, :, r0:r1], dst_normal=dst_normal[:, :, r0:r1],
-                          **pixel_centres(r0, r1, W, wdt, dev), motion=block(motion, r0, r1),
-                          motion_world=block(motion_world, r0, r1), **args)
+        out = warp_pixels(source, warp, dst_rows(dst_depth, dst_normal, motion, motion_world, r0, r1, wdt), tests,
+                          src_values.dtype)
         for buf, o in zip((values, valid, reason, den), out):
             buf[:, :, r0:r1] = o
     return values, valid, reason, den

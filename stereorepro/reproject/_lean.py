@@ -2,15 +2,14 @@
 tests, chosen for graph runtimes (onnxruntime, ``onnx.reference``) rather than for torch eager.
 
 A runtime evaluates an exported graph node by node on whole-image tensors, so what costs there is the number of
-whole-image elements each node reads and writes, and some node kinds (measured in onnxruntime 1.32 on a CPU:
-``Where`` with a tensor operand ~1 ns per element, ``Gather`` of rows ~5 ns per index) far more than others
-(``Add``, ``Mul``, comparisons ~0.2 ns; ``GatherElements`` ~0.6 ns alone, 1.2–1.6 ms per 720p plane inside the
-graph, where it is 40 % of the time). The general path (:mod:`._general`) traced as
-it is builds a (B, C+5, 4·H·W) ``GatherElements`` index (an int64 tensor the size of the image × taps ×
-channels) and some forty whole-image ``Where`` / ``Cast`` nodes for the per-tap tests. Here instead:
+whole-image elements each node reads and writes, and some node kinds far more than others per element (``Where``
+with a tensor operand and ``Gather`` of rows far more than ``Add``, ``Mul`` or comparisons; ``GatherElements``
+dominates the graph's time). The general path (:mod:`._general`) traced as it is builds a (B, C+5, 4·H·W)
+``GatherElements`` index (an int64 tensor the size of the image × taps × channels) and some forty whole-image
+``Where`` / ``Cast`` nodes for the per-tap tests. Here instead:
 
 * the source is sanitised once into **planar tables**, one (B, Hp·Wp) table per channel of a padded image
-  (:data:`PAD` pixels of border, so that every tap of a clamped coordinate lands in it): values, normal (3), and
+  (``TABLE_PAD`` pixels of border, so that every tap of a clamped coordinate lands in it): values, normal (3), and
   ``z`` of the pixels a tap may accept (NaN where there is no surface, a value is not finite, or on the border),
   so that a single comparison rejects them; each tap reads them with ``GatherElements`` on int32 indices of
   (B, H·W) elements;
@@ -37,20 +36,16 @@ identical and colours agree to rounding (the weighted sum is accumulated tap by 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
 from ..camera import Warp, has_surface
+from ._constants import COORD_MARGIN, OFF_FRAME, TABLE_PAD, TAP_OK_CODE
 from ._general import as_scalar, compute_dtype, finite_or_zero
 from .reason import Reason
-
-#: Border of the tables: coordinates clamped to [-4, W + 4] give taps -5 .. W + 4.
-PAD = 5
-
-#: Code of a source pixel that passes every destination-independent test (above every Reason code).
-_OK = 8.0
 
 
 def _const(value, wdt: torch.dtype, dev) -> Tensor:
@@ -85,7 +80,7 @@ class _ZeroNonFinite(torch.autograd.Function):
 
 class _Pick(torch.autograd.Function):
     """Indices (K,) int64 of the True elements of a 1-D bool mask. Exported as ``Compress(Range(0, n), mask)``:
-    onnxruntime's ``NonZero`` (what ``torch.nonzero`` exports to) takes about twice as long."""
+    onnxruntime's ``NonZero`` (what ``torch.nonzero`` exports to) is slower."""
 
     @staticmethod
     def forward(ctx, mask: Tensor) -> Tensor:  # noqa: D102
@@ -134,7 +129,7 @@ def _finite_or_zero(x: Tensor) -> Tensor:
 
 def source_tables(src_values: Tensor, src_depth: Tensor, src_normal: Tensor,
                   wdt: torch.dtype) -> list[Tensor]:
-    """The source as planar tables of (B, Np) elements, Np = (Hs + 2·PAD)·(Ws + 2·PAD).
+    """The source as planar tables of (B, Np) elements, Np = (Hs + 2·TABLE_PAD)·(Ws + 2·TABLE_PAD).
 
     Returns:
         C + 4 tables: values (C; finite, and exact where all the pixel's values are finite), z where a tap
@@ -152,7 +147,7 @@ def source_tables(src_values: Tensor, src_depth: Tensor, src_normal: Tensor,
     z_acc = sz + (nan - nan)  # ... inf - inf = NaN: z where a tap may be accepted, NaN elsewhere
     vals = _export_or_eager(_SomeFinite, sv)  # finite; exact where the pixel may be accepted
     normal = _finite_or_zero(src_normal.to(wdt))
-    pad = (PAD, PAD, PAD, PAD)
+    pad = (TABLE_PAD,) * 4
 
     def table(x: Tensor, border: float) -> Tensor:
         return F.pad(x, pad, value=border).reshape(B, -1)
@@ -215,6 +210,164 @@ class _TapGeometry:
         return (self.fx if dx else self._g["x"]) * (self.fy if dy else self._g["y"])
 
 
+class _Sizes(NamedTuple):
+    """Image sizes (ints in eager; traced sizes while exporting, so the graph keeps symbolic dims)."""
+
+    B: object  #: batch, from the source values
+    H: object  #: destination height
+    W: object  #: destination width
+    Hs: object  #: source height
+    Ws: object  #: source width
+    Wp: object  #: source width with the border of the tables, Ws + 2·TABLE_PAD
+
+
+def _project(warp: Warp, dst_depth: Tensor, size: _Sizes) -> tuple[Tensor, Tensor, list[Tensor], Tensor, Tensor]:
+    """Destination pixels -> source coordinates and source-camera points (warp_pixels' arithmetic), on (B, H, W)
+    with the pixel centres broadcast ((1, 1, W) and (1, H, 1)).
+
+    Returns:
+        u, v: (B, H·W) source coordinates, clamped; OFF_FRAME where the pixel has no surface or is not in front of
+            the source camera (such pixels read border taps only; their reason follows from depth and projection).
+        q: 3 × (B, H·W) the destination point in the source camera frame. front, dst_ok: (B, H, W) bool.
+    """
+    hom, kt, ray, t = warp.pixel_src_from_pixel_dst, warp.K_src_t, warp.ray_src_from_pixel_dst, warp.t_src_from_dst
+    wdt = warp.K_src_inv.dtype
+    dev = dst_depth.device
+    B, H, W, Hs, Ws = size.B, size.H, size.W, size.Hs, size.Ws
+
+    def coef(A: Tensor, i: int, j: int) -> Tensor:  # (B, 1, 1) entry of a (B, 3, k) matrix
+        return A[:, i, j].reshape(B, 1, 1)
+
+    u_c = (torch.arange(W, dtype=wdt, device=dev) + 0.5).view(1, 1, -1)
+    v_c = (torch.arange(H, dtype=wdt, device=dev) + 0.5).view(1, -1, 1)
+    z_dst = dst_depth.to(wdt).reshape(B, H, W)
+    dst_ok = has_surface(z_dst)
+    inv_z = 1.0 / z_dst  # without a surface: anything (the pixel is sent to the border below)
+    wx = coef(hom, 0, 0) * u_c + coef(hom, 0, 1) * v_c + coef(hom, 0, 2) + coef(kt, 0, 0) * inv_z
+    wy = coef(hom, 1, 0) * u_c + coef(hom, 1, 1) * v_c + coef(hom, 1, 2) + coef(kt, 1, 0) * inv_z
+    wz = coef(hom, 2, 0) * u_c + coef(hom, 2, 1) * v_c + coef(hom, 2, 2) + coef(kt, 2, 0) * inv_z
+    u = wx / wz  # wz <= 0: sent to the border below
+    v = wy / wz
+    q = [((coef(ray, i, 0) * u_c + coef(ray, i, 1) * v_c + coef(ray, i, 2)) * z_dst + coef(t, i, 0)).reshape(B, -1)
+         for i in range(3)]
+    front = (wz > 0) & _finite(u) & _finite(v)
+    # arithmetic instead of Where (far dearer per element in onnxruntime): made finite and clamped, the coordinate
+    # times 1 plus -0 where kept, times 0 plus OFF_FRAME elsewhere: exactly u, or OFF_FRAME
+    sent = (front & dst_ok).to(wdt)
+    far = (1.0 - sent) * OFF_FRAME
+    u = (_export_or_eager(_SomeFinite, u).clamp(-COORD_MARGIN, Ws + COORD_MARGIN) * sent + far).reshape(B, -1)
+    v = (_export_or_eager(_SomeFinite, v).clamp(-COORD_MARGIN, Hs + COORD_MARGIN) * sent + far).reshape(B, -1)
+    return u, v, q, front, dst_ok
+
+
+def _tap_corners(u: Tensor, v: Tensor, sampling: str, rectified: bool, Wp):
+    """Tap (0, 0) of each pixel: x0, y0, the bilinear fractions fx, fy (None for nearest), the tap offsets read
+    and ``corner``, the table index of tap (0, 0) (B, H·W) int32."""
+    if sampling == "bilinear":
+        x, y = u - 0.5, v - 0.5
+        x0, y0 = torch.floor(x), torch.floor(y)
+        fx, fy = x - x0, y - y0
+        taps = [(0, 0), (1, 0)] + ([] if rectified else [(0, 1), (1, 1)])
+    else:
+        x0, y0 = torch.floor(u), torch.floor(v)
+        fx = fy = None
+        taps = [(0, 0)]
+    corner = (y0.to(torch.int32) + TABLE_PAD) * Wp + (x0.to(torch.int32) + TABLE_PAD)  # (B, H·W)
+    return x0, y0, fx, fy, taps, corner
+
+
+def _accumulate(tap_tables: list[Tensor], C: int, corner: Tensor, taps, geo: _TapGeometry, Wp, wdt: torch.dtype):
+    """The accepted, weighted sums over the taps: num C × (B, H·W), den (B, H·W). Taps one after the other: z
+    first (the position test), then normals, then values, so that few gathered planes are alive at once."""
+    num = den = None
+    for dx, dy in taps:
+        index = corner + (dy * Wp + dx) if (dx or dy) else corner
+        z = torch.gather(tap_tables[C], 1, index)
+        pos_ok = geo.position_ok(z, dx, dy)
+        n = [torch.gather(tab, 1, index) for tab in tap_tables[C + 1:]]
+        accept = (pos_ok & geo.normal_ok(n)).to(wdt)
+        w = geo.weight(dx, dy)
+        ws = accept if w is None else w * accept
+        vals = [torch.gather(tab, 1, index) for tab in tap_tables[:C]]
+        num = [ws * x for x in vals] if num is None else [a + ws * x for a, x in zip(num, vals)]
+        den = ws if den is None else den + ws
+    return num, den
+
+
+def _tap_codes(geo_k: _TapGeometry, taps, steps: tuple[Tensor, ...], index: Tensor, depth_table: Tensor,
+               z_table: Tensor, normal_tables: list[Tensor], Hs, Ws) -> Tensor:
+    """The reason code (K,) of K picked pixels: the max over their taps (stacked as (T, K): one node per step for
+    all taps; each element's arithmetic is that of the tap it stands for) of each tap's first failed test.
+
+    ``steps`` = (dx, dy) of the taps as (T, 1) int64, then as float; ``index`` (T, K) indexes the flattened tables
+    (``depth_table``: the padded raw source depth).
+    """
+    dxi, dyi, dxs, dys = steps
+    T = len(taps)
+    wdt, dev = depth_table.dtype, depth_table.device
+
+    def tap_gather(table: Tensor) -> Tensor:  # (T, -1): an exported 0 (K = 0) would mean "keep that dimension"
+        return torch.gather(table, 0, index.reshape(-1)).reshape(T, -1)
+
+    xt, yt = geo_k.x0 + dxs, geo_k.y0 + dys
+    in_frame = (xt >= 0) & (xt <= Ws - 1) & (yt >= 0) & (yt <= Hs - 1)
+    z_raw = tap_gather(depth_table)
+    # each tap's destination-independent code, in exact small-integer arithmetic: OUT_OF_FRAME (3) off the source
+    # image, else TAP_OK_CODE (8) where z is acceptable, NONFINITE (7) where the pixel has a surface (its values
+    # are not finite), NO_SURFACE_SRC (4)
+    code = has_surface(z_raw).to(wdt) * 3.0 + float(Reason.NO_SURFACE_SRC)
+    code = code + _finite(tap_gather(z_table)).to(wdt) * (TAP_OK_CODE - code)
+    code = (code - float(Reason.OUT_OF_FRAME)) * in_frame.to(wdt) + float(Reason.OUT_OF_FRAME)
+    pos_ok = geo_k.position_ok(z_raw, dxs, dys)
+    nrm_ok = geo_k.normal_ok([tap_gather(tab) for tab in normal_tables])
+    c_ok = _const(TAP_OK_CODE, wdt, dev)
+    code = torch.minimum(torch.minimum(code, torch.where(pos_ok, c_ok, float(Reason.POSITION))),
+                         torch.where(nrm_ok, c_ok, float(Reason.NORMAL)))
+    if T > 1:  # taps of weight 0 do not report a reason (tap (0, 0) always does)
+        w = torch.cat([geo_k.weight(dx, dy) for dx, dy in taps])  # (T, K)
+        code = code * ((w > 0) | ((dxi + dyi) == 0)).to(wdt)
+    return code.amax(0)
+
+
+def _reasons(geo: _TapGeometry, taps, corner: Tensor, tap_tables: list[Tensor], src_depth: Tensor,
+             dst_ok: Tensor, front: Tensor, inval: Tensor, size: _Sizes) -> Tensor:
+    """Reason codes (B, 1, H, W) uint8: NO_SURFACE_DST (1) / BEHIND_CAMERA (2) from the projection, 0 where valid
+    (``inval`` = 0), and the taps' codes (:func:`_tap_codes`) for the K pixels that have a surface in front of the
+    source camera but accepted nothing (``Compress`` and ``ScatterElements``: usually a few per cent of the
+    image)."""
+    B, H, W, Hs, Ws, Wp = size
+    wdt, dev = inval.dtype, inval.device
+    C = len(tap_tables) - 4
+    ok_f, front_f = dst_ok.to(wdt).reshape(B, -1), front.to(wdt).reshape(B, -1)
+    reason = inval * (ok_f * (1.0 - front_f) * 2.0 + (1.0 - ok_f))
+    N = reason.shape[1]
+    pick = _pick((ok_f * front_f * inval).reshape(-1) > 0)  # (K,) flat pixel indices
+    batch = torch.div(pick, N, rounding_mode="floor")
+
+    def sel(x: Tensor | None, per_batch: bool = False) -> Tensor | None:
+        """(B, N) -> (K,) at the picked pixels; ``per_batch``: (B, 1) -> (K,) of their batch items."""
+        if x is None:
+            return None
+        return torch.gather(x.reshape(-1), 0, batch if per_batch else pick)
+
+    def row(x: Tensor | None) -> Tensor | None:
+        return None if x is None else x.unsqueeze(0)
+
+    dxi = _column([dx for dx, _ in taps], torch.int64, dev)  # (T, 1): constants ...
+    dyi = _column([dy for _, dy in taps], torch.int64, dev)
+    offsets = dyi * Wp + dxi  # ... and Wp a traced size (a Python int here would be baked into the graph)
+    dxs, dys = dxi.to(wdt), dyi.to(wdt)
+    x0_k, y0_k = sel(geo.x0).unsqueeze(0), sel(geo.y0).unsqueeze(0)  # (1, K)
+    geo_k = _TapGeometry(x0_k, y0_k, row(sel(geo.fx)), row(sel(geo.fy)), [row(sel(k, True)) for k in geo.ki],
+                         [row(sel(x)) for x in geo.q], [row(sel(x)) for x in geo.nd], geo.thr_p2, geo.thr_n2)
+    depth_table = F.pad(src_depth.to(wdt), (TABLE_PAD,) * 4, value=math.nan).reshape(-1)
+    z_table = tap_tables[C].reshape(-1)
+    normal_tables = [tab.reshape(-1) for tab in tap_tables[C + 1:]]
+    index = (sel(corner).to(torch.int64) + batch * tap_tables[0].shape[1]).unsqueeze(0) + offsets  # (T, K)
+    code_max = _tap_codes(geo_k, taps, (dxi, dyi, dxs, dys), index, depth_table, z_table, normal_tables, Hs, Ws)
+    return reason.reshape(-1).scatter(0, pick, code_max).reshape(B, 1, H, W).to(torch.uint8)
+
+
 def lean_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, dst_depth: Tensor,
                    dst_normal: Tensor, warp: Warp, position_threshold, normal_threshold, sampling: str,
                    rectified: bool = False) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -228,142 +381,37 @@ def lean_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, ds
         values (B, C, H, W) in the dtype of ``src_values``, valid (B, 1, H, W) bool, reason (B, 1, H, W) uint8,
         confidence (B, 1, H, W) accepted bilinear weight in the compute dtype.
 
-    The projection runs on (B, H, W) with the pixel centres broadcast ((1, 1, W) and (1, H, 1)); the taps on
-    (B, H·W), so that they gather the (B, Np) tables along axis 1.
+    The projection runs on (B, H, W) with the pixel centres broadcast; the taps on (B, H·W), so that they gather
+    the (B, Np) tables along axis 1.
     """
-    M, t, P, kt, Ks_inv = warp
-    wdt = Ks_inv.dtype
+    wdt = warp.K_src_inv.dtype
     dev = dst_depth.device
     B, C = src_values.shape[:2]
     Hs, Ws = src_values.shape[-2:]
     H, W = dst_depth.shape[-2:]
-    Wp = Ws + 2 * PAD
+    size = _Sizes(B, H, W, Hs, Ws, Ws + 2 * TABLE_PAD)
     tap_tables = source_tables(src_values, src_depth, src_normal, wdt)
-
-    def coef(A: Tensor, i: int, j: int) -> Tensor:  # (B, 1, 1) entry of a (B, 3, k) matrix
-        return A[:, i, j].reshape(B, 1, 1)
-
-    # --- destination pixels -> source coordinates and source-camera points (warp_pixels' arithmetic)
-    u_c = (torch.arange(W, dtype=wdt, device=dev) + 0.5).view(1, 1, -1)
-    v_c = (torch.arange(H, dtype=wdt, device=dev) + 0.5).view(1, -1, 1)
-    z_dst = dst_depth.to(wdt).reshape(B, H, W)
-    dst_ok = has_surface(z_dst)
-    inv_z = 1.0 / z_dst  # without a surface: anything (the pixel is sent to the border below)
-    wx = coef(P, 0, 0) * u_c + coef(P, 0, 1) * v_c + coef(P, 0, 2) + coef(kt, 0, 0) * inv_z
-    wy = coef(P, 1, 0) * u_c + coef(P, 1, 1) * v_c + coef(P, 1, 2) + coef(kt, 1, 0) * inv_z
-    wz = coef(P, 2, 0) * u_c + coef(P, 2, 1) * v_c + coef(P, 2, 2) + coef(kt, 2, 0) * inv_z
-    u = wx / wz  # wz <= 0: sent to the border below
-    v = wy / wz
-    q = [((coef(M, i, 0) * u_c + coef(M, i, 1) * v_c + coef(M, i, 2)) * z_dst + coef(t, i, 0)).reshape(B, -1)
-         for i in range(3)]
-    front = (wz > 0) & _finite(u) & _finite(v)
-    # pixels without a surface or not in front of the source camera read border taps only (their reason is
-    # decided by the depth and the projection below)
-    # (arithmetic instead of Where, which onnxruntime runs at ~1 ns per element: made finite and clamped, the
-    # coordinate times 1 plus -0 where sent, times 0 plus -4 elsewhere: exactly u, or -4)
-    sent = (front & dst_ok).to(wdt)
-    far = (1.0 - sent) * -4.0
-    u = (_export_or_eager(_SomeFinite, u).clamp(-4.0, Ws + 4.0) * sent + far).reshape(B, -1)
-    v = (_export_or_eager(_SomeFinite, v).clamp(-4.0, Hs + 4.0) * sent + far).reshape(B, -1)
+    u, v, q, front, dst_ok = _project(warp, dst_depth, size)
     n_dst = _finite_or_zero(dst_normal.to(wdt)).reshape(B, 3, -1)
     nd = [n_dst[:, c] for c in range(3)]
     like = torch.empty((), dtype=wdt, device=dev)
     thr_p, thr_n = as_scalar(position_threshold, like), as_scalar(normal_threshold, like)
     thr_p2, thr_n2 = thr_p * thr_p, thr_n * thr_n
-
-    if sampling == "bilinear":
-        x, y = u - 0.5, v - 0.5
-        x0, y0 = torch.floor(x), torch.floor(y)
-        fx, fy = x - x0, y - y0
-        taps = [(0, 0), (1, 0)] + ([] if rectified else [(0, 1), (1, 1)])
-    else:
-        x0, y0 = torch.floor(u), torch.floor(v)
-        fx = fy = None
-        taps = [(0, 0)]
-    corner = (y0.to(torch.int32) + PAD) * Wp + (x0.to(torch.int32) + PAD)  # (B, H·W)
-    ki = [Ks_inv[:, i, j:j + 1] for i in range(3) for j in range(3)]  # (B, 1) each
+    x0, y0, fx, fy, taps, corner = _tap_corners(u, v, sampling, rectified, size.Wp)
+    ki = [warp.K_src_inv[:, i, j:j + 1] for i in range(3) for j in range(3)]  # (B, 1) each
     geo = _TapGeometry(x0, y0, fx, fy, ki, q, nd, thr_p2, thr_n2)
-
-    # --- taps, one after the other: z first (the position test), then normals, then values, so that few gathered
-    # planes are alive at once
-    num = den = None
-    for dx, dy in taps:
-        index = corner + (dy * Wp + dx) if (dx or dy) else corner
-        z = torch.gather(tap_tables[C], 1, index)
-        pos_ok = geo.position_ok(z, dx, dy)
-        n = [torch.gather(tab, 1, index) for tab in tap_tables[C + 1:]]
-        accept = (pos_ok & geo.normal_ok(n)).to(wdt)
-        w = geo.weight(dx, dy)
-        ws = accept if w is None else w * accept
-        vals = [torch.gather(tab, 1, index) for tab in tap_tables[:C]]
-        num = [ws * x for x in vals] if num is None else [a + ws * x for a, x in zip(num, vals)]
-        den = ws if den is None else den + ws
+    num, den = _accumulate(tap_tables, C, corner, taps, geo, size.Wp, wdt)
     valid = den > 0
     inval = 1.0 - valid.to(wdt)
     den_safe = den + inval  # den where valid, 1 elsewhere (where num = 0)
-
-    # --- reasons: NO_SURFACE_DST (1) / BEHIND_CAMERA (2) from the projection, 0 where valid, and the taps' codes
-    # for the pixels that have a surface in front of the source camera but accepted nothing
-    ok_f, front_f = dst_ok.to(wdt).reshape(B, -1), front.to(wdt).reshape(B, -1)
-    reason = inval * (ok_f * (1.0 - front_f) * 2.0 + (1.0 - ok_f))
-    N = reason.shape[1]
-    pick = _pick((ok_f * front_f * inval).reshape(-1) > 0)  # (K,) flat pixel indices
-    batch = torch.div(pick, N, rounding_mode="floor")
-
-    def sel(x: Tensor | None, per_batch: bool = False) -> Tensor | None:
-        """(B, N) -> (K,) at the picked pixels; ``per_batch``: (B, 1) -> (K,) of their batch items."""
-        if x is None:
-            return None
-        return torch.gather(x.reshape(-1), 0, batch if per_batch else pick)
-
-    # the taps stacked as (T, K) tensors: one node per step for all taps; each element's arithmetic is that of the
-    # tap it stands for
-    T = len(taps)
-    dxi = _column([dx for dx, _ in taps], torch.int64, dev)  # (T, 1): constants ...
-    dyi = _column([dy for _, dy in taps], torch.int64, dev)
-    offsets = dyi * Wp + dxi  # ... and Wp a traced size (a Python int here would be baked into the graph)
-    dxs, dys = dxi.to(wdt), dyi.to(wdt)
-    x0_k, y0_k = sel(x0).unsqueeze(0), sel(y0).unsqueeze(0)  # (1, K)
-
-    def row(x: Tensor | None) -> Tensor | None:
-        return None if x is None else x.unsqueeze(0)
-
-    geo_k = _TapGeometry(x0_k, y0_k, row(sel(fx)), row(sel(fy)), [row(sel(k, True)) for k in ki],
-                         [row(sel(x)) for x in q], [row(sel(x)) for x in nd], thr_p2, thr_n2)
-    # each tap's destination-independent code, from what the tables hold: OUT_OF_FRAME off the source image, else
-    # _OK where z is acceptable, NONFINITE where the pixel has a surface (its values are not finite), NO_SURFACE_SRC
-    depth_table = F.pad(src_depth.to(wdt), (PAD,) * 4, value=math.nan).reshape(-1)
-    z_table = tap_tables[C].reshape(-1)
-    normal_tables = [tab.reshape(-1) for tab in tap_tables[C + 1:]]
-    index = (sel(corner).to(torch.int64) + batch * tap_tables[0].shape[1]).unsqueeze(0) + offsets  # (T, K)
-
-    def tap_gather(table: Tensor) -> Tensor:  # (T, -1): an exported 0 (K = 0) would mean "keep that dimension"
-        return torch.gather(table, 0, index.reshape(-1)).reshape(T, -1)
-
-    xt, yt = x0_k + dxs, y0_k + dys
-    in_frame = (xt >= 0) & (xt <= Ws - 1) & (yt >= 0) & (yt <= Hs - 1)
-    z_raw = tap_gather(depth_table)
-    # in exact small-integer arithmetic: 4 or 7 (surface), 8 where acceptable, 3 off the image
-    code = has_surface(z_raw).to(wdt) * 3.0 + float(Reason.NO_SURFACE_SRC)
-    code = code + _finite(tap_gather(z_table)).to(wdt) * (_OK - code)
-    code = (code - float(Reason.OUT_OF_FRAME)) * in_frame.to(wdt) + float(Reason.OUT_OF_FRAME)
-    pos_ok = geo_k.position_ok(z_raw, dxs, dys)
-    nrm_ok = geo_k.normal_ok([tap_gather(tab) for tab in normal_tables])
-    c_ok = _const(_OK, wdt, dev)
-    code = torch.minimum(torch.minimum(code, torch.where(pos_ok, c_ok, float(Reason.POSITION))),
-                         torch.where(nrm_ok, c_ok, float(Reason.NORMAL)))
-    if T > 1:  # taps of weight 0 do not report a reason (tap (0, 0) always does)
-        w = torch.cat([geo_k.weight(dx, dy) for dx, dy in taps])  # (T, K)
-        code = code * ((w > 0) | ((dxi + dyi) == 0)).to(wdt)
-    code_max = code.amax(0)
-    reason = reason.reshape(-1).scatter(0, pick, code_max).reshape(B, 1, H, W).to(torch.uint8)
+    reason = _reasons(geo, taps, corner, tap_tables, src_depth, dst_ok, front, inval, size)
     shape = (B, 1, H, W)
     valid, den = valid.reshape(shape), den.reshape(shape)
     # The values' nodes are made last. onnxruntime's default order is a depth-first walk from the last-made output
     # node, visiting a node's last-made input first: so the colour's chain (taps, weights, value gathers) runs
-    # before the reasons, and the taps' weights and indices are freed before the reasons' tensors are made
-    # (measured: peak 2.83x the stereo op's inputs + outputs, 3.00x with the values made first). Each channel is
-    # reshaped before the Concat that makes the output (onnxruntime copies a Reshape whose result is a graph output).
+    # before the reasons, and the taps' weights and indices are freed before the reasons' tensors are made (a
+    # lower peak memory than with the values made first). Each channel is reshaped before the Concat that makes
+    # the output (onnxruntime copies a Reshape whose result is a graph output).
     values = torch.cat([(x / den_safe).reshape(B, 1, H, W) for x in num], 1)
     if values.dtype != src_values.dtype:  # (a same-dtype .to() is exported as a Cast: a copy of the image)
         values = values.to(src_values.dtype)
@@ -374,7 +422,7 @@ def lean_blend(current_color: Tensor, history_color: Tensor, history_len: Tensor
                max_history) -> tuple[Tensor, Tensor]:
     """:func:`~stereorepro.reproject.temporal_blend` with hard tests in the export formulation, for the history
     :func:`lean_reproject` warps (finite everywhere: its values are sums of finite table entries), with arithmetic
-    where the general blend has ``Where`` (about 11 ms of a 720p temporal call in onnxruntime).
+    where the general blend has ``Where`` (dear per element in onnxruntime).
 
     The current frame's weight ``a`` is raised to 1 where the history is discarded, so one expression,
     ``(1 − a)·history + a·current``, gives the blend where the history is kept (the same operations as

@@ -22,7 +22,7 @@ try:  # optional: the package works without the compiled core
 except ImportError:  # pragma: no cover - depends on the build
     _core = None
 
-__all__ = ["available", "reproject", "temporal_reproject"]
+__all__ = ["available", "core_constants", "reproject", "temporal_reproject"]
 
 
 def available() -> bool:
@@ -49,10 +49,19 @@ def _image_contiguous(x: Tensor, name: str) -> Tensor:
 
 
 def _warp_args(warp) -> tuple[Tensor, ...]:
-    """(P, kt, M, t, Ks_inv) of a float32 :class:`~stereorepro.camera.Warp` as contiguous CPU (B, 9) / (B, 3)."""
-    M, t, P, kt, Ks_inv = warp
-    B = M.shape[0]
-    return tuple(x.reshape(B, -1).contiguous().cpu() for x in (P, kt, M, t, Ks_inv))
+    """A float32 :class:`~stereorepro.camera.Warp` as the kernels' camera arguments (contiguous CPU (B, 9) / (B, 3),
+    in their order: ``P`` = pixel_src_from_pixel_dst, ``kt`` = K_src_t, ``M`` = ray_src_from_pixel_dst,
+    ``t`` = t_src_from_dst, ``Ks_inv`` = K_src_inv)."""
+    B = warp.K_src_inv.shape[0]
+    return tuple(x.reshape(B, -1).contiguous().cpu() for x in (warp.pixel_src_from_pixel_dst, warp.K_src_t,
+                                                                warp.ray_src_from_pixel_dst, warp.t_src_from_dst,
+                                                                warp.K_src_inv))
+
+
+def core_constants() -> dict | None:
+    """The constants the kernels were compiled with (``_core.reproject_constants``: their copies of
+    :data:`stereorepro.reproject._constants.MIRRORED_IN_CORE`), or None without the core."""
+    return dict(_core.reproject_constants) if available() and hasattr(_core, "reproject_constants") else None
 
 
 def reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, warp, dst_depth: Tensor,

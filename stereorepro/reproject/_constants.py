@@ -1,0 +1,34 @@
+"""Numbers the reprojection implementations share: the torch general path (:mod:`._general`), its fast path
+(:mod:`._fast`), the export formulation (:mod:`._lean`) and the native kernels (``cpp_ext/src/reproject.cpp``).
+
+The C++ kernels mirror :data:`MIRRORED_IN_CORE` as compile-time constants and export them as
+``stereorepro._core.reproject_constants``; a test checks that the two agree (``tests/reproject/test_constants.py``).
+"""
+
+from __future__ import annotations
+
+from .reason import Reason
+
+#: How far outside the source image (in pixels) a projected coordinate is clamped: ``u`` to
+#: ``[-COORD_MARGIN, Ws + COORD_MARGIN]``, ``v`` likewise. Keeps coordinates finite and small; a clamped coordinate
+#: is off the frame for every tap, so the clamp changes no decision.
+COORD_MARGIN = 4.0
+
+#: The source coordinate a destination pixel that may read no tap is sent to (no surface, behind the source
+#: camera, non-finite motion): the lower clamp, where every tap lies off the frame.
+OFF_FRAME = -COORD_MARGIN
+
+#: Border (pixels) of the padded source tables of the fast path and the export formulation: the taps of a
+#: coordinate clamped to ``[-COORD_MARGIN, W + COORD_MARGIN]`` read pixels ``-TABLE_PAD .. W + COORD_MARGIN``.
+TABLE_PAD = int(COORD_MARGIN) + 1
+
+#: Integers up to this are exact in float32: larger tables index in float64 (torch) or leave the vector path (C++).
+F32_EXACT_INT = 2 ** 24
+
+#: Code of a source tap that passes every destination-independent test in the export formulation: above every
+#: code a tap can report (they run up to ``NONFINITE``).
+TAP_OK_CODE = float(Reason.NONFINITE) + 1.0
+
+#: What the native kernels hold as their own compile-time copies (``_core.reproject_constants`` must equal it).
+MIRRORED_IN_CORE = {"COORD_MARGIN": COORD_MARGIN, "F32_EXACT_INT": F32_EXACT_INT,
+                    **{f"REASON_{r.name}": int(r) for r in Reason if r <= Reason.NONFINITE}}
