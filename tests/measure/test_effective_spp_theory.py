@@ -1,5 +1,5 @@
-"""End-to-end check of reprojection + effective spp against theory (NOTES: "How high can stereo-only effective
-spp go?"): bilinear reuse of one 1-spp image with independent pixel noise has variance σ²·Σw². A parallel rig maps
+"""End-to-end check of reprojection + effective spp against theory (how high stereo-only effective spp can go):
+bilinear reuse of one 1-spp image with independent pixel noise has variance σ²·Σw². A parallel rig maps
 rows onto rows, so the two taps lie on one row: E[Σw²] = E[(1−f)² + f²] = 2/3 for uniform sub-pixel offsets f,
 and the effective spp is 1.5 (no blur bias on a constant-colour surface)."""
 
@@ -7,7 +7,7 @@ import math
 
 import torch
 
-from stereorepro import PinholeCamera, StereoRig, effective_spp_many, look_at, rmse, stereo_reproject
+from stereorepro import PinholeCamera, StereoRig, View, effective_spp_many, look_at, rmse, stereo_reproject
 
 
 def _tilted_wall(H, W, K, head):
@@ -32,8 +32,8 @@ def test_stereo_effective_spp_is_one_and_a_half():
     sigma, truth = 0.1, 0.5
     right_1spp = truth + sigma * torch.randn(1, 3, H, W, generator=g, dtype=torch.float64)
     left_1spp = truth + sigma * torch.randn(1, 3, H, W, generator=g, dtype=torch.float64)
-    out, valid, _ = stereo_reproject(right_1spp, depth_r, normal_r, K, right.cam_from_world,
-                                     depth_l, normal_l, K, left.cam_from_world, 1.0, 0.1)
+    src, dst = View(depth_r, normal_r, K, right.cam_from_world), View(depth_l, normal_l, K, left.cam_from_world)
+    out, valid, *_ = stereo_reproject(right_1spp, src, dst, (1.0, 0.1))
     out = torch.where(valid, out, left_1spp)  # discarded pixels are traced
     assert valid.float().mean() > 0.9
     reference = torch.full_like(out, truth)
@@ -43,8 +43,7 @@ def test_stereo_effective_spp_is_one_and_a_half():
     # 3·H·W = 57600 samples: the MSE estimate has ~0.6 % relative spread; discards (traced at 1 spp) pull it down
     assert 1.40 < float(spp[0]) < 1.56, float(spp[0])
     # nearest sampling reuses one sample: no variance reduction
-    near, valid_n, _ = stereo_reproject(right_1spp, depth_r, normal_r, K, right.cam_from_world,
-                                        depth_l, normal_l, K, left.cam_from_world, 1.0, 0.1, sampling="nearest")
+    near, valid_n, *_ = stereo_reproject(right_1spp, src, dst, (1.0, 0.1), sampling="nearest")
     near = torch.where(valid_n, near, left_1spp)
     spp_n, _ = effective_spp_many(rmse(near, reference), ladder_spp, ladder_rmse)
     assert 0.95 < float(spp_n[0]) < 1.05
