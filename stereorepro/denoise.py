@@ -452,7 +452,7 @@ class ReprojectionDenoiser(nn.Module):
 def denoiser_example_inputs(module: ReprojectionDenoiser, batch: int = 1, height: int = 24, width: int = 32,
                             dtype: torch.dtype = torch.float32, seed: int = 0) -> tuple[Tensor, ...]:
     """Synthetic inputs for ``module``'s forward, in the order of its ``input_names`` (for export and tests):
-    :func:`stereorepro.io.onnx.example_inputs`' temporal inputs (a stereo pair with head motion, one eye as the
+    :func:`stereorepro._testing.example_inputs`' temporal inputs (a stereo pair with head motion, one eye as the
     previous frame), and with ``stereo`` the other camera of that pair as the other eye."""
     from ._testing import example_inputs
 

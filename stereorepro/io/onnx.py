@@ -21,20 +21,13 @@ from torch import Tensor, nn
 
 from .atomic import atomic_path
 
-__all__ = ["export_onnx", "onnx_input_dims"]
+__all__ = ["export_onnx", "onnx_input_dims", "symbolic_axes"]
 
-# Symbolic dimension names per input, by its role. Cameras keep (B, 3, 3) / (B, 4, 4).
-_IMAGE_DIMS = {0: "B", 2: "H", 3: "W"}
-_PREV_IMAGE_DIMS = {0: "B", 2: "Hp", 3: "Wp"}
-_CAMERA_DIMS = {0: "B"}
-
-
-def _dims_for(name: str) -> dict[int, str]:
-    if name.endswith("K") or name.endswith("cam_from_world"):
-        return _CAMERA_DIMS
-    if name.startswith("src_") or name.startswith("prev_") or name.startswith("history_"):
-        return _PREV_IMAGE_DIMS
-    return _IMAGE_DIMS
+def symbolic_axes(fields) -> dict[str, dict[int, str]]:
+    """``{input name: {axis: symbol}}`` of a module's ``input_fields`` (name and symbolic shape per input, e.g.
+    ``Field("src_depth", ("B", "1", "Hp", "Wp"))``): every dimension named by letters stays symbolic, digits are
+    fixed."""
+    return {f.name: {axis: dim for axis, dim in enumerate(f.shape) if not dim.isdigit()} for f in fields}
 
 
 def export_onnx(module: nn.Module, path, opset: int = 18, inputs: tuple[Tensor, ...] | None = None,
@@ -42,8 +35,10 @@ def export_onnx(module: nn.Module, path, opset: int = 18, inputs: tuple[Tensor, 
     """Export a stateless reprojection module to ONNX with symbolic B, H, W (and Hp, Wp for source images).
 
     Args:
-        module: :class:`~stereorepro.StereoReprojection` or :class:`~stereorepro.TemporalReprojection` (any
-            module with ``input_names`` / ``output_names``).
+        module: :class:`~stereorepro.StereoReprojection`, :class:`~stereorepro.TemporalReprojection`,
+            :class:`~stereorepro.ReprojectionDenoiser`, or any module describing its forward's inputs as
+            ``input_fields`` (name and symbolic shape each: :class:`stereorepro.reproject.view.Field`) and naming
+            its outputs in ``output_names``.
         path: output file; written atomically (:func:`stereorepro.io.atomic.atomic_path`).
         opset: ONNX opset, ≥ 17.
         inputs: example inputs (default: ``stereorepro._testing.example_inputs``, an analytic scene).
@@ -55,9 +50,11 @@ def export_onnx(module: nn.Module, path, opset: int = 18, inputs: tuple[Tensor, 
     """
     if opset < 17:
         raise ValueError(f"opset must be >= 17 (GridSample/ReduceMax semantics), got {opset}")
-    names = list(getattr(module, "input_names", []))
-    if not names:
-        raise TypeError(f"{type(module).__name__} has no `input_names`; cannot export")
+    fields = tuple(getattr(module, "input_fields", ()))
+    if not fields:
+        raise TypeError(f"{type(module).__name__} has no `input_fields` (name and symbolic shape of each forward "
+                        "input); cannot export")
+    names = [f.name for f in fields]
     if inputs is None:
         from .._testing import example_inputs
 
@@ -66,7 +63,7 @@ def export_onnx(module: nn.Module, path, opset: int = 18, inputs: tuple[Tensor, 
     if len(inputs) != len(names):
         raise ValueError(f"expected {len(names)} inputs ({', '.join(names)}), got {len(inputs)}")
     path = Path(path)
-    dynamic_axes = {n: _dims_for(n) for n in names}
+    dynamic_axes = symbolic_axes(fields)
     module = module.eval()
     with atomic_path(path) as tmp:
         torch.onnx.export(module, inputs, str(tmp), input_names=names, output_names=list(module.output_names),

@@ -244,3 +244,35 @@ class TestOpExceptions(BaseTester):
             temporal_reproject(color, dst, (color, src.depth), src, (0.05, 0.2), blend=Blend(math.nan))
         with pytest.raises(ValueError, match="rectified"):
             backward_reproject(color, src, dst.replace(motion=torch.zeros(1, 2, 9, 12)), (0.05, 0.2), rectified=True)
+
+
+class TestInputDescription(BaseTester):
+    """The modules describe their flat inputs once (input_fields); ONNX input names and symbolic axes come from it."""
+
+    def test_fields(self):
+        from stereorepro.io.onnx import symbolic_axes
+
+        stereo = sr.StereoReprojection(0.05, 0.2)
+        assert stereo.input_names == [f.name for f in stereo.input_fields]
+        axes = symbolic_axes(stereo.input_fields)
+        assert axes["src_color"] == {0: "B", 2: "Hp", 3: "Wp"} and axes["dst_normal"] == {0: "B", 2: "H", 3: "W"}
+        assert axes["src_K"] == {0: "B"} and axes["dst_cam_from_world"] == {0: "B"}
+        temporal = sr.TemporalReprojection(0.05, 0.2, motion_vectors=True)
+        axes = symbolic_axes(temporal.input_fields)
+        assert temporal.input_names[-2:] == ["motion", "motion_world"] and axes["motion"] == {0: "B", 2: "H", 3: "W"}
+        assert axes["history_len"] == {0: "B", 2: "Hp", 3: "Wp"} and axes["prev_depth"] == {0: "B", 2: "Hp", 3: "Wp"}
+        denoiser = sr.ReprojectionDenoiser(torch.nn.Conv2d(13, 3, 1), 0.05, 0.2, stereo=True)
+        assert symbolic_axes(denoiser.input_fields)["other_depth"] == {0: "B", 2: "H", 3: "W"}
+        assert denoiser.input_names[-5:] == list(sr.denoise.OTHER_NAMES)
+
+    def test_exceptions(self, tmp_path):
+        class NoFields(torch.nn.Module):
+            input_names = ["x"]
+            output_names = ["y"]
+
+            def forward(self, x):
+                return x
+
+        with pytest.raises(TypeError, match="input_fields"):
+            sr.export_onnx(NoFields(), tmp_path / "x.onnx", inputs=(torch.zeros(1),))
+        assert not (tmp_path / "x.onnx").exists()
