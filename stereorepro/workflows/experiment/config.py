@@ -41,12 +41,18 @@ class Scheme:
     #: Trace the right eye in full on even frames and the left on odd ones, each reprojected into the other
     #: (the ray budget of ``stereo_temporal``).
     alternate: bool = False
+    #: The discards the run reports for this scheme (Table 1, Figure 1): ``"stereo"``, the left eye's pixels traced
+    #: because reprojection rejected them; ``"temporal"``, the right eye's pixels whose history was rejected (and,
+    #: with moving objects, split into moving and static pixels); None: none.
+    discards: str | None = None
+    #: The scheme of Figure 4 (its evaluated eye at the last frame beside 1 spp, the reference and the top rung).
+    figure4: bool = False
 
 
 SCHEMES = (
-    Scheme("stereo", True, False, LEFT, paper=True),
-    Scheme("temporal", False, True, RIGHT, paper=True),
-    Scheme("stereo_temporal", True, True, LEFT, paper=True),
+    Scheme("stereo", True, False, LEFT, paper=True, discards="stereo"),
+    Scheme("temporal", False, True, RIGHT, paper=True, discards="temporal"),
+    Scheme("stereo_temporal", True, True, LEFT, paper=True, figure4=True),
     Scheme("stereo_nearest", True, False, LEFT, "nearest"),
     Scheme("temporal_nearest", False, True, RIGHT, "nearest"),
     Scheme("stereo_temporal_nearest", True, True, LEFT, "nearest"),
@@ -103,7 +109,7 @@ class ExperimentConfig:
 
 #: Variants of scenes with moving objects: the temporal steps read the history through the motion vectors.
 MOTION_SCHEMES = (
-    Scheme("temporal_mv", False, True, RIGHT, motion=True),
+    Scheme("temporal_mv", False, True, RIGHT, motion=True, discards="temporal"),
     Scheme("stereo_temporal_mv", True, True, LEFT, motion=True),
 )
 

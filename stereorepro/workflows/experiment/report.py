@@ -106,21 +106,36 @@ def _write_outputs(out: Path, results: dict, per_frame, keep, cfg) -> None:
         finally:
             plt.close(fig)
 
-    # Figure 1: discard reasons
-    if "fig1_stereo" in keep:
-        panels = [("fig1_stereo", "(a) Stereo"), ("fig1_temporal", "(b) Temporal")]
-        if "fig1_temporal_mv" in keep:  # moving objects: the temporal discards with motion vectors beside
-            panels = [("fig1_stereo", "(a) Stereo"), ("fig1_temporal", "(b) Temporal, cameras only"),
-                      ("fig1_temporal_mv", "(c) Temporal, motion vectors")]
-        fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 3.2))
-        for ax, (key, title) in zip(axes, panels):
-            if key in keep:
-                ax.imshow(reason_to_rgb(keep[key])[0].permute(1, 2, 0).numpy())
-            ax.set_title(title)
-            ax.axis("off")
-        fig.suptitle("Discarded pixels: green position, cyan normal, red out of frame")
-        save(fig, "fig1_discards.png")
-    # Figure 3: framewise RMSE against ladder rungs
+    for figure in (_figure1, _figure3, _figure4, _figure_cost):
+        made = figure(plt, results, per_frame, keep, cfg)
+        if made is not None:
+            save(*made)
+    atomic_write(out / "results.json", json.dumps(results, indent=1))
+    tables = tables_markdown(results)
+    atomic_write(out / "tables.md", tables)
+    atomic_write(out / "report.md", _report_markdown(results, tables))
+
+
+def _figure1(plt, results, per_frame, keep, cfg):
+    """Figure 1: the discard reasons of the stereo and temporal steps (and temporal with motion vectors)."""
+    if "fig1_stereo" not in keep:
+        return None
+    panels = [("fig1_stereo", "(a) Stereo"), ("fig1_temporal", "(b) Temporal")]
+    if "fig1_temporal_mv" in keep:  # moving objects: the temporal discards with motion vectors beside
+        panels = [("fig1_stereo", "(a) Stereo"), ("fig1_temporal", "(b) Temporal, cameras only"),
+                  ("fig1_temporal_mv", "(c) Temporal, motion vectors")]
+    fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 3.2))
+    for ax, (key, title) in zip(axes, panels):
+        if key in keep:
+            ax.imshow(reason_to_rgb(keep[key])[0].permute(1, 2, 0).numpy())
+        ax.set_title(title)
+        ax.axis("off")
+    fig.suptitle("Discarded pixels: green position, cyan normal, red out of frame")
+    return fig, "fig1_discards.png"
+
+
+def _figure3(plt, results, per_frame, keep, cfg):
+    """Figure 3: framewise RMSE of the left eye's schemes against ladder rungs."""
     fig, ax = plt.subplots(figsize=(7, 4))
     fr = [r["frame"] for r in per_frame]
     for n in (1, 2, 8, 16):
@@ -133,19 +148,26 @@ def _write_outputs(out: Path, results: dict, per_frame, keep, cfg) -> None:
     ax.set_yscale("log")
     ax.legend(fontsize=8)
     ax.set_title(f"{results['scene']}: framewise RMSE")
-    save(fig, "fig3_rmse.png")
-    # Figure 4: 1 spp, reference, top ladder rung, reprojected
-    if "fig4" in keep:
-        k = keep["fig4"]
-        fig, axes = plt.subplots(1, 4, figsize=(14, 2.6))
-        panels = [("1 spp", k["one"]), (f"{cfg.reference_spp} spp reference", k["ref"]),
-                  (f"{cfg.ladder_spp} spp", k["top"]), (f"reprojected: {k['spp']:.2f} effective spp", k["method"])]
-        for ax, (t, img) in zip(axes, panels):
-            ax.imshow(_tonemap(img))
-            ax.set_title(t, fontsize=9)
-            ax.axis("off")
-        save(fig, "fig4_comparison.png")
-    # What accuracy costs in time
+    return fig, "fig3_rmse.png"
+
+
+def _figure4(plt, results, per_frame, keep, cfg):
+    """Figure 4: 1 spp, reference, top ladder rung, reprojected."""
+    if "fig4" not in keep:
+        return None
+    k = keep["fig4"]
+    fig, axes = plt.subplots(1, 4, figsize=(14, 2.6))
+    panels = [("1 spp", k["one"]), (f"{cfg.reference_spp} spp reference", k["ref"]),
+              (f"{cfg.ladder_spp} spp", k["top"]), (f"reprojected: {k['spp']:.2f} effective spp", k["method"])]
+    for ax, (t, img) in zip(axes, panels):
+        ax.imshow(_tonemap(img))
+        ax.set_title(t, fontsize=9)
+        ax.axis("off")
+    return fig, "fig4_comparison.png"
+
+
+def _figure_cost(plt, results, per_frame, keep, cfg):
+    """What accuracy costs in time: effective spp against ms per frame, plain path tracing as the line."""
     fig, ax = plt.subplots(figsize=(7, 4.5))
     pt = [r for r in results["cost"] if r["scheme"].startswith("path tracing")]
     ax.plot([r["ms"] for r in pt], [r["effective_spp"] for r in pt], "k.-", label="plain path tracing (n spp)")
@@ -159,56 +181,79 @@ def _write_outputs(out: Path, results: dict, per_frame, keep, cfg) -> None:
     ax.set_xlabel("ms per frame (evaluated eye)")
     ax.set_ylabel("effective spp")
     ax.set_title("What accuracy costs in time")
-    save(fig, "fig_cost.png")
+    return fig, "fig_cost.png"
 
-    atomic_write(out / "results.json", json.dumps(results, indent=1))
-    tables = tables_markdown(results)
-    atomic_write(out / "tables.md", tables)
-    flags = ", ".join(f"{k}: {v}" for k, v in results["flags"].get("stereo_temporal", {}).items())
-    t = results["timing_ms"]
-    report = [f"# Experiment report: {results['scene']}", "",
-              f"{results['frames']} frames at {results['resolution']}, reference {results['reference_spp']} spp, "
-              f"ladder 1..{results['ladder_spp']} spp, seed {results['seed']}; thresholds: position "
-              f"{results['thresholds']['position']:.4g} (scene {results['thresholds']['position_scene']:.4g} × "
-              f"{results['thresholds']['scale']:.3g} for the resolution), normal {results['thresholds']['normal']:.3g}. "
-              f"stereorepro {results['version']} (renderer {results['code']}); wall time {results['wall_s']:.0f} s "
-              f"(cache hits/misses {results['cache']['hits']}/{results['cache']['misses']}).", "",
-              tables, "", "Variants (same renders):", "",
-              "| scheme | Avg | Min | Max |", "|---|---:|---:|---:|"]
+
+def _report_markdown(results: dict, tables: str | None = None) -> str:
+    """``report.md``: the run's settings, the tables (``tables``: :func:`tables_markdown` of ``results``), the
+    variants, the resampling bias, FLIP and SSIM, the time cost, the figures."""
+    tables = tables_markdown(results) if tables is None else tables
+    report = _report_header(results) + ["", tables, "", "Variants (same renders):", "",
+                                        "| scheme | Avg | Min | Max |", "|---|---:|---:|---:|"]
     for kk, v in results["table2_variants"].items():
         report.append(f"| {kk} | {_fmt(v['avg'])} | {_fmt(v['min'])} | {_fmt(v['max'])} |")
+    report += _bias_section(results) + _metric_sections(results) + _cost_section(results)
+    return "\n".join(report)
+
+
+def _report_header(results: dict) -> list[str]:
+    th, cache = results["thresholds"], results["cache"]
+    return [f"# Experiment report: {results['scene']}", "",
+            f"{results['frames']} frames at {results['resolution']}, reference {results['reference_spp']} spp, "
+            f"ladder 1..{results['ladder_spp']} spp, seed {results['seed']}; thresholds: position "
+            f"{th['position']:.4g} (scene {th['position_scene']:.4g} × "
+            f"{th['scale']:.3g} for the resolution), normal {th['normal']:.3g}. "
+            f"stereorepro {results['version']} (renderer {results['code']}); wall time {results['wall_s']:.0f} s "
+            f"(cache hits/misses {cache['hits']}/{cache['misses']})."]
+
+
+def _bias_section(results: dict) -> list[str]:
     b = results["bias"]
-    report += ["", "## Resampling bias", "",
-               "Each scheme fed with the noise-free references instead of 1-spp images: its RMSE is pure bias "
-               "(bilinear blur compounded over frames, edges), the part more samples cannot remove.", "",
-               "| scheme | noise-free RMSE (avg) | share of the scheme's MSE (avg) |", "|---|---:|---:|"]
+    lines = ["", "## Resampling bias", "",
+             "Each scheme fed with the noise-free references instead of 1-spp images: its RMSE is pure bias "
+             "(bilinear blur compounded over frames, edges), the part more samples cannot remove.", "",
+             "| scheme | noise-free RMSE (avg) | share of the scheme's MSE (avg) |", "|---|---:|---:|"]
     for kk in ("stereo", "temporal", "stereo_temporal"):
         if kk in b:
-            report.append(f"| {kk} | {_fmt(b[kk]['rmse_noise_free']['avg'], 4)} | "
-                          f"{_fmt(100 * b[kk]['bias_share_of_mse']['avg'], 1)} % |")
-    report += ["", f"For scale: the left eye's {results['ladder_spp']}-spp RMSE averages "
-               f"{_fmt(b['ladder_top_rmse']['avg'], 4)}.", ""]
-    for metric, about in (
-            ("FLIP", "Mean LDR FLIP (NVIDIA's perceptual error, 0 = identical; radiance clamped to [0, 1]) against the "
-                     "reference, averaged over frames. Effective spp above stays MSE-based: it rests on the 1/n decay "
-                     "of an unbiased estimator's MSE, which FLIP does not have."),
-            ("SSIM", "Mean LDR SSIM (Gaussian window 11, sigma 1.5, radiance clamped to [0, 1]; 1 = identical) of the "
-                     "paper's schemes against the reference, averaged over frames.")):
+            lines.append(f"| {kk} | {_fmt(b[kk]['rmse_noise_free']['avg'], 4)} | "
+                         f"{_fmt(100 * b[kk]['bias_share_of_mse']['avg'], 1)} % |")
+    return lines + ["", f"For scale: the left eye's {results['ladder_spp']}-spp RMSE averages "
+                    f"{_fmt(b['ladder_top_rmse']['avg'], 4)}.", ""]
+
+
+#: The image metrics the report has a section for, if the run measured them, and what each section says.
+_METRIC_SECTIONS = (
+    ("FLIP", "Mean LDR FLIP (NVIDIA's perceptual error, 0 = identical; radiance clamped to [0, 1]) against the "
+             "reference, averaged over frames. Effective spp above stays MSE-based: it rests on the 1/n decay "
+             "of an unbiased estimator's MSE, which FLIP does not have."),
+    ("SSIM", "Mean LDR SSIM (Gaussian window 11, sigma 1.5, radiance clamped to [0, 1]; 1 = identical) of the "
+             "paper's schemes against the reference, averaged over frames."),
+)
+
+
+def _metric_sections(results: dict) -> list[str]:
+    lines = []
+    for metric, about in _METRIC_SECTIONS:
         stats = results.get(metric.lower())
         if stats:
-            report += ["", f"## {metric}", "", about, "",
-                       f"| scheme | {metric} (avg) | Min | Max |", "|---|---:|---:|---:|"]
-            report += [f"| {kk} | {_fmt(v['avg'], 4)} | {_fmt(v['min'], 4)} | {_fmt(v['max'], 4)} |"
-                       for kk, v in stats.items()]
-    report += ["", "## What accuracy costs in time", "",
-               f"Median per frame: 1-spp trace of one eye {_fmt(t['trace_1spp_ms'], 1)} ms, G-buffer "
-               f"{_fmt(t['gbuffer_ms'], 1)} ms, tracing only the left eye's discarded pixels "
-               f"{_fmt(t['trace_left_discards_ms'], 1)} ms.", "", cost_markdown(results), "",
-               "![cost](fig_cost.png)", "", "## Figures", "", "![fig1](fig1_discards.png)", "",
-               "![fig3](fig3_rmse.png)", "", "![fig4](fig4_comparison.png)", "",
-               f"Effective-spp flags (stereo+temporal): {flags}. `extrapolated_high` means the value lies beyond "
-               f"the ladder's top rung and was extrapolated on a fit of the ladder (see stereorepro.measure.metrics).", ""]
-    atomic_write(out / "report.md", "\n".join(report))
+            lines += ["", f"## {metric}", "", about, "",
+                      f"| scheme | {metric} (avg) | Min | Max |", "|---|---:|---:|---:|"]
+            lines += [f"| {kk} | {_fmt(v['avg'], 4)} | {_fmt(v['min'], 4)} | {_fmt(v['max'], 4)} |"
+                      for kk, v in stats.items()]
+    return lines
+
+
+def _cost_section(results: dict) -> list[str]:
+    t = results["timing_ms"]
+    flags = ", ".join(f"{k}: {v}" for k, v in results["flags"].get("stereo_temporal", {}).items())
+    return ["", "## What accuracy costs in time", "",
+            f"Median per frame: 1-spp trace of one eye {_fmt(t['trace_1spp_ms'], 1)} ms, G-buffer "
+            f"{_fmt(t['gbuffer_ms'], 1)} ms, tracing only the left eye's discarded pixels "
+            f"{_fmt(t['trace_left_discards_ms'], 1)} ms.", "", cost_markdown(results), "",
+            "![cost](fig_cost.png)", "", "## Figures", "", "![fig1](fig1_discards.png)", "",
+            "![fig3](fig3_rmse.png)", "", "![fig4](fig4_comparison.png)", "",
+            f"Effective-spp flags (stereo+temporal): {flags}. `extrapolated_high` means the value lies beyond "
+            f"the ladder's top rung and was extrapolated on a fit of the ladder (see stereorepro.measure.metrics).", ""]
 
 
 def write_frame_exr(root: Path, f: int, eyes: dict, drivers: dict) -> None:

@@ -1,5 +1,11 @@
 """The experiment's run loop: per frame, render (or read from the cache) both eyes' inputs, run every scheme on
-the same 1-spp inputs, and measure it against the reference as effective spp."""
+the same 1-spp inputs, and measure it against the reference as effective spp.
+
+:func:`run_experiment` is four steps: :func:`_start` (checks, the scene, the render cache, a cluster's renders),
+one :class:`_SchemeRun` per scheme of :func:`~.config.schemes` (its drivers and what it records),
+:func:`_run_frames` (per frame: both eyes' inputs, then every scheme run and scored) and :func:`_assemble` (the
+statistics over frames, an :class:`ExperimentResults`).
+"""
 
 from __future__ import annotations
 
@@ -7,6 +13,7 @@ import json
 import math
 import shutil
 import time
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
@@ -17,12 +24,13 @@ from ...accumulate import SpatiotemporalReprojection
 from ...camera import has_surface
 from ...measure.metrics import effective_spp_many, flip, flip_available, rmse, ssim
 from .cache import RenderCache
-from .config import LEFT, RIGHT, ExperimentConfig, metric_image, validate_config
+from .config import LEFT, RIGHT, ExperimentConfig, Scheme, metric_image, validate_config
 from .config import schemes as all_schemes
-from .inputs import RenderContext, cache_footprint, estimate_cache_bytes, reference, render_eye, spec_for
+from .inputs import (EyeData, RenderContext, RenderSpec, cache_footprint, estimate_cache_bytes, reference,
+                     render_eye, spec_for)
 from .report import write_frame_exr, write_outputs
 
-__all__ = ["run_experiment"]
+__all__ = ["run_experiment", "ExperimentResults"]
 
 
 #: Frames before this one are the warm-up: every statistic is also reported over the frames from it on
@@ -39,11 +47,98 @@ def _stats(xs) -> dict:
             "avg_after_warmup": float(np.mean(warm)) if warm else None}
 
 
+@dataclass(frozen=True)
+class ExperimentResults:
+    """What a run measured: the content of ``results.json``, field by field in its order (:meth:`to_dict`). The
+    statistics over frames (``table1``, ``table2``, ...) are ``{"avg", "min", "max", "n", "avg_after_warmup"}``
+    dicts (``avg_after_warmup``: from frame :data:`WARMUP_FRAMES` on)."""
+
+    scene: str
+    effects: list  #: the scene's effects, sorted
+    frames: int
+    resolution: str  #: ``"WxH"``
+    reference_spp: int
+    reference_chunk_spp: int | None
+    ladder_spp: int
+    warmup_frames: int
+    #: reference spp (str) -> scheme -> effective-spp statistics against that prefix of the reference (chunked runs;
+    #: the run's own reference last); None without chunks
+    reference_study: dict | None
+    seed: int
+    metric: str  #: ``"ldr"`` or ``"hdr"``
+    jitter: bool
+    thresholds: dict  #: ``position``, ``normal``, ``position_scene``, ``scale``
+    table1: dict  #: scheme -> discarded pixels (%): the paper's Table 1 (stereo, temporal)
+    flip: dict | None  #: scheme -> mean LDR FLIP statistics; None when not measured
+    ssim: dict | None  #: paper scheme -> mean LDR SSIM statistics; None when not measured
+    #: scenes with moving objects only: ``moving_pixels_pct`` and, per temporal scheme, discards on the moving
+    #: objects' pixels and on the static rest (absent from :meth:`to_dict` otherwise)
+    moving_objects: dict | None
+    table2: dict  #: paper scheme -> effective spp: the paper's Table 2
+    table2_variants: dict  #: every other scheme -> effective spp
+    timing_ms: dict  #: median ms per frame of each timed step
+    cost: list  #: rows of :func:`_cost_table`
+    bias: dict  #: paper scheme -> noise-free RMSE and its share of the MSE; ``ladder_top_rmse``
+    per_frame: list  #: one dict per frame (every scheme's scores, discards, ladders)
+    flags: dict  #: scheme -> effective-spp flag -> frames
+    cache: dict  #: hits, misses, recomputed_corrupt, dir and the cache's footprint
+    distributed: dict | None  #: the cluster's report (:func:`~.distributed.render_all`); None in-process
+    wall_s: float
+    version: str
+    code: str  #: the renderer version in the cache keys
+
+    def to_dict(self) -> dict:
+        """The ``results.json`` content (``moving_objects`` only for scenes with moving objects)."""
+        return {f.name: getattr(self, f.name) for f in fields(self)
+                if f.name != "moving_objects" or self.moving_objects is not None}
+
 
 def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
-    """Run the experiment and write its outputs into ``cfg.out``. Returns the ``results.json`` content."""
-    from tqdm.auto import tqdm
+    """Run the experiment and write its outputs into ``cfg.out``. Returns the ``results.json`` content
+    (:meth:`ExperimentResults.to_dict`)."""
+    run = _start(cfg, log)
+    schemes = [_SchemeRun.make(s, run) for s in all_schemes(cfg, run.moving)]
+    per_frame, keep, timing = _run_frames(run, schemes)
+    wall = time.perf_counter() - run.t_start
+    results = _assemble(run, schemes, per_frame, timing, wall).to_dict()
+    write_outputs(run.out, results, per_frame, keep, cfg)
+    return results
 
+
+@dataclass(frozen=True)
+class _Run:
+    """What every step of a run reads: its settings, the scene and thresholds, the renders' context."""
+
+    cfg: ExperimentConfig
+    scene: object
+    frames: int
+    out: Path
+    scale: float  #: threshold scale for the resolution
+    pos_thr: float
+    nrm_thr: float
+    cache_dir: Path
+    spec: RenderSpec
+    ctx: RenderContext
+    use_flip: bool
+    distributed: dict | None
+    t_start: float  #: the wall time includes a cluster's renders
+
+    @property
+    def cache(self) -> RenderCache:
+        return self.ctx.cache
+
+    @property
+    def moving(self) -> bool:
+        return self.spec.moving
+
+    @property
+    def fig1_frame(self) -> int:
+        return self.frames // 2
+
+
+def _start(cfg: ExperimentConfig, log) -> _Run:
+    """Check everything, then create the output folder and the render cache; with ``cfg.scheduler`` every render
+    runs on the cluster first (the frame loop then reads the cache)."""
     from ...render import PathTracer
     from ...scenes import load_scene, threshold_scale
 
@@ -54,183 +149,278 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
         raise ValueError(f"frames must be in 1..{scene.num_frames} for scene {scene.name!r}, got {frames}")
     out = Path(cfg.out)  # everything is checked: only now is anything created
     out.mkdir(parents=True, exist_ok=True)
-    W, H = cfg.width, cfg.height
-    scale = cfg.threshold_scale if cfg.threshold_scale is not None else threshold_scale(H)
-    pos_thr, nrm_thr = scene.thresholds(H, scale)
+    scale = cfg.threshold_scale if cfg.threshold_scale is not None else threshold_scale(cfg.height)
+    pos_thr, nrm_thr = scene.thresholds(cfg.height, scale)
     cache_dir = Path(cfg.cache_dir) if cfg.cache_dir else out / "cache"
     cache = RenderCache(cache_dir, force=cfg.force, log=log)
     spec = spec_for(cfg, scene, cache_dir)
-    code, moving = json.loads(spec.base_key)["code"], spec.moving
     need, free = estimate_cache_bytes(spec, frames), shutil.disk_usage(cache_dir).free
     if need > free:  # a warning, not an error: the cache may already hold most of it
         log(f"warning: the render cache needs up to {need / 2**30:.1f} GiB for {frames} frames "
             f"({need / (2 * frames) / 2**20:.0f} MiB per eye and frame) and {cache_dir} has "
             f"{free / 2**30:.1f} GiB free")
-    t_start = time.perf_counter()  # the wall time includes a cluster's renders
+    t_start = time.perf_counter()
     distributed = None
-    if cfg.scheduler:  # every render runs on the cluster first; the loop below then reads the cache
+    if cfg.scheduler:
         from .distributed import render_all
 
         distributed = render_all(spec, range(frames), cfg.scheduler, force=cfg.force, progress=cfg.progress,
                                  log=log)
         cache = RenderCache(cache_dir, log=log, sweep_on_start=False)  # the entries are made: no recomputing
     ctx = RenderContext(spec, cache=cache, scene=scene, tracer=PathTracer(scene, seed=cfg.seed, workers=cfg.workers))
-    use_flip = bool(cfg.flip) and flip_available()
-    schemes = all_schemes(cfg, moving)
-    drivers = {s.name: SpatiotemporalReprojection(pos_thr, nrm_thr, alpha=s.alpha, sampling=s.sampling,
-                                                  stereo=s.stereo, temporal=s.temporal, left_mode=s.left_mode,
-                                                  alternate=s.alternate) for s in schemes}
-    # The same schemes fed with the noise-free references: their error is the resampling bias alone (bilinear blur
-    # compounded over frames, edges), the part of the error that more samples cannot remove.
-    clean = {s.name: SpatiotemporalReprojection(pos_thr, nrm_thr, alpha=s.alpha, sampling=s.sampling,
-                                                stereo=s.stereo, temporal=s.temporal) for s in schemes if s.paper}
-    per_frame = []
-    timing = {k: [] for k in ("trace_1spp_ms", "gbuffer_ms", "trace_left_discards_ms", "reference_ms")}
-    timing.update({f"reproject_{s.name}_ms": [] for s in schemes})
-    keep = {}  # frames kept for figures
-    fig1_frame = frames // 2
-    bar = tqdm(range(frames), desc=f"{scene.name} {W}x{H}", unit="frame", disable=not cfg.progress)
-    for f in bar:
-        eyes = {LEFT: render_eye(ctx, f, LEFT), RIGHT: render_eye(ctx, f, RIGHT)}
-        L, R = eyes[LEFT], eyes[RIGHT]
-        timing["trace_1spp_ms"] += [L.ms_per_spp, R.ms_per_spp]
-        timing["gbuffer_ms"] += [L.ms_gbuffer, R.ms_gbuffer]
-        timing["reference_ms"] += [L.ms_reference, R.ms_reference]
-        surface = {e: has_surface(d.depth) for e, d in eyes.items()}
-        row = {"frame": f, "discard_pct": {}, "rmse": {}, "effective_spp": {}, "flags": {},
-               "ladder_rmse": {}, "no_surface_pct": {}, "rmse_noise_free": {}, "flip": {}, "ssim": {},
-               "reference_study": {}}
-        if moving:
-            row.update(discard_pct_moving={}, discard_pct_static={}, moving_pct=100.0 * float(
-                ((R.object_id >= 0) & surface[RIGHT]).float().mean()))
-        ladder_spp = list(range(1, cfg.ladder_spp + 1))
-        ladder_err = {}
-        prefixes = eyes[LEFT].prefix_spp[:-1]  # smaller references for the reference-spp study (chunked runs)
-        prefix_refs = {e: {p: metric_image(reference(ctx, f, e, p)[0], cfg.metric) for p in prefixes} for e in eyes}
-        for e, d in eyes.items():
-            errs = d.ladder_rmse[cfg.metric]
-            ladder_err[e] = errs
-            row["ladder_rmse"]["left" if e == LEFT else "right"] = errs
-            row["no_surface_pct"]["left" if e == LEFT else "right"] = 100.0 * float((~surface[e]).float().mean())
-        for s in schemes:
-            drv = drivers[s.name]
-            mv_r = (R.motion, R.motion_world) if s.motion else (None, None)
-            mv_l = (L.motion, L.motion_world) if s.motion else (None, None)
-            # the fully traced eye (the right one, or every other frame the left one with ``alternate``) and the
-            # reprojected one, whose 1-spp samples are read only where the mask says "trace"
-            (F, mv_f), (O, mv_o) = ((R, mv_r), (L, mv_l)) if drv.fully_traced_eye() == "right" else ((L, mv_l),
-                                                                                                    (R, mv_r))
-            t0 = time.perf_counter()
-            full_out = drv.full(F.sample, F.depth, F.normal, F.K, F.cam_from_world, *mv_f)
-            t1 = time.perf_counter()
-            mask = drv.other_trace_mask(O.depth, O.normal, O.K, O.cam_from_world, *mv_o)
-            other_out = drv.other(O.sample)
-            t2 = time.perf_counter()
-            right_out, left_out = (full_out, other_out) if F is R else (other_out, full_out)
-            # per-eye accounting: a stereo scheme's left eye pays for its own steps, the right eye for its own
-            timing[f"reproject_{s.name}_ms"].append((t2 - t1) * 1e3 if s.stereo else (t1 - t0) * 1e3)
-            img = left_out if s.eye == LEFT else right_out
-            d = eyes[s.eye]
-            err = float(rmse(metric_image(img, cfg.metric), metric_image(d.reference, cfg.metric))[0])
-            spp, flags = effective_spp_many(torch.tensor([err]), torch.tensor(ladder_spp, dtype=torch.float64),
-                                            torch.tensor(ladder_err[s.eye], dtype=torch.float64))
-            row["rmse"][s.name] = err
-            if use_flip:
-                row["flip"][s.name] = float(flip(img, d.reference)[0])
-            if cfg.ssim and s.paper:  # LDR SSIM (clamp), the paper's three schemes: ~8 s per image at 720p here
-                row["ssim"][s.name] = float(ssim(img, d.reference, tonemap="clamp")[0])
-            if s.name in clean:
-                c = clean[s.name]
-                c_right = c.right(R.reference, R.depth, R.normal, R.K, R.cam_from_world, *mv_r)
-                c.left_trace_mask(L.depth, L.normal, L.K, L.cam_from_world, *mv_l)
-                c_left = c.left(L.reference)
-                row["rmse_noise_free"][s.name] = float(rmse(metric_image(c_left if s.eye == LEFT else c_right,
-                                                                          cfg.metric),
-                                                            metric_image(d.reference, cfg.metric))[0])
-            row["effective_spp"][s.name] = float(spp[0])
-            if s.paper and prefixes:  # the same image scored against each smaller reference and its own ladder
-                lad = torch.as_tensor(d.prefix_ladder_rmse[cfg.metric], dtype=torch.float64)
-                for i, p in enumerate(prefixes):
-                    e_p = rmse(metric_image(img, cfg.metric), prefix_refs[s.eye][p])
-                    spp_p, _ = effective_spp_many(e_p, torch.tensor(ladder_spp, dtype=torch.float64), lad[i:i + 1])
-                    row["reference_study"].setdefault(str(p), {})[s.name] = float(spp_p[0])
-            row["flags"][s.name] = flags[0]
-            if s.name == "stereo":
-                surf = surface[LEFT]
-                row["discard_pct"]["stereo"] = 100.0 * float((mask & surf).sum() / surf.sum().clamp_min(1))
-                if f == fig1_frame:
-                    keep["fig1_stereo"] = drv.stereo_reason.clone()
-                    # the masked trace the paper counts, timed for real (same samples as the full 1-spp render)
-                    r = ctx.tracer.render(L.camera, f, 1, sample_offset=0, eye=LEFT, gbuffers=False,
-                                          pixel_mask=mask[0, 0], pixel_sampling=L.pixel_sampling)
-                    timing["trace_left_discards_ms"].append(r.time_s * 1e3)
-                    row["masked_trace_matches"] = bool(torch.equal(torch.where(mask, r.radiance, 0.0),
-                                                                   torch.where(mask, L.sample, 0.0)))
-            if s.name in ("temporal", "temporal_mv") and drv.right_valid is not None:
-                surf = surface[RIGHT]
-                row["discard_pct"][s.name] = 100.0 * float((~drv.right_valid & surf).sum()
-                                                           / surf.sum().clamp_min(1))
-                if moving:  # discards on the moving objects' pixels and on the static rest
-                    mov = (R.object_id >= 0) & surf
-                    for part, sel in (("discard_pct_moving", mov), ("discard_pct_static", surf & ~mov)):
-                        row[part][s.name] = (100.0 * float((~drv.right_valid & sel).sum() / sel.sum())
-                                             if bool(sel.any()) else None)
-                if f == fig1_frame:
-                    keep["fig1_" + s.name] = drv.right_reason.clone()
-            if s.name == "stereo_temporal" and f == frames - 1:
-                keep["fig4"] = {"method": left_out.clone(), "one": L.sample.clone(), "ref": L.reference.clone(),
-                                "top": L.top.clone(), "spp": row["effective_spp"][s.name]}
-        if cfg.exr:
-            write_frame_exr(out / "exr", f, eyes, drivers)
-        per_frame.append(row)
-        bar.set_postfix(st=f"{row['effective_spp']['stereo_temporal']:.1f}spp", cache=f"{cache.hits}/{cache.misses}")
-    wall = time.perf_counter() - t_start
+    return _Run(cfg, scene, frames, out, scale, pos_thr, nrm_thr, cache_dir, spec, ctx,
+                bool(cfg.flip) and flip_available(), distributed, t_start)
 
-    table1 = {"stereo": _stats([r["discard_pct"].get("stereo") for r in per_frame]),
-              "temporal": _stats([r["discard_pct"].get("temporal") for r in per_frame])}
-    moving_table = None
-    if moving:  # temporal discards on moving-object pixels vs the static background, camera-only vs motion vectors
-        moving_table = {"moving_pixels_pct": _stats([r["moving_pct"] for r in per_frame]),
-                        **{k: {part: _stats([r[f"discard_pct_{part}"].get(k) for r in per_frame])
-                               for part in ("moving", "static")} for k in ("temporal", "temporal_mv")}}
-    table2 = {s.name: _stats([r["effective_spp"][s.name] for r in per_frame]) for s in schemes}
+
+@dataclass
+class _FrameData:
+    """One frame's inputs and the row of ``per_frame`` the schemes fill in."""
+
+    frame: int
+    eyes: dict  #: LEFT / RIGHT -> EyeData
+    surface: dict  #: LEFT / RIGHT -> (1, 1, H, W) bool
+    row: dict
+    ladder_spp: list  #: 1..ladder_spp
+    prefixes: list  #: smaller references of the reference-spp study (chunked runs)
+    prefix_refs: dict  #: eye -> prefix spp -> metric image of that reference
+
+    def ladder(self, eye: int, metric: str) -> tuple[torch.Tensor, torch.Tensor]:
+        """The eye's ladder: spp (L,) and RMSE (L,) float64."""
+        return (torch.tensor(self.ladder_spp, dtype=torch.float64),
+                torch.tensor(self.eyes[eye].ladder_rmse[metric], dtype=torch.float64))
+
+
+def _frame_inputs(run: _Run, f: int, timing: dict) -> _FrameData:
+    """Both eyes' inputs at frame ``f`` (rendered or from the cache), their timings, and the frame's row."""
+    cfg, ctx = run.cfg, run.ctx
+    eyes = {LEFT: render_eye(ctx, f, LEFT), RIGHT: render_eye(ctx, f, RIGHT)}
+    L, R = eyes[LEFT], eyes[RIGHT]
+    timing["trace_1spp_ms"] += [L.ms_per_spp, R.ms_per_spp]
+    timing["gbuffer_ms"] += [L.ms_gbuffer, R.ms_gbuffer]
+    timing["reference_ms"] += [L.ms_reference, R.ms_reference]
+    surface = {e: has_surface(d.depth) for e, d in eyes.items()}
+    row = {"frame": f, "discard_pct": {}, "rmse": {}, "effective_spp": {}, "flags": {},
+           "ladder_rmse": {}, "no_surface_pct": {}, "rmse_noise_free": {}, "flip": {}, "ssim": {},
+           "reference_study": {}}
+    if run.moving:
+        row.update(discard_pct_moving={}, discard_pct_static={}, moving_pct=100.0 * float(
+            ((R.object_id >= 0) & surface[RIGHT]).float().mean()))
+    prefixes = L.prefix_spp[:-1]
+    prefix_refs = {e: {p: metric_image(reference(ctx, f, e, p)[0], cfg.metric) for p in prefixes} for e in eyes}
+    for e, d in eyes.items():
+        side = "left" if e == LEFT else "right"
+        row["ladder_rmse"][side] = d.ladder_rmse[cfg.metric]
+        row["no_surface_pct"][side] = 100.0 * float((~surface[e]).float().mean())
+    return _FrameData(f, eyes, surface, row, list(range(1, cfg.ladder_spp + 1)), prefixes, prefix_refs)
+
+
+def _run_frames(run: _Run, schemes: list[_SchemeRun]) -> tuple[list[dict], dict, dict]:
+    """Every frame: its inputs, then every scheme run and scored on them. Returns the rows, the frames kept for the
+    figures and the timings (lists of ms per timed step)."""
+    from tqdm.auto import tqdm
+
+    cfg = run.cfg
+    timing = {k: [] for k in ("trace_1spp_ms", "gbuffer_ms", "trace_left_discards_ms", "reference_ms")}
+    timing.update({f"reproject_{s.scheme.name}_ms": [] for s in schemes})
+    per_frame, keep = [], {}
+    drivers = {s.scheme.name: s.driver for s in schemes}
+    bar = tqdm(range(run.frames), desc=f"{run.scene.name} {cfg.width}x{cfg.height}", unit="frame",
+               disable=not cfg.progress)
+    for f in bar:
+        fd = _frame_inputs(run, f, timing)
+        for s in schemes:
+            s.score(run, fd, timing, keep)
+        if cfg.exr:
+            write_frame_exr(run.out / "exr", f, fd.eyes, drivers)
+        per_frame.append(fd.row)
+        bar.set_postfix(st=f"{fd.row['effective_spp']['stereo_temporal']:.1f}spp",
+                        cache=f"{run.cache.hits}/{run.cache.misses}")
+    return per_frame, keep, timing
+
+
+def _motion(eye: EyeData, scheme: Scheme) -> tuple:
+    """The eye's motion vectors for a scheme that steps through them, else ``(None, None)``."""
+    return (eye.motion, eye.motion_world) if scheme.motion else (None, None)
+
+
+@dataclass
+class _SchemeRun:
+    """One scheme in a run: its driver on the 1-spp inputs and, for the paper's schemes, the same scheme fed with
+    the noise-free references (``clean``: its error is the resampling bias alone - bilinear blur compounded over
+    frames, edges - the part of the error that more samples cannot remove)."""
+
+    scheme: Scheme
+    driver: SpatiotemporalReprojection
+    clean: SpatiotemporalReprojection | None
+
+    @classmethod
+    def make(cls, s: Scheme, run: _Run) -> _SchemeRun:
+        drv = SpatiotemporalReprojection(run.pos_thr, run.nrm_thr, alpha=s.alpha, sampling=s.sampling,
+                                         stereo=s.stereo, temporal=s.temporal, left_mode=s.left_mode,
+                                         alternate=s.alternate)
+        clean = SpatiotemporalReprojection(run.pos_thr, run.nrm_thr, alpha=s.alpha, sampling=s.sampling,
+                                           stereo=s.stereo, temporal=s.temporal) if s.paper else None
+        return cls(s, drv, clean)
+
+    def reproject(self, fd: _FrameData) -> tuple[torch.Tensor, torch.Tensor, float]:
+        """Run the scheme on the frame: (the evaluated eye's image, the reprojected eye's trace mask, ms of the
+        evaluated eye's own steps). The fully traced eye is the right one, or every other frame the left one
+        with ``alternate``; the reprojected one's 1-spp samples are read only where the mask says "trace"."""
+        s, drv = self.scheme, self.driver
+        L, R = fd.eyes[LEFT], fd.eyes[RIGHT]
+        right_traced = drv.fully_traced_eye() == "right"
+        F, O = (R, L) if right_traced else (L, R)
+        t0 = time.perf_counter()
+        full_out = drv.full(F.sample, F.depth, F.normal, F.K, F.cam_from_world, *_motion(F, s))
+        t1 = time.perf_counter()
+        mask = drv.other_trace_mask(O.depth, O.normal, O.K, O.cam_from_world, *_motion(O, s))
+        other_out = drv.other(O.sample)
+        t2 = time.perf_counter()
+        left_out = other_out if right_traced else full_out
+        right_out = full_out if right_traced else other_out
+        # per-eye accounting: a stereo scheme's left eye pays for its own steps, the right eye for its own
+        ms = (t2 - t1) * 1e3 if s.stereo else (t1 - t0) * 1e3
+        return (left_out if s.eye == LEFT else right_out), mask, ms
+
+    def score(self, run: _Run, fd: _FrameData, timing: dict, keep: dict) -> None:
+        """Run the scheme on the frame and write its scores into the frame's row (RMSE, effective spp and its
+        flag, FLIP, SSIM, the noise-free RMSE, the reference-spp study, the discards it reports)."""
+        s, cfg, row = self.scheme, run.cfg, fd.row
+        img, mask, ms = self.reproject(fd)
+        timing[f"reproject_{s.name}_ms"].append(ms)
+        ref = fd.eyes[s.eye].reference
+        err = float(rmse(metric_image(img, cfg.metric), metric_image(ref, cfg.metric))[0])
+        spp, flags = effective_spp_many(torch.tensor([err]), *fd.ladder(s.eye, cfg.metric))
+        row["rmse"][s.name] = err
+        if run.use_flip:
+            row["flip"][s.name] = float(flip(img, ref)[0])
+        if cfg.ssim and s.paper:  # LDR SSIM (clamp), the paper's three schemes: seconds per image at 720p
+            row["ssim"][s.name] = float(ssim(img, ref, tonemap="clamp")[0])
+        if self.clean is not None:
+            row["rmse_noise_free"][s.name] = self.noise_free_rmse(fd, cfg.metric)
+        row["effective_spp"][s.name] = float(spp[0])
+        if s.paper and fd.prefixes:
+            self.reference_study(fd, img, cfg.metric)
+        row["flags"][s.name] = flags[0]
+        if s.discards is not None:
+            _DISCARDS[s.discards](self, run, fd, mask, timing, keep)
+        if s.figure4 and fd.frame == run.frames - 1:
+            L = fd.eyes[LEFT]
+            keep["fig4"] = {"method": img.clone(), "one": L.sample.clone(), "ref": L.reference.clone(),
+                            "top": L.top.clone(), "spp": row["effective_spp"][s.name]}
+
+    def noise_free_rmse(self, fd: _FrameData, metric: str) -> float:
+        s, c = self.scheme, self.clean
+        L, R = fd.eyes[LEFT], fd.eyes[RIGHT]
+        c_right = c.right(R.reference, R.depth, R.normal, R.K, R.cam_from_world, *_motion(R, s))
+        c.left_trace_mask(L.depth, L.normal, L.K, L.cam_from_world, *_motion(L, s))
+        c_left = c.left(L.reference)
+        img = c_left if s.eye == LEFT else c_right
+        return float(rmse(metric_image(img, metric), metric_image(fd.eyes[s.eye].reference, metric))[0])
+
+    def reference_study(self, fd: _FrameData, img: torch.Tensor, metric: str) -> None:
+        """The same image scored against each smaller reference, with the ladder scored on that reference."""
+        s = self.scheme
+        lad = torch.as_tensor(fd.eyes[s.eye].prefix_ladder_rmse[metric], dtype=torch.float64)
+        spp = torch.tensor(fd.ladder_spp, dtype=torch.float64)
+        for i, p in enumerate(fd.prefixes):
+            e_p = rmse(metric_image(img, metric), fd.prefix_refs[s.eye][p])
+            spp_p, _ = effective_spp_many(e_p, spp, lad[i:i + 1])
+            fd.row["reference_study"].setdefault(str(p), {})[s.name] = float(spp_p[0])
+
+
+def _stereo_discards(sr: _SchemeRun, run: _Run, fd: _FrameData, mask, timing: dict, keep: dict) -> None:
+    """Table 1 and Figure 1 (a): the left eye's pixels traced because reprojection rejected them, over its surface
+    pixels; at the figure's frame also the masked trace the paper counts, timed for real (the same samples as the
+    full 1-spp render, which the row checks)."""
+    name, row, L, surf = sr.scheme.name, fd.row, fd.eyes[LEFT], fd.surface[LEFT]
+    row["discard_pct"][name] = 100.0 * float((mask & surf).sum() / surf.sum().clamp_min(1))
+    if fd.frame != run.fig1_frame:
+        return
+    keep["fig1_" + name] = sr.driver.stereo_reason.clone()
+    r = run.ctx.tracer.render(L.camera, fd.frame, 1, sample_offset=0, eye=LEFT, gbuffers=False,
+                              pixel_mask=mask[0, 0], pixel_sampling=L.pixel_sampling)
+    timing["trace_left_discards_ms"].append(r.time_s * 1e3)
+    row["masked_trace_matches"] = bool(torch.equal(torch.where(mask, r.radiance, 0.0),
+                                                   torch.where(mask, L.sample, 0.0)))
+
+
+def _temporal_discards(sr: _SchemeRun, run: _Run, fd: _FrameData, mask, timing: dict, keep: dict) -> None:
+    """Table 1 and Figure 1 (b): the right eye's pixels whose history was rejected, over its surface pixels; with
+    moving objects also on the moving objects' pixels and on the static rest."""
+    name, drv, row = sr.scheme.name, sr.driver, fd.row
+    if drv.right_valid is None:
+        return
+    surf = fd.surface[RIGHT]
+    row["discard_pct"][name] = 100.0 * float((~drv.right_valid & surf).sum() / surf.sum().clamp_min(1))
+    if run.moving:
+        mov = (fd.eyes[RIGHT].object_id >= 0) & surf
+        for part, sel in (("discard_pct_moving", mov), ("discard_pct_static", surf & ~mov)):
+            row[part][name] = (100.0 * float((~drv.right_valid & sel).sum() / sel.sum())
+                               if bool(sel.any()) else None)
+    if fd.frame == run.fig1_frame:
+        keep["fig1_" + name] = drv.right_reason.clone()
+
+
+#: The discards a scheme reports (:attr:`~.config.Scheme.discards`) and how they are measured.
+_DISCARDS = {"stereo": _stereo_discards, "temporal": _temporal_discards}
+
+
+def _assemble(run: _Run, schemes: list[_SchemeRun], per_frame: list[dict], timing: dict,
+              wall: float) -> ExperimentResults:
+    """The statistics over frames of everything the rows hold, and the run's settings, as one record."""
+    cfg, scene = run.cfg, run.scene
+    stats = {s.scheme.name: _stats([r["effective_spp"][s.scheme.name] for r in per_frame]) for s in schemes}
+    paper = [s.scheme for s in schemes if s.scheme.paper]
     timing_ms = {k: float(np.median(v)) if v else None for k, v in timing.items()}
-    cost = _cost_table(schemes, table2, timing_ms, cfg)
+    return ExperimentResults(
+        scene=scene.name, effects=sorted(scene.effects), frames=run.frames, resolution=f"{cfg.width}x{cfg.height}",
+        reference_spp=cfg.reference_spp, reference_chunk_spp=run.spec.reference_chunk_spp,
+        ladder_spp=cfg.ladder_spp, warmup_frames=WARMUP_FRAMES,
+        reference_study=_reference_study(per_frame, stats, cfg) or None, seed=cfg.seed, metric=cfg.metric,
+        jitter=bool(cfg.jitter),
+        thresholds={"position": run.pos_thr, "normal": run.nrm_thr,
+                    "position_scene": float(scene.position_threshold), "scale": run.scale},
+        table1={s.name: _stats([r["discard_pct"].get(s.name) for r in per_frame]) for s in paper if s.discards},
+        flip=({s.scheme.name: _stats([r["flip"][s.scheme.name] for r in per_frame]) for s in schemes}
+              if run.use_flip else None),
+        ssim=({s.name: _stats([r["ssim"][s.name] for r in per_frame]) for s in paper} if cfg.ssim else None),
+        moving_objects=_moving_table(schemes, per_frame) if run.moving else None,
+        table2={s.name: stats[s.name] for s in paper},
+        table2_variants={k: v for k, v in stats.items() if k not in {s.name for s in paper}},
+        timing_ms=timing_ms, cost=_cost_table([s.scheme for s in schemes], stats, timing_ms, cfg),
+        bias=_bias_table(schemes, per_frame), per_frame=per_frame, flags=_flag_counts(per_frame),
+        cache={"hits": run.cache.hits, "misses": run.cache.misses, "recomputed_corrupt": run.cache.corrupt,
+               "dir": str(run.cache_dir), **cache_footprint(run.ctx, run.frames)},
+        distributed=run.distributed, wall_s=wall, version=__version__,
+        code=json.loads(run.spec.base_key)["code"])
+
+
+def _moving_table(schemes: list[_SchemeRun], per_frame: list[dict]) -> dict:
+    """Temporal discards on moving-object pixels vs the static background, camera-only vs motion vectors."""
+    temporal = [s.scheme.name for s in schemes if s.scheme.discards == "temporal"]
+    return {"moving_pixels_pct": _stats([r["moving_pct"] for r in per_frame]),
+            **{k: {part: _stats([r[f"discard_pct_{part}"].get(k) for r in per_frame]) for part in ("moving", "static")}
+               for k in temporal}}
+
+
+def _bias_table(schemes: list[_SchemeRun], per_frame: list[dict]) -> dict:
     bias = {k: {"rmse_noise_free": _stats([r["rmse_noise_free"][k] for r in per_frame]),
                 "bias_share_of_mse": _stats([(r["rmse_noise_free"][k] / r["rmse"][k]) ** 2 for r in per_frame
-                                             if r["rmse"][k] > 0])} for k in clean}
+                                             if r["rmse"][k] > 0])}
+            for k in (s.scheme.name for s in schemes if s.clean is not None)}
     bias["ladder_top_rmse"] = _stats([r["ladder_rmse"]["left"][-1] for r in per_frame])
-    study = {p: {k: _stats([r["reference_study"][p][k] for r in per_frame]) for k in _study_schemes(per_frame, p)}
+    return bias
+
+
+def _reference_study(per_frame: list[dict], table2: dict, cfg: ExperimentConfig) -> dict:
+    """Effective spp against each smaller reference (chunked runs), the run's own reference last for comparison;
+    empty without chunks."""
+    study = {p: {k: _stats([r["reference_study"][p][k] for r in per_frame]) for k in per_frame[0]["reference_study"][p]}
              for p in per_frame[0]["reference_study"]}
-    if study:  # the run's own reference last, for comparison
+    if study:
         study[str(cfg.reference_spp)] = {k: table2[k] for k in next(iter(study.values()))}
-    results = {
-        "scene": scene.name, "effects": sorted(scene.effects), "frames": frames, "resolution": f"{W}x{H}",
-        "reference_spp": cfg.reference_spp, "reference_chunk_spp": spec.reference_chunk_spp,
-        "ladder_spp": cfg.ladder_spp, "warmup_frames": WARMUP_FRAMES, "reference_study": study or None,
-        "seed": cfg.seed, "metric": cfg.metric, "jitter": bool(cfg.jitter),
-        "thresholds": {"position": pos_thr, "normal": nrm_thr, "position_scene": float(scene.position_threshold),
-                       "scale": scale},
-        "table1": table1,
-        "flip": ({s.name: _stats([r["flip"][s.name] for r in per_frame]) for s in schemes} if use_flip else None),
-        "ssim": ({s.name: _stats([r["ssim"][s.name] for r in per_frame]) for s in schemes if s.paper}
-                 if cfg.ssim else None),
-        **({"moving_objects": moving_table} if moving else {}),
-        "table2": {k: table2[k] for k in ("stereo", "temporal", "stereo_temporal")},
-        "table2_variants": {k: v for k, v in table2.items() if k not in ("stereo", "temporal", "stereo_temporal")},
-        "timing_ms": timing_ms, "cost": cost, "bias": bias, "per_frame": per_frame,
-        "flags": _flag_counts(per_frame), "cache": {"hits": cache.hits, "misses": cache.misses,
-                                                     "recomputed_corrupt": cache.corrupt,
-                                                     "dir": str(cache_dir), **cache_footprint(ctx, frames)},
-        "distributed": distributed,
-        "wall_s": wall, "version": __version__, "code": code,
-    }
-    write_outputs(out, results, per_frame, keep, cfg)
-    return results
-
-
-def _study_schemes(per_frame, p: str) -> list[str]:
-    return list(per_frame[0]["reference_study"][p])
+    return study
 
 
 def _flag_counts(per_frame) -> dict:
