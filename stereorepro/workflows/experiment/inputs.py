@@ -7,18 +7,17 @@ what a Dask worker needs to rebuild the scene and the tracer) and of the frame a
 * :func:`gbuffer_task`: depth and normal (and, for scenes with moving objects, the motion to the previous frame and
   the objects' ids), from one centre ray per pixel;
 * :func:`reference_chunk_task` ``i``: the mean of the samples ``[REFERENCE_OFFSET + i·c, REFERENCE_OFFSET +
-  (i+1)·c)``, ``c = reference_chunk_spp``. The reference at ``n`` spp is the mean of its first ``n / c`` chunk means, summed in
-  chunk order in float64 (:func:`reference`). **How chunking enters the cache key**: a chunk's key names its sample
-  range (``spp = c``, ``offset``); the ladder's key names ``(reference_spp, reference_chunk_spp)``. Chunking changes
-  the reference at rounding level (a sum of chunk means is not the renderer's own sum of samples), so a run is
-  bit-identical to another run with the same chunking, on one machine or many. One chunk (the default,
-  ``c = reference_spp``) is the renderer's own ``reference_spp`` render, under the same key as before chunking.
+  (i+1)·c)``, ``c = reference_chunk_spp``. The reference at ``n`` spp is the mean of its first ``n / c`` chunk
+  means, summed in chunk order in float64 (:func:`reference`). **How chunking enters the cache key**: a chunk's
+  key names its sample range (``spp = c``, ``offset``); the ladder's key names ``(reference_spp,
+  reference_chunk_spp)``. Chunking changes the reference at rounding level (a sum of chunk means is not the
+  renderer's own sum of samples), so a run is bit-identical to another run with the same chunking, on one machine
+  or many. One chunk (the default, ``c = reference_spp``) is the renderer's own ``reference_spp`` render, under the key of an unchunked run.
 * :func:`ladder_task`: the plain path-traced prefixes at 1..L spp of samples 0..L-1, rendered one sample at a time
   and kept **lean**: the 1-spp image (the schemes' input), the top rung (the figures), and every rung's RMSE
   against the reference and against each of its power-of-two chunk prefixes (:func:`reference_prefixes`), under
-  both metrics. The rungs themselves are not stored: measured at 1280×720, an eye-frame's cache is 48 MB
-  (G-buffer 15, ladder 22, reference 11) instead of 367 MB with one entry per 1-spp sample (34 × 10.8 MB), with
-  bit-identical tables (tests/workflows/test_experiment.py).
+  both metrics. The rungs themselves are not stored (an eye-frame's cache holds three images and the scores,
+  not one image per rung); the tables are the same as from stored rungs (tests/workflows/test_experiment.py).
 
 In-process runs call the tasks directly (:func:`render_eye` returns the frame's :class:`EyeData`); distributed runs
 submit them to a Dask cluster first (:mod:`.distributed`) and then read the same entries.
