@@ -12,7 +12,8 @@ what a Dask worker needs to rebuild the scene and the tracer) and of the frame a
   key names its sample range (``spp = c``, ``offset``); the ladder's key names ``(reference_spp,
   reference_chunk_spp)``. Chunking changes the reference at rounding level (a sum of chunk means is not the
   renderer's own sum of samples), so a run is bit-identical to another run with the same chunking, on one machine
-  or many. One chunk (the default, ``c = reference_spp``) is the renderer's own ``reference_spp`` render, under the key of an unchunked run.
+  or many. One chunk (the default, ``c = reference_spp``) is the renderer's own ``reference_spp`` render, under
+  the key of an unchunked run.
 * :func:`ladder_task`: the plain path-traced prefixes at 1..L spp of samples 0..L-1, rendered one sample at a time
   and kept **lean**: the 1-spp image (the schemes' input), the top rung (the figures), and every rung's RMSE
   against the reference and against each of its power-of-two chunk prefixes (:func:`reference_prefixes`), under
