@@ -1,7 +1,9 @@
 """Reprojection core: stereo and temporal backward warping with discard masks.
 
 Inputs are analytic (fronto-parallel planes with exact pixel shifts, and the ray-cast scene of
-stereorepro._testing), so expected answers are known without a renderer.
+stereorepro._testing), so expected answers are known without a renderer. Each class is one operation on
+``BaseTester``; the forward tests run on every backend of the ``backend`` fixture (torch general path, torch fast
+path, native), gradients and soft tests on torch.
 """
 
 import math
@@ -10,8 +12,11 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
-from hypothesis import given, settings
+from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+
+from base import BaseTester
+from reference import reference_backward_reproject, reference_temporal_blend
 
 from stereorepro import (
     Reason,
@@ -50,6 +55,8 @@ def plane_pair(H=6, W=8, shift_px=1.0, depth=2.0, dtype=torch.float32, f=64.0, B
 
 
 def run(inp, pos=0.01, nrm=0.1, **kw):
+    """stereo_reproject on ``inp``; pass ``backend=BaseTester.backend_arg(backend)`` to pick the implementation
+    (default ``auto``). Runs without autograd unless an input requires grad (the native backend refuses it)."""
     return stereo_reproject(*[inp[a] for a in ARGS], pos, nrm, **kw)
 
 
@@ -80,17 +87,21 @@ def onnx_runs(module, tmp_path, name):
         yield dims, ref, got
 
 
-class TestStereoReproject:
-    def test_smoke(self):
-        out, valid, reason = run(plane_pair())
+class TestStereoReproject(BaseTester):
+    def test_smoke(self, device, dtype, backend):
+        self.skip_unless_runs(backend, dtype, device)
+        inp = {k: v.to(device) for k, v in plane_pair(dtype=dtype).items()}
+        out, valid, reason = run(inp, backend=self.backend_arg(backend))
         assert out.shape == (1, 3, 6, 8) and valid.shape == (1, 1, 6, 8) and reason.shape == (1, 1, 6, 8)
+        assert out.dtype == dtype and out.device.type == device.type
 
-    def test_cardinality(self, dtype):
+    def test_cardinality(self, dtype, backend):
+        self.skip_unless_runs(backend, dtype, torch.device("cpu"))
         src = plane_pair(H=6, W=8, B=2, dtype=dtype)
         dst = plane_pair(H=5, W=7, B=2, dtype=dtype)
         inp = {**{k: v for k, v in src.items() if k.startswith("src")},
                **{k: v for k, v in dst.items() if k.startswith("dst")}}
-        out, valid, reason = run(inp)
+        out, valid, reason = run(inp, backend=self.backend_arg(backend))
         assert out.shape == (2, 3, 5, 7) and out.dtype == dtype
         assert valid.shape == (2, 1, 5, 7) and valid.dtype == torch.bool
         assert reason.shape == (2, 1, 5, 7) and reason.dtype == torch.uint8
@@ -155,11 +166,13 @@ class TestStereoReproject:
         out.sum().backward()
         assert thr.grad.abs().sum() > 0
 
-    def test_module_equals_function(self):
+    def test_module_equals_function(self, backend):
         inp, *_ = scene_pair()
-        for kw in [dict(), dict(sampling="nearest"), dict(soft=True, temperature=0.2)]:
-            m = StereoReprojection(0.05, 0.2, **kw)
-            for a, b in zip(m(*[inp[a] for a in ARGS]), run(inp, 0.05, 0.2, **kw)):
+        kws = [dict(), dict(sampling="nearest")] + ([dict(soft=True, temperature=0.2)] if backend != "native" else [])
+        be = self.backend_arg(backend)
+        for kw in kws:
+            m = StereoReprojection(0.05, 0.2, backend=be, **kw)
+            for a, b in zip(m(*[inp[a] for a in ARGS]), run(inp, 0.05, 0.2, backend=be, **kw)):
                 assert torch.equal(a, b)
 
     @pytest.mark.onnx
@@ -173,119 +186,135 @@ class TestStereoReproject:
             np.testing.assert_array_equal(got[2], ref[2].numpy())
 
     # --- hard cases -------------------------------------------------------------------------------------------
-    def test_identity_warp_exact(self, dtype):
+    def test_identity_warp_exact(self, dtype, backend):
+        self.skip_unless_runs(backend, dtype, torch.device("cpu"))
         inp, gd, *_ = scene_pair(dtype=dtype, baseline=0.065)
         dst, _ = camera_pair(36, 48)
         inp.update(src_color=gd["color"].to(dtype), src_depth=gd["depth"].to(dtype),
                    src_normal=gd["normal"].to(dtype), src_K=dst.K.to(dtype),
                    src_cam_from_world=dst.cam_from_world.to(dtype))
         for sampling in ("bilinear", "nearest"):
-            out, valid, reason = run(inp, 1e-6, 1e-6, sampling=sampling)
+            out, valid, reason = run(inp, 1e-6, 1e-6, sampling=sampling, backend=self.backend_arg(backend))
             hit = torch.isfinite(inp["dst_depth"])
             assert torch.equal(out, torch.where(hit, inp["src_color"], 0.0))
             assert torch.equal(valid, hit) and int(reason[hit].max()) == 0
 
     @pytest.mark.parametrize("shift", [1, 3])
     @pytest.mark.parametrize("sampling", ["bilinear", "nearest"])
-    def test_integer_shift_exact(self, shift, sampling):
+    def test_integer_shift_exact(self, shift, sampling, backend):
         inp = plane_pair(H=5, W=9, shift_px=shift)
-        out, valid, reason = run(inp, sampling=sampling)
+        out, valid, reason = run(inp, sampling=sampling, backend=self.backend_arg(backend))
         assert torch.equal(out[..., shift:], inp["src_color"][..., :-shift])
         assert valid[..., shift:].all() and not valid[..., :shift].any()
         assert (reason[..., :shift] == Reason.OUT_OF_FRAME).all() and (reason[..., shift:] == 0).all()
 
-    def test_no_surface_dst(self):
+    def test_no_surface_dst(self, backend):
         inp = plane_pair()
         for i, z in enumerate([float("inf"), float("nan"), 0.0, -1.0]):
             inp["dst_depth"][0, 0, i, 3] = z
-        out, valid, reason = run(inp)
+        out, valid, reason = run(inp, backend=self.backend_arg(backend))
         assert not valid[0, 0, :4, 3].any() and (reason[0, 0, :4, 3] == Reason.NO_SURFACE_DST).all()
         assert (out[0, :, :4, 3] == 0).all() and torch.isfinite(out).all()
 
-    def test_no_surface_src_taps(self):
+    def test_no_surface_src_taps(self, backend):
         inp = plane_pair(shift_px=1)
         inp["src_depth"][..., 4] = float("inf")
         inp["src_depth"][..., 2] = float("nan")
-        out, valid, reason = run(inp)
+        out, valid, reason = run(inp, backend=self.backend_arg(backend))
         assert not valid[..., 5].any() and not valid[..., 3].any()
         assert (reason[..., 5] == Reason.NO_SURFACE_SRC).all() and (reason[..., 3] == Reason.NO_SURFACE_SRC).all()
         assert torch.isfinite(out).all()
 
-    def test_points_behind_src_camera_rejected(self):
+    def test_points_behind_src_camera_rejected(self, backend):
+        be = self.backend_arg(backend)
         inp = plane_pair()
         # Source camera turned around (180° about y): every destination point is behind it. A naive projection
         # would divide by a negative z and mirror the image back into the frame (kornia #4555).
         R = torch.diag(torch.tensor([-1.0, 1.0, -1.0, 1.0]))[None]
         inp["src_cam_from_world"] = R
-        out, valid, reason = run(inp, pos=100.0, nrm=10.0)
+        out, valid, reason = run(inp, pos=100.0, nrm=10.0, backend=be)
         assert not valid.any() and (reason == Reason.BEHIND_CAMERA).all() and (out == 0).all()
         # Source camera moved past the plane, still looking the same way: points behind it, also rejected.
         inp = plane_pair()
         inp["src_cam_from_world"] = inp["src_cam_from_world"].clone()
         inp["src_cam_from_world"][:, 2, 3] = -3.0
-        _, valid, reason = run(inp, pos=100.0, nrm=10.0)
+        _, valid, reason = run(inp, pos=100.0, nrm=10.0, backend=be)
         assert not valid.any() and (reason == Reason.BEHIND_CAMERA).all()
 
     @pytest.mark.parametrize("z", [0.0, 1e-12, -1e-12, float("inf"), -float("inf"), float("nan"), 1e30])
-    def test_degenerate_depths(self, z, dtype):
+    def test_degenerate_depths(self, z, dtype, backend):
+        """Forward on every backend; the gradient (torch) stays finite."""
+        self.skip_unless_runs(backend, dtype, torch.device("cpu"))
         inp = plane_pair(dtype=dtype)
         inp["dst_depth"][0, 0, 2, 3] = z
         inp["src_depth"][0, 0, 2, 2] = z
-        inp["src_color"].requires_grad_(True)
-        out, valid, reason = run(inp)
+        with torch.no_grad():
+            out, valid, reason = run(inp, backend=self.backend_arg(backend))
         assert torch.isfinite(out).all()
         r = Reason(int(reason[0, 0, 2, 3]))
         if not (z > 0 and math.isfinite(z)):
             assert r == Reason.NO_SURFACE_DST
         else:
             assert r in (Reason.OUT_OF_FRAME, Reason.BEHIND_CAMERA, Reason.POSITION)
-        out.sum().backward()
-        assert torch.isfinite(inp["src_color"].grad).all()
+        if backend == "torch":
+            inp["src_color"].requires_grad_(True)
+            out, *_ = run(inp)
+            out.sum().backward()
+            assert torch.isfinite(inp["src_color"].grad).all()
 
-    def test_everything_out_of_frame(self):
+    def test_everything_out_of_frame(self, backend):
         inp = plane_pair()
         inp["src_cam_from_world"] = inp["src_cam_from_world"].clone()
         inp["src_cam_from_world"][:, 0, 3] = 100.0
-        out, valid, reason = run(inp, pos=1e3, nrm=10.0)
+        out, valid, reason = run(inp, pos=1e3, nrm=10.0, backend=self.backend_arg(backend))
         assert not valid.any() and (reason == Reason.OUT_OF_FRAME).all() and (out == 0).all()
 
-    def test_nonfinite_radiance_in_rejected_or_zero_weight_tap_never_leaks(self):
+    def test_nonfinite_radiance_in_rejected_or_zero_weight_tap_never_leaks(self, backend):
         inp = plane_pair(shift_px=1)
         # Column 7 is only read with zero bilinear weight (integer shift), column 2 is rejected by depth.
         inp["src_color"][..., 7] = float("nan")
         inp["src_color"][0, 0, :, 2] = float("inf")
         inp["src_depth"][..., 2] = 5.0
-        inp["src_color"].requires_grad_(True)
-        out, valid, reason = run(inp)
+        out, valid, reason = run(inp, backend=self.backend_arg(backend))
         assert torch.isfinite(out).all()
-        out.sum().backward()
-        assert torch.isfinite(inp["src_color"].grad).all()
+        if backend == "torch":  # and the gradient
+            inp["src_color"].requires_grad_(True)
+            out, valid, reason = run(inp)
+            assert torch.isfinite(out).all()
+            out.sum().backward()
+            assert torch.isfinite(inp["src_color"].grad).all()
 
-    def test_nonfinite_radiance_in_accepted_tap_is_rejected(self):
+    def test_nonfinite_radiance_in_accepted_tap_is_rejected(self, backend):
         # Policy: a NaN/Inf sample is discarded like an occluded one (reason NONFINITE); neighbours renormalise.
+        be = self.backend_arg(backend)
         inp = plane_pair(shift_px=1)
         inp["src_color"][0, 1, 2, 4] = float("nan")
-        out, valid, reason = run(inp, pos=0.1)
+        out, valid, reason = run(inp, pos=0.1, backend=be)
         assert not valid[0, 0, 2, 5] and reason[0, 0, 2, 5] == Reason.NONFINITE
         assert torch.isfinite(out).all()
         inp = plane_pair(shift_px=0.5)
         inp["src_color"][0, 1, 2, 4] = float("inf")
-        out, valid, reason = run(inp, pos=0.1)
+        out, valid, reason = run(inp, pos=0.1, backend=be)
         assert valid[0, 0, 2, 5] and torch.isfinite(out).all()
         assert torch.allclose(out[0, :, 2, 5], inp["src_color"][0, :, 2, 5])  # only the finite tap remains
 
-    def test_all_taps_rejected_finite_colour_and_gradient(self):
-        inp = plane_pair(H=4, W=5, shift_px=0.5, dtype=torch.float64)
+    def test_all_taps_rejected_finite_colour_and_gradient(self, backend):
+        dtype = torch.float64 if backend != "native" else torch.float32
+        inp = plane_pair(H=4, W=5, shift_px=0.5, dtype=dtype)
         inp["src_depth"] = inp["src_depth"] * 2  # every tap fails the position test
+        out, valid, reason = run(inp, backend=self.backend_arg(backend))
+        assert not valid.any() and (out == 0).all()
+        assert ((reason == Reason.POSITION) | (reason == Reason.OUT_OF_FRAME)).all()
+        if backend != "torch":
+            return
         inp["src_color"].requires_grad_(True)
         out, valid, reason = run(inp)
         assert not valid.any() and (out == 0).all()
-        assert ((reason == Reason.POSITION) | (reason == Reason.OUT_OF_FRAME)).all()
         out.sum().backward()
         assert torch.isfinite(inp["src_color"].grad).all() and (inp["src_color"].grad == 0).all()
         assert torch.autograd.gradcheck(lambda c: run({**inp, "src_color": c})[0], (inp["src_color"],))
 
-    def test_grazing_angles(self):
+    def test_grazing_angles(self, backend):
         # The camera looks almost along the floor: footprints stretch, taps 1 px apart are far apart in space.
         H, W = 24, 32
         K = torch.tensor([[[40.0, 0, 16], [0, 40.0, 12], [0, 0, 1]]], dtype=torch.float64)
@@ -301,13 +330,13 @@ class TestStereoReproject:
         inp = dict(src_color=gs["color"].float(), src_depth=gs["depth"].float(), src_normal=gs["normal"].float(),
                    src_K=K, src_cam_from_world=moved, dst_depth=gd["depth"].float(),
                    dst_normal=gd["normal"].float(), dst_K=K, dst_cam_from_world=head)
-        out, valid, reason = run(inp, pos=0.05, nrm=0.1)
+        out, valid, reason = run(inp, pos=0.05, nrm=0.1, backend=self.backend_arg(backend))
         assert torch.isfinite(out).all() and valid.float().mean() > 0.5
         # wherever kept, the warped colour is close to the analytic colour
         err = (out - gd["color"].float()).abs().amax(1, keepdim=True)[valid]
         assert err.median() < 0.02
 
-    def test_far_from_origin_mm_threshold(self):
+    def test_far_from_origin_mm_threshold(self, backend):
         """A plane 1e4 units from the world origin, float64 cameras, float32 images, 1 mm threshold.
 
         Positions are compared in the source camera frame (camera matrices composed in float64), so precision
@@ -320,21 +349,25 @@ class TestStereoReproject:
             T = inp[k].double().clone()
             T[:, :3, 3] -= o  # camera centres moved by +o (rotation is identity)
             inp[k] = T
-        out, valid, reason = run(inp, pos=1e-3, nrm=0.01)
+        be = self.backend_arg(backend)
+        out, valid, reason = run(inp, pos=1e-3, nrm=0.01, backend=be)
         assert valid[..., 1:].all() and torch.allclose(out[..., 1:], inp["src_color"][..., :-1], atol=1e-6)
         near = dict(inp, src_depth=inp["src_depth"] + 5e-4)
-        assert run(near, pos=1e-3, nrm=0.01)[1][..., 1:].all()
+        assert run(near, pos=1e-3, nrm=0.01, backend=be)[1][..., 1:].all()
         far = dict(inp, src_depth=inp["src_depth"] + 2e-3)
-        _, valid, reason = run(far, pos=1e-3, nrm=0.01)
+        _, valid, reason = run(far, pos=1e-3, nrm=0.01, backend=be)
         assert not valid.any() and (reason[..., 1:] == Reason.POSITION).all()
 
     @pytest.mark.parametrize("low", [torch.float16, torch.bfloat16])
-    def test_half_precision(self, low):
+    def test_half_precision(self, low, backend):
+        if backend == "native" and low == torch.bfloat16:
+            pytest.skip("native reads float16, not bfloat16")
+        be = self.backend_arg(backend)
         inp, *_ = scene_pair()
-        ref, vref, _ = run(inp, 0.05, 0.2)
+        ref, vref, _ = run(inp, 0.05, 0.2, backend=be)
         half = {k: (v.to(low) if k not in ("src_K", "dst_K", "src_cam_from_world", "dst_cam_from_world") else v)
                 for k, v in inp.items()}
-        out, valid, reason = run(half, 0.05, 0.2)
+        out, valid, reason = run(half, 0.05, 0.2, backend=be)
         assert out.dtype == low and torch.isfinite(out).all()
         agree = (valid == vref).float().mean()
         assert agree > 0.97
@@ -342,65 +375,72 @@ class TestStereoReproject:
         tol = 1e-2 if low == torch.float16 else 4e-2
         assert (out.float() - ref).abs()[both].max() < tol
 
-    def test_per_item_cameras_in_batch(self):
+    def test_per_item_cameras_in_batch(self, backend):
+        be = self.backend_arg(backend)
         a, *_ = scene_pair(forward=0.0)
         b, *_ = scene_pair(forward=0.3, yaw=3.0)
         batch = {k: torch.cat([a[k], b[k]]) for k in ARGS}
-        out, valid, reason = run(batch, 0.05, 0.2)
+        out, valid, reason = run(batch, 0.05, 0.2, backend=be)
         for i, single in enumerate([a, b]):
-            o, v, r = run(single, 0.05, 0.2)
+            o, v, r = run(single, 0.05, 0.2, backend=be)
             assert torch.equal(out[i:i + 1], o) and torch.equal(valid[i:i + 1], v) and torch.equal(reason[i:i + 1], r)
 
-    def test_noncontiguous_and_channels_last(self):
+    def test_noncontiguous_and_channels_last(self, backend):
+        be = self.backend_arg(backend)
         inp, *_ = scene_pair()
-        ref = run(inp, 0.05, 0.2)
+        ref = run(inp, 0.05, 0.2, backend=be)
         odd = dict(inp)
         for k in ("src_color", "src_normal", "dst_normal"):
             odd[k] = inp[k].contiguous(memory_format=torch.channels_last)
         odd["src_depth"] = inp["src_depth"].transpose(-1, -2).contiguous().transpose(-1, -2)  # non-contiguous
         assert not odd["src_depth"].is_contiguous()
-        for a, b in zip(run(odd, 0.05, 0.2), ref):
+        for a, b in zip(run(odd, 0.05, 0.2, backend=be), ref):
             assert torch.equal(a, b)
 
     @pytest.mark.parametrize("hw", [(1, 9), (7, 1), (1, 1)])
-    def test_single_row_or_column(self, hw):
+    def test_single_row_or_column(self, hw, backend):
         H, W = hw
         inp = plane_pair(H=H, W=W, shift_px=0.0 if W == 1 else 1.0)
-        out, valid, reason = run(inp)
+        out, valid, reason = run(inp, backend=self.backend_arg(backend))
         assert out.shape == (1, 3, H, W) and torch.isfinite(out).all()
         if W > 1:
             assert torch.equal(out[..., 1:], inp["src_color"][..., :-1])
         else:
             assert torch.equal(out, inp["src_color"]) and valid.all()
 
-    def test_nearest_vs_bilinear(self):
+    def test_nearest_vs_bilinear(self, backend):
+        be = self.backend_arg(backend)
         inp = plane_pair(H=5, W=9, shift_px=1.25)
-        near, vn, _ = run(inp, pos=0.1, sampling="nearest")  # tap offsets up to 0.75 px = 0.023 units
-        bil, vb, _ = run(inp, pos=0.1, sampling="bilinear")
+        near, vn, _ = run(inp, pos=0.1, sampling="nearest", backend=be)  # tap offsets up to 0.75 px = 0.023 units
+        bil, vb, _ = run(inp, pos=0.1, sampling="bilinear", backend=be)
         # dst x reads u_s = x + 0.5 - 1.25: nearest pixel floor(u_s) = x - 1; bilinear mixes x-2 and x-1
         assert torch.equal(near[..., 2:], inp["src_color"][..., 1:-1])
         expected = 0.25 * inp["src_color"][..., :-2] + 0.75 * inp["src_color"][..., 1:-1]
         assert torch.allclose(bil[..., 2:], expected, atol=1e-6)
 
-    def test_matches_grid_sample_when_all_accepted(self):
+    def test_matches_grid_sample_when_all_accepted(self, backend):
         """Oracle: where all four taps are accepted, the warp equals F.grid_sample(bilinear, align_corners=False)
-        at the source coordinates computed independently with PinholeCamera.project."""
-        inp, gd, gs, dst, src = scene_pair(H=36, W=48, forward=0.2, yaw=2.0, dtype=torch.float64)
-        out, valid, _ = run(inp, 1e9, 10.0)  # accept everything with a surface
+        at the source coordinates computed independently with PinholeCamera.project (float64 on torch; float32
+        images on native, within float32 rounding)."""
+        dtype = torch.float64 if backend != "native" else torch.float32
+        inp, gd, gs, dst, src = scene_pair(H=36, W=48, forward=0.2, yaw=2.0, dtype=dtype,
+                                           cam_dtype=torch.float64)
+        out, valid, _ = run(inp, 1e9, 10.0, backend=self.backend_arg(backend))  # accept everything with a surface
         pts = dst.to(torch.float64).unproject(torch.where(torch.isfinite(gd["depth"]), gd["depth"], 1.0))
         uv, z = src.to(torch.float64).project(pts)
         grid = torch.stack([uv[:, 0] / 48 * 2 - 1, uv[:, 1] / 36 * 2 - 1], -1)
-        ref = F.grid_sample(inp["src_color"], grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+        ref = F.grid_sample(inp["src_color"].double(), grid, mode="bilinear", padding_mode="zeros",
+                            align_corners=False)
         inner = (uv[:, 0:1] > 0.5) & (uv[:, 0:1] < 47.5) & (uv[:, 1:2] > 0.5) & (uv[:, 1:2] < 35.5)
         m = (inner & valid & torch.isfinite(gd["depth"])).expand_as(out)
         assert m.float().mean() > 0.5
-        assert torch.allclose(out[m], ref[m], atol=1e-9)
+        assert torch.allclose(out[m].double(), ref[m], atol=1e-9 if dtype == torch.float64 else 1e-5)
 
-    def test_kornia_oracle(self):
+    def test_kornia_oracle(self, backend):
         """kornia.geometry.depth.warp_frame_depth (warp only, integer pixel centres) on the same inputs."""
         kornia_depth = pytest.importorskip("kornia.geometry.depth")
         inp, gd, *_ = scene_pair(H=36, W=48, forward=0.1, yaw=1.0)
-        out, valid, _ = run(inp, 1e9, 10.0)
+        out, valid, _ = run(inp, 1e9, 10.0, backend=self.backend_arg(backend))
         src_from_dst = inp["src_cam_from_world"] @ torch.linalg.inv(inp["dst_cam_from_world"])
         K_kornia = inp["dst_K"].clone()
         K_kornia[:, 0, 2] -= 0.5  # kornia puts pixel centres at integers
@@ -414,31 +454,35 @@ class TestStereoReproject:
         assert m.float().mean() > 0.5
         assert (out[m] - ref[m]).abs().max() < 1e-4
 
-    def test_analytic_scene_discards(self):
+    def test_analytic_scene_discards(self, backend):
         inp, gd, *_ = scene_pair(H=72, W=96, baseline=0.065)
-        out, valid, reason = run(inp, 0.15, 0.2)  # ~2 pixel footprints at 5 units and 72 rows
+        out, valid, reason = run(inp, 0.15, 0.2, backend=self.backend_arg(backend))  # ~2 pixel footprints at 5 units and 72 rows
         counts = torch.bincount(reason.flatten().long(), minlength=len(Reason))
         assert 0.9 < valid.float().mean() < 1.0
         assert counts[Reason.OUT_OF_FRAME] > 0 and counts[Reason.POSITION] > 0  # frame edge and silhouettes
         err = (out - gd["color"].float()).abs().amax(1, keepdim=True)[valid]
         assert err.median() < 0.01
 
-    @settings(max_examples=25, deadline=None)
+    @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
     @given(shift=st.floats(-3, 3), fwd=st.floats(-0.3, 0.3), yaw=st.floats(-4, 4),
            sampling=st.sampled_from(["bilinear", "nearest"]))
-    def test_property_convex_and_consistent(self, shift, fwd, yaw, sampling):
+    def test_property_convex_and_consistent(self, shift, fwd, yaw, sampling, backend):
+        """(The backend fixture only switches the fast path off for ``torch``: the same for every example.)"""
+        dtype = torch.float64 if backend != "native" else torch.float32
         dst, src = camera_pair(12, 16, baseline=0.065 + abs(shift) * 0.05, forward=fwd, yaw_deg=yaw)
         scene = default_scene()
         gd, gs = raycast(dst, scene), raycast(src, scene)
-        col = torch.rand(1, 3, 12, 16, dtype=torch.float64)
-        out, valid, reason, conf = backward_reproject(col, gs["depth"], gs["normal"], src.K, src.cam_from_world,
-                                                      gd["depth"], gd["normal"], dst.K, dst.cam_from_world,
-                                                      0.05, 0.3, sampling)
+        col = torch.rand(1, 3, 12, 16, dtype=dtype)
+        eps = 1e-12 if dtype == torch.float64 else 1e-6
+        out, valid, reason, conf = backward_reproject(col, gs["depth"].to(dtype), gs["normal"].to(dtype), src.K,
+                                                      src.cam_from_world, gd["depth"].to(dtype),
+                                                      gd["normal"].to(dtype), dst.K, dst.cam_from_world,
+                                                      0.05, 0.3, sampling, backend=self.backend_arg(backend))
         assert torch.equal(valid, reason == 0)
-        assert ((conf >= 0) & (conf <= 1 + 1e-12)).all() and torch.equal(conf > 0, valid)
+        assert ((conf >= 0) & (conf <= 1 + eps)).all() and torch.equal(conf > 0, valid)
         lo, hi = col.amin(dim=(2, 3), keepdim=True), col.amax(dim=(2, 3), keepdim=True)
         v = valid.expand_as(out)
-        assert ((out >= lo - 1e-12) & (out <= hi + 1e-12))[v].all()
+        assert ((out >= lo - eps) & (out <= hi + eps))[v].all()
         assert (out[~v] == 0).all()
 
 
@@ -455,7 +499,7 @@ def _sprinkle(inp, seed, frac=0.03):
     return out
 
 
-class TestFastPath:
+class TestFastPath(BaseTester):
     """Hard tests in inference take a fast path (padded source table, float accept tests, row blocks, reasons only
     for invalid pixels); its four outputs must equal the general path's exactly."""
 
@@ -595,7 +639,7 @@ class TestFastPath:
         self._assert_same(fast, general)
 
 
-class TestComposeCameras:
+class TestComposeCameras(BaseTester):
     """Camera composition: numpy for plain CPU inference, torch ops under autograd / tracing; the same matrices."""
 
     @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -617,7 +661,7 @@ class TestComposeCameras:
                     assert torch.allclose(f, g.detach(), rtol=1e-14, atol=1e-14)
 
 
-class TestSoftReprojection:
+class TestSoftReprojection(BaseTester):
     def test_low_temperature_approaches_hard(self):
         inp, *_ = scene_pair(forward=0.2)
         hard, valid, _ = run(inp, 0.05, 0.3)
@@ -653,7 +697,7 @@ class TestSoftReprojection:
         assert m.position_threshold.grad is not None and torch.isfinite(m.position_threshold.grad)
 
 
-class TestTemporalReproject:
+class TestTemporalReproject(BaseTester):
     NAMES = TemporalReprojection.input_names
 
     def _static(self, H=8, W=10, dtype=torch.float32, n=3.0, seed=0):
@@ -665,17 +709,23 @@ class TestTemporalReproject:
                     prev_depth=inp["src_depth"], prev_normal=inp["src_normal"], prev_K=inp["src_K"],
                     prev_cam_from_world=inp["src_cam_from_world"])
 
-    def _run(self, inp, pos=0.01, nrm=0.1, **kw):
-        return temporal_reproject(*[inp[n] for n in self.NAMES], pos, nrm, **kw)
+    def _run(self, inp, pos=0.01, nrm=0.1, backend=None, **kw):
+        """temporal_reproject on ``inp``, on the ``backend`` fixture's implementation (None: ``auto``)."""
+        be = "auto" if backend is None else self.backend_arg(backend)
+        return temporal_reproject(*[inp[n] for n in self.NAMES], pos, nrm, backend=be, **kw)
 
-    def test_smoke(self):
-        color, n, valid = self._run(self._static())
+    def test_smoke(self, device, dtype, backend):
+        self.skip_unless_runs(backend, dtype, device)
+        inp = {k: v.to(device) for k, v in self._static(dtype=dtype).items()}
+        color, n, valid = self._run(inp, backend=backend)
         assert color.shape == (1, 3, 8, 10) and n.shape == (1, 1, 8, 10) and valid.all()
+        assert color.dtype == dtype and color.device.type == device.type
 
-    def test_cardinality(self, dtype):
+    def test_cardinality(self, dtype, backend):
+        self.skip_unless_runs(backend, dtype, torch.device("cpu"))
         inp = self._static(dtype=dtype)
         inp = {k: torch.cat([v, v]) for k, v in inp.items()}
-        color, n, valid = self._run(inp)
+        color, n, valid = self._run(inp, backend=backend)
         assert color.shape == (2, 3, 8, 10) and color.dtype == dtype
         assert n.shape == (2, 1, 8, 10) and valid.dtype == torch.bool
 
@@ -719,11 +769,12 @@ class TestTemporalReproject:
 
         assert torch.autograd.gradcheck(f, (p,))
 
-    def test_module_equals_function(self):
+    def test_module_equals_function(self, backend):
         inp = self._static()
-        for kw in [dict(), dict(alpha=0.5, warmup=False), dict(soft=True)]:
-            m = TemporalReprojection(0.01, 0.1, **kw)
-            for a, b in zip(m(*[inp[n] for n in self.NAMES]), self._run(inp, **kw)):
+        kws = [dict(), dict(alpha=0.5, warmup=False)] + ([dict(soft=True)] if backend != "native" else [])
+        for kw in kws:
+            m = TemporalReprojection(0.01, 0.1, backend=self.backend_arg(backend), **kw)
+            for a, b in zip(m(*[inp[n] for n in self.NAMES]), self._run(inp, backend=backend, **kw)):
                 assert torch.equal(a, b)
 
     @pytest.mark.onnx
@@ -737,67 +788,99 @@ class TestTemporalReproject:
             np.testing.assert_array_equal(got[2], ref[2].numpy())
 
     # --- hard cases -------------------------------------------------------------------------------------------
-    def test_first_frame_returns_current(self):
+    @pytest.mark.parametrize("case", ["scene", "special", "batch_channels", "turned"])
+    @pytest.mark.parametrize("kw", [dict(), dict(alpha=0.5, warmup=False), dict(max_history=4.0),
+                                    dict(sampling="nearest")], ids=str)
+    def test_matches_reference(self, case, kw, backend):
+        """Each backend against the per-pixel reference (tests/reproject/reference.py): the warp of [history
+        colour, history length] (a non-finite length discards its tap like a non-finite colour), then the blend;
+        random lengths with negative and NaN ones, on the tiny cases of test_ops.py."""
+        from test_ops import REFERENCE_CASES, assert_matches_reference
+
+        args, pos, nrm, sampling = REFERENCE_CASES[case]
+        sampling = kw.get("sampling", sampling)
+        src_color, src_depth, src_normal, src_K, src_T, depth, normal, K, T = args
+        B, _, H, W = depth.shape
+        g = torch.Generator().manual_seed(len(case))
+        history = src_color[:, :3]
+        n = torch.randint(-2, 30, (B, 1) + src_depth.shape[-2:], generator=g).float()
+        n.view(-1)[::7] = float("nan")
+        current = torch.rand(B, 3, H, W, generator=g)
+        with torch.no_grad():
+            color, n_out, valid, reason = temporal_reproject(
+                current, depth, normal, K, T, history, n, src_depth, src_normal, src_K, src_T, pos, nrm,
+                return_reason=True, backend=self.backend_arg(backend), **kw)
+        warped, r_valid, r_reason, conf, margin = reference_backward_reproject(
+            torch.cat([history, n], 1), src_depth, src_normal, src_K, src_T, depth, normal, K, T, pos, nrm, sampling)
+        assert_matches_reference((torch.cat([color, n_out], 1), valid, reason, valid.double()),
+                                 (np.concatenate(reference_temporal_blend(
+                                     current, warped[:, :3], warped[:, 3:], r_valid,
+                                     **{k: v for k, v in kw.items() if k != "sampling"}), 1),
+                                  r_valid, r_reason, r_valid.astype(np.float64), margin), f"{backend} {case} {kw}")
+
+    def test_first_frame_returns_current(self, backend):
         inp = self._static(n=0.0)
         inp["history_color"] = torch.full_like(inp["history_color"], float("nan"))
-        color, n, valid = self._run(inp)
+        color, n, valid = self._run(inp, backend=backend)
         assert torch.equal(color, inp["current_color"]) and (n == 1).all()
 
-    def test_alpha_one_returns_current(self):
+    def test_alpha_one_returns_current(self, backend):
         inp = self._static(n=50.0)
-        color, n, _ = self._run(inp, alpha=1.0)
+        color, n, _ = self._run(inp, alpha=1.0, backend=backend)
         assert torch.equal(color, inp["current_color"])
 
-    def test_warmup_is_running_mean_then_ema(self):
+    def test_warmup_is_running_mean_then_ema(self, backend):
         """Static camera: with warm-up and alpha → 0 the output is the exact running mean of the frames."""
         inp = self._static(n=0.0)
         frames = [torch.rand(1, 3, 8, 10, generator=torch.Generator().manual_seed(i)) for i in range(6)]
         hist, n = inp["history_color"], inp["history_len"]
         for f in frames:
-            hist, n, _ = self._run({**inp, "current_color": f, "history_color": hist, "history_len": n}, alpha=1e-9)
+            hist, n, _ = self._run({**inp, "current_color": f, "history_color": hist, "history_len": n}, alpha=1e-9,
+                                   backend=backend)
         assert torch.allclose(hist, torch.stack(frames).mean(0), atol=1e-6) and (n == 6).all()
         # with alpha = 0.2 the weight stops falling at 0.2 after 4 frames: a fixed EMA from then on
         hist, n = inp["history_color"], inp["history_len"]
         ref = None
         for i, f in enumerate(frames):
-            hist, n, _ = self._run({**inp, "current_color": f, "history_color": hist, "history_len": n}, alpha=0.2)
+            hist, n, _ = self._run({**inp, "current_color": f, "history_color": hist, "history_len": n}, alpha=0.2,
+                                   backend=backend)
             a = max(1.0 / (i + 1), 0.2)
             ref = f if ref is None else (1 - a) * ref + a * f
         assert torch.allclose(hist, ref, atol=1e-6)
 
-    def test_fixed_ema_without_warmup(self):
+    def test_fixed_ema_without_warmup(self, backend):
         inp = self._static(n=0.0)
-        color, n, _ = self._run(inp, alpha=0.2, warmup=False)
+        color, n, _ = self._run(inp, alpha=0.2, warmup=False, backend=backend)
         assert torch.allclose(color, 0.8 * inp["history_color"] + 0.2 * inp["current_color"])
 
-    def test_history_len_at_cap(self):
+    def test_history_len_at_cap(self, backend):
         inp = self._static(n=255.0)
-        color, n, _ = self._run(inp, max_history=255.0)
+        color, n, _ = self._run(inp, max_history=255.0, backend=backend)
         assert (n == 255).all()
         inp = self._static(n=1e9)
-        color, n, _ = self._run(inp, alpha=0.0 + 1e-9, max_history=255.0)
+        color, n, _ = self._run(inp, alpha=0.0 + 1e-9, max_history=255.0, backend=backend)
         assert (n == 255).all() and torch.isfinite(color).all()
 
-    def test_discarded_pixels_restart(self):
+    def test_discarded_pixels_restart(self, backend):
         inp = self._static(n=7.0)
         inp["prev_depth"] = inp["prev_depth"].clone()
         inp["prev_depth"][..., :3] = 4.0  # occluded: history discarded
-        color, n, valid = self._run(inp)
+        color, n, valid = self._run(inp, backend=backend)
         assert not valid[..., :3].any() and valid[..., 3:].all()
         assert torch.equal(color[..., :3], inp["current_color"][..., :3]) and (n[..., :3] == 1).all()
         assert (n[..., 3:] == 8).all()
 
-    def test_nonfinite_history_does_not_leak(self):
+    def test_nonfinite_history_does_not_leak(self, backend):
         inp = self._static(n=4.0)
         inp["history_color"] = inp["history_color"].clone()
         inp["history_color"][..., 2, 2] = float("nan")
         inp["history_color"][..., 5, 5] = float("inf")
-        color, n, valid = self._run(inp)
+        color, n, valid = self._run(inp, backend=backend)
         assert torch.isfinite(color).all() and torch.isfinite(n).all()
         assert not valid[0, 0, 2, 2] and not valid[0, 0, 5, 5]
 
 
-class TestReasonToRgb:
+class TestReasonToRgb(BaseTester):
     def test_colors(self):
         reason = torch.tensor([[[[0, 3, 5, 6]]]], dtype=torch.uint8)
         rgb = reason_to_rgb(reason)
