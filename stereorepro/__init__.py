@@ -15,6 +15,9 @@ from ._version import __version__
 
 from .accumulate import EyeState, SpatiotemporalReprojection, temporal_step
 from .camera import (
+    DEFAULT_BASELINE,
+    DEFAULT_RESOLUTION,
+    Eye,
     PinholeCamera,
     StereoRig,
     Warp,
@@ -72,7 +75,7 @@ _LAZY = {
 
 __all__ = [
     # cameras and conventions
-    "PinholeCamera", "StereoRig", "Warp", "camera_motion", "compose_warp", "has_surface", "intrinsics_from_fov", "invert_rigid",
+    "DEFAULT_BASELINE", "DEFAULT_RESOLUTION", "Eye", "PinholeCamera", "StereoRig", "Warp", "camera_motion", "compose_warp", "has_surface", "intrinsics_from_fov", "invert_rigid",
     "look_at", "pixel_centers", "project", "unproject",
     # the data model of the ops: G-buffer views, settings, named results
     "View", "Thresholds", "Blend", "History", "ReprojectionResult", "TemporalResult",
