@@ -8,9 +8,10 @@ import math
 import pytest
 import torch
 
+from base import BaseTester
 from stereorepro import intrinsics_from_fov
 from stereorepro.errors import CameraError, ShapeError
-from stereorepro.reproject import StereoReprojection, TemporalReprojection, _native
+from stereorepro.reproject import StereoReprojection, TemporalReprojection
 from stereorepro.reproject.functional import backward_reproject, stereo_reproject, temporal_blend, temporal_reproject
 
 H, W = 6, 8
@@ -39,18 +40,14 @@ def temporal_args(history_len):
     return color, depth, normal, K, dst, color.flip(-1), history_len, depth, normal, K, src
 
 
-needs_native = pytest.mark.skipif(not _native.available(), reason="stereorepro._core is not built")
-
-
-class TestHistoryLength:
+class TestHistoryLength(BaseTester):
     """The native temporal kernel gave n = 0, -2 or -1e30 for negative history lengths (torch: 1)."""
 
-    @pytest.mark.parametrize("backend", ["torch", pytest.param("native", marks=needs_native)])
     @pytest.mark.parametrize("value", [-1.0, -3.0, -1e30, math.nan, 0.0])
     def test_negative_history_len_restarts(self, backend, value):
         args = temporal_args(torch.full((1, 1, H, W), value))
         with torch.no_grad():
-            color, n, valid = temporal_reproject(*args, 1.0, 0.5, backend=backend)
+            color, n, valid = temporal_reproject(*args, 1.0, 0.5, backend=self.backend_arg(backend))
         kept = n[valid]
         if math.isnan(value):  # a NaN history value is rejected like any non-finite value
             assert kept.numel() == 0
@@ -58,18 +55,20 @@ class TestHistoryLength:
             assert kept.numel() > 0 and bool((kept == 1).all()), n.unique()
         assert bool(((n >= 1) & (n <= 255)).all())
 
-    @needs_native
-    def test_interpolated_negative_lengths_match_torch(self):
+    def test_interpolated_negative_lengths_match_torch(self, backend, monkeypatch):
+        """Each backend gives the bytes of the torch general path."""
+        from stereorepro.reproject import functional
+
         n = torch.linspace(-4, 3, H * W).view(1, 1, H, W)
         args = temporal_args(n)
         with torch.no_grad():
+            got = temporal_reproject(*args, 1.0, 0.5, backend=self.backend_arg(backend))
+            monkeypatch.setattr(functional, "FAST_PATH", False)
             ref = temporal_reproject(*args, 1.0, 0.5, backend="torch")
-            got = temporal_reproject(*args, 1.0, 0.5, backend="native")
-        for g, r in zip(got, ref):
-            assert torch.equal(g, r)
+        self.assert_identical(got, ref)
 
 
-class TestSoftGradients:
+class TestSoftGradients(BaseTester):
     """Soft mode: a huge but finite source depth gave a NaN threshold gradient; fp32 depths <= 1e-19 gave NaN
     depth gradients."""
 
@@ -100,22 +99,24 @@ class TestSoftGradients:
         (g,) = torch.autograd.grad(out.sum(), [dst_depth])
         assert bool(torch.isfinite(g).all())
 
-    def test_tiny_depth_forward_unchanged(self):
-        """The gradient guard does not change the forward value (bit-identical with and without autograd)."""
+    def test_tiny_depth_forward_unchanged(self, backend):
+        """The gradient guard does not change the forward value: each backend without autograd gives the bytes of
+        the torch path with autograd."""
         color, depth, normal, K, src, dst = scene()
         d = torch.rand_like(depth) * 3 + 0.5
         with torch.no_grad():
-            ref = stereo_reproject(color, d, normal, K, src, d, normal, K, dst, 0.05, 0.1, backend="torch")
+            ref = stereo_reproject(color, d, normal, K, src, d, normal, K, dst, 0.05, 0.1,
+                                   backend=self.backend_arg(backend))
         got = stereo_reproject(color, d, normal, K, src, d.clone().requires_grad_(True), normal, K, dst, 0.05, 0.1)
         for g, r in zip(got, ref):
             assert torch.equal(g.detach(), r)
 
 
-class TestFunctionBoundary:
+class TestFunctionBoundary(BaseTester):
     """Function-level checks the modules had and the functions lacked."""
 
-    @pytest.mark.parametrize("backend", ["torch", pytest.param("native", marks=needs_native)])
     def test_empty_batch(self, backend):
+        backend = self.backend_arg(backend)
         args = [a[:0] for a in stereo_args()]
         color, valid, reason = stereo_reproject(*args, 0.05, 0.1, backend=backend)
         assert color.shape == (0, 3, H, W) and valid.shape == reason.shape == (0, 1, H, W)
@@ -140,18 +141,18 @@ class TestFunctionBoundary:
         with pytest.raises((ValueError, TypeError), match=match):
             temporal_reproject(*temporal_args(torch.ones(1, 1, H, W)), bad, 0.1)
 
-    def test_one_element_threshold_tensor(self):
-        ref = stereo_reproject(*stereo_args(), 0.05, 0.1)
-        got = stereo_reproject(*stereo_args(), torch.tensor([0.05]), torch.tensor([[0.1]]))
+    def test_one_element_threshold_tensor(self, backend):
+        be = self.backend_arg(backend)
+        ref = stereo_reproject(*stereo_args(), 0.05, 0.1, backend=be)
+        got = stereo_reproject(*stereo_args(), torch.tensor([0.05]), torch.tensor([[0.1]]), backend=be)
         for g, r in zip(got, ref):
             assert torch.equal(g, r)
 
-    @pytest.mark.parametrize("backend", ["torch", pytest.param("native", marks=needs_native)])
     @pytest.mark.parametrize("name, value", [("alpha", math.nan), ("alpha", math.inf), ("max_history", math.nan),
                                              ("max_history", 0.5)])
     def test_bad_blend_scalars(self, backend, name, value):
         with pytest.raises(ValueError, match=name):
-            temporal_reproject(*temporal_args(torch.ones(1, 1, H, W)), 0.05, 0.1, backend=backend,
+            temporal_reproject(*temporal_args(torch.ones(1, 1, H, W)), 0.05, 0.1, backend=self.backend_arg(backend),
                                **{name: value})
         color, *_ = scene()
         with pytest.raises(ValueError, match=name):
@@ -165,7 +166,7 @@ class TestFunctionBoundary:
             TemporalReprojection(0.05, 0.1, alpha=math.nan)
 
 
-class TestCameraChecks:
+class TestCameraChecks(BaseTester):
     """Non-rigid / mirrored extrinsics and singular intrinsics were accepted by the library (only the CLI
     checked): a scaled camera gave 0 valid pixels, a mirrored one looked fine."""
 
