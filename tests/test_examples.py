@@ -61,6 +61,40 @@ class TestExamples:
             assert m["effective_spp_median"] > 0
         assert methods["input_1spp"]["effective_spp_median"] == 1.0  # the input is the ladder's first rung
 
+    def test_denoiser_preprocess_input_order(self):
+        """The channels the example feeds its U-Nets are those of its docstring, in that order: (a) log1p of the
+        1-spp colour, albedo, shading normal (9); (b) the same, then log1p of the accumulated colour, the valid
+        mask and log1p(history length) / log(256) (14). Its U-Net is a residual on channels 0-2: untrained (zero
+        head) it returns the 1-spp input. In stereorepro.denoise's layout (FEATURES) channels 0-2 are the
+        accumulated colour, so the same U-Net inside ReprojectionDenoiser starts from the accumulation."""
+        from stereorepro import ReprojectionDenoiser
+        from stereorepro.denoise import FEATURES, denoiser_example_inputs, feature_channels
+
+        ex = load_example("denoiser_preprocess")
+        g = torch.Generator().manual_seed(0)
+        F, H, W = 2, 6, 8
+        clip = {"color": torch.rand(F, 3, H, W, generator=g) * 3 - 0.5, "albedo": torch.rand(F, 3, H, W, generator=g),
+                "normal": torch.nn.functional.normalize(torch.randn(F, 3, H, W, generator=g), dim=1),
+                "accumulated": torch.rand(F, 3, H, W, generator=g) * 2 - 0.2,
+                "valid": (torch.rand(F, 1, H, W, generator=g) > 0.5).float(),
+                "history_len": torch.randint(1, 256, (F, 1, H, W), generator=g).float()}
+        documented = [torch.log1p(clip["color"].clamp_min(0)), clip["albedo"], clip["normal"],
+                      torch.log1p(clip["accumulated"].clamp_min(0)), clip["valid"],
+                      torch.log1p(clip["history_len"]) / np.log(256.0)]
+        plain, reprojected = ex.features(clip, False), ex.features(clip, True)
+        assert plain.shape[1] == 9 and reprojected.shape[1] == 14
+        assert torch.equal(plain, torch.cat(documented[:3], 1))
+        torch.testing.assert_close(reprojected, torch.cat(documented, 1), rtol=0, atol=0)
+        with torch.no_grad():
+            for x in (plain, reprojected):
+                torch.testing.assert_close(ex.UNet(x.shape[1])(x), clip["color"].clamp_min(0), rtol=1e-6, atol=1e-6)
+
+        assert FEATURES[:3] == ("log1p_color_r", "log1p_color_g", "log1p_color_b")
+        model = ReprojectionDenoiser(ex.UNet(feature_channels()), 0.05, 0.2).eval()
+        with torch.no_grad():
+            denoised, accumulated, _ = model(*denoiser_example_inputs(model, height=12, width=16))
+        torch.testing.assert_close(denoised, accumulated.clamp_min(0), rtol=1e-6, atol=1e-6)
+
     def test_train_thresholds(self, tmp_path):
         load_example("train_thresholds").main(["--smoke", "--out", str(tmp_path)])
         res = json.loads((tmp_path / "train_thresholds.json").read_text())
