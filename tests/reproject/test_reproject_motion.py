@@ -47,10 +47,18 @@ def moving_object(dtype=torch.float64):
 
 
 class TestMotionReproject(BaseTester):
-    def test_smoke(self):
-        args, motion, mw, obj, dis = moving_object()
-        c, n, valid, reason = temporal_reproject(*args, *THR, motion=motion, motion_world=mw, return_reason=True)
+    def test_smoke(self, device, dtype, backend):
+        """Motion vectors run on torch (the general path, fast path or not); the native backend refuses them."""
+        args, motion, mw, obj, dis = moving_object(dtype)
+        args, motion, mw = [a.to(device) for a in args], motion.to(device), mw.to(device)
+        if backend == "native":
+            with pytest.raises(RuntimeError, match="motion vectors"), torch.no_grad():
+                temporal_reproject(*args, *THR, motion=motion, motion_world=mw, backend="native")
+            return
+        c, n, valid, reason = temporal_reproject(*args, *THR, motion=motion, motion_world=mw, return_reason=True,
+                                                 backend=self.backend_arg(backend))
         assert c.shape == (1, 3, H, W) and n.shape == valid.shape == reason.shape == (1, 1, H, W)
+        assert c.dtype == dtype and c.device.type == device.type
 
     def test_moving_object_keeps_its_history(self):
         args, motion, mw, obj, dis = moving_object()
@@ -78,15 +86,17 @@ class TestMotionReproject(BaseTester):
         assert not bool(valid[obj].any()) and bool((reason[obj] == Reason.POSITION).all())
 
     @pytest.mark.parametrize("dtype, colour_tol", [(torch.float64, 1e-9), (torch.float32, 2e-4)])
-    def test_static_scene_equals_camera_warp(self, dtype, colour_tol):
-        """On static geometry, motion vectors from the cameras give the camera warp's masks exactly; the colour
-        within 1e-9 in float64, within one ulp of the pixel coordinate times the contrast in float32 (u is
-        formed as pixel + motion instead of by the projection: not bit-exact)."""
+    def test_static_scene_equals_camera_warp(self, dtype, colour_tol, backend):
+        """On static geometry, motion vectors from the cameras give the camera warp's masks exactly (the camera
+        warp on each backend); the colour within 1e-9 in float64, within one ulp of the pixel coordinate times the
+        contrast in float32 (u is formed as pixel + motion instead of by the projection: not bit-exact)."""
+        self.skip_unless_runs(backend, dtype, torch.device("cpu"))
         m = TemporalReprojection(*THR, backend="torch")
         x = example_inputs(m, height=36, width=48, dtype=dtype)
         depth, K, T, pK, pT = x[1], x[3], x[4], x[9], x[10]
         motion = camera_motion(depth, K, T, pK, pT)
-        ref = temporal_reproject(*x, *THR, return_reason=True)
+        with torch.no_grad():
+            ref = temporal_reproject(*x, *THR, return_reason=True, backend=self.backend_arg(backend))
         got = temporal_reproject(*x, *THR, motion=motion, motion_world=torch.zeros_like(x[2]), return_reason=True)
         assert torch.equal(got[2], ref[2]) and torch.equal(got[3], ref[3]) and bool(ref[2].float().mean() > 0.3)
         assert float((got[0] - ref[0]).abs().max()) <= colour_tol
