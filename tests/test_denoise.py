@@ -11,6 +11,7 @@ import pytest
 import torch
 from torch import nn
 
+from base import BaseTester
 from conftest import load_script
 from stereorepro import (CameraError, ReprojectionDenoiser, ShapeError, TemporalReprojection, denoise_features,
                          empty_history, export_onnx, reproject_denoise, reprojection_features, stereo_reproject,
@@ -63,10 +64,11 @@ def assert_parity(ref, got, atol=1e-4):
         assert diff <= tol, f"{name}: max |onnxruntime - torch| = {diff:.3g} > {tol:g}"
 
 
-class TestReprojectionDenoiser:
+class TestReprojectionDenoiser(BaseTester):
     @pytest.mark.parametrize("stereo", [False, True], ids=["temporal", "stereo"])
-    def test_smoke(self, stereo, device, dtype):
-        model = make(stereo).to(device=device, dtype=dtype)
+    def test_smoke(self, stereo, device, dtype, backend):
+        self.skip_unless_runs(backend, dtype, device)
+        model = make(stereo, backend=self.backend_arg(backend)).to(device=device, dtype=dtype)
         xs = inputs(model, dtype=dtype, device=device)
         assert len(xs) == len(model.input_names) == 11 + 5 * stereo
         with torch.no_grad():
@@ -102,42 +104,45 @@ class TestReprojectionDenoiser:
         assert denoise_features(color, n, valid, depth, normal, 16.0).shape[1] == feature_channels() == 9
 
     @pytest.mark.parametrize("stereo", [False, True], ids=["temporal", "stereo"])
-    def test_module_equals_function(self, stereo):
-        model = make(stereo)
+    def test_module_equals_function(self, stereo, backend):
+        be = self.backend_arg(backend)
+        model = make(stereo, backend=be)
         xs = inputs(model)
         with torch.no_grad():
             got = model(*xs)
             other = xs[11:] if stereo else None
-            ref = reproject_denoise(*xs[:11], model.denoiser, *THR, alpha=0.2, other=other)
+            ref = reproject_denoise(*xs[:11], model.denoiser, *THR, alpha=0.2, other=other, backend=be)
             feats, color, n = model.features(*xs)
         for g, r in zip(got, ref):
             assert torch.equal(g, r)
         assert torch.equal(model.denoiser(feats), got[0]) and torch.equal(color, got[1]) and torch.equal(n, got[2])
 
-    def test_state_is_the_temporal_reprojection(self):
+    def test_state_is_the_temporal_reprojection(self, backend):
         """The returned state and the valid channel are TemporalReprojection's, whatever the denoiser does."""
-        model = make()
+        be = self.backend_arg(backend)
+        model = make(backend=be)
         xs = inputs(model)
         with torch.no_grad():
             feats, color, n = model.features(*xs)
-            ref_color, ref_n, ref_valid = TemporalReprojection(*THR, alpha=0.2)(*xs)
+            ref_color, ref_n, ref_valid = TemporalReprojection(*THR, alpha=0.2, backend=be)(*xs)
         assert torch.equal(color, ref_color) and torch.equal(n, ref_n)
         assert torch.equal(feats[:, 4:5], ref_valid.float())
         assert 0.05 < ref_valid.float().mean() < 0.95  # the inputs exercise both kept and discarded pixels
 
-    def test_stereo_channels_are_the_stereo_reprojection(self):
-        model = make(stereo=True)
+    def test_stereo_channels_are_the_stereo_reprojection(self, backend):
+        be = self.backend_arg(backend)
+        model = make(stereo=True, backend=be)
         xs = inputs(model)
         with torch.no_grad():
             feats, _, _ = model.features(*xs)
-            s_color, s_valid, _ = stereo_reproject(*xs[11:], *xs[1:5], *THR)
+            s_color, s_valid, _ = stereo_reproject(*xs[11:], *xs[1:5], *THR, backend=be)
         torch.testing.assert_close(feats[:, 9:12], torch.log1p(s_color.clamp_min(0)))
         assert torch.equal(feats[:, 12:13], s_valid.float())
         assert 0.05 < s_valid.float().mean() < 1
 
-    def test_sequence_feeds_back_like_temporal_step(self):
+    def test_sequence_feeds_back_like_temporal_step(self, backend):
         """Over a sequence, starting from empty_history, the state is temporal_step's (first frame: no state)."""
-        model = make()
+        model = make(backend=self.backend_arg(backend))
         state, history = None, None
         for i in range(4):
             f = frame(i)
