@@ -114,7 +114,7 @@ def module_backends(cls, **kw):
     out = []
     try:
         out.append(("torch", cls(**kw, backend="torch")))
-        from stereorepro import native
+        from stereorepro.reproject import _native as native
 
         if native.available():
             out.append(("native", cls(**kw, backend="native")))

@@ -18,7 +18,8 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _bench_common import header, save, time_ms  # noqa: E402
 
-from stereorepro import PathTracer, StereoReprojection, load_scene, native  # noqa: E402
+from stereorepro import PathTracer, StereoReprojection, load_scene  # noqa: E402
+from stereorepro.reproject import _native as native  # noqa: E402
 from stereorepro.camera import Eye  # noqa: E402
 from stereorepro.cli import parse_resolution  # noqa: E402
 

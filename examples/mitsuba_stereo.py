@@ -57,7 +57,7 @@ def main(argv=None) -> dict:
     from stereorepro.camera import Eye
     from stereorepro.cli import main as cli
     from stereorepro.io.mitsuba import sensor_to_camera
-    from stereorepro.render import read_exr, write_exr
+    from stereorepro.io.exr import read_exr, write_exr
 
     W, H = (64, 48) if args.smoke else tuple(int(v) for v in args.resolution.split("x"))
     frames = 2 if args.smoke else args.frames

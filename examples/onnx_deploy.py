@@ -151,7 +151,7 @@ def main(argv=None) -> dict:
 
     from stereorepro import StereoReprojection, TemporalReprojection, export_onnx, load_scene
     from stereorepro.camera import DEFAULT_RESOLUTION
-    from stereorepro.io.frames import export_sequence
+    from stereorepro.workflows.export import export_sequence
 
     frames, (W, H) = (6, (64, 36)) if args.smoke else (24, DEFAULT_RESOLUTION)
     out = Path(args.out)

@@ -1,4 +1,5 @@
-"""The package as a whole: no import cycles, a light top-level import, the public surface and its old names."""
+"""The package as a whole: the layer order (no import runs up the layers, no cycle), a light top-level import, the
+public surface."""
 
 from __future__ import annotations
 
@@ -16,9 +17,32 @@ import stereorepro
 
 PACKAGE = Path(stereorepro.__file__).resolve().parent
 
+#: The layers of the package, lowest first: a module may import from its own layer and the layers below it,
+#: never from one above (lazy imports inside functions included). Entries name the top-level modules or packages
+#: under ``stereorepro``; ``""`` is the package's ``__init__`` (the public names, which re-exports from every
+#: layer). README's Development section shows the same order.
+LAYERS = (
+    ("foundation", ("errors", "_checks", "_backend", "_version", "_tensors", "camera", "_core")),
+    ("io", ("io",)),  # file formats
+    ("scenes", ("scenes",)),
+    ("render", ("render",)),
+    ("reproject", ("reproject",)),
+    ("accumulate", ("accumulate",)),
+    ("denoise", ("denoise",)),
+    ("measure", ("measure",)),
+    ("workflows", ("workflows",)),  # the application layer: sequences in and out, diagnosis, the experiment
+    ("cli", ("cli", "__main__", "")),
+)
+#: Test inputs (:mod:`stereorepro._testing`) sit outside the layers: they may import anything, and only these
+#: modules import them: ``export_onnx``'s default example inputs and ``denoiser_example_inputs``.
+TESTING = "stereorepro._testing"
+TESTING_USERS = {"stereorepro.io.onnx", "stereorepro.denoise"}
+#: The compiled core has no .py file but is a module of the package.
+NATIVE = "stereorepro._core"
+
 
 def _modules() -> dict[str, Path]:
-    """Every module of the package: dotted name -> file."""
+    """Every Python module of the package: dotted name -> file."""
     out = {}
     for p in sorted(PACKAGE.rglob("*.py")):
         parts = list(p.relative_to(PACKAGE.parent).with_suffix("").parts)
@@ -28,8 +52,10 @@ def _modules() -> dict[str, Path]:
     return out
 
 
-def _imports(name: str, path: Path, modules: dict) -> set[str]:
-    """Package modules that ``name`` imports anywhere in its source (lazy imports inside functions included)."""
+def _imports(name: str, path: Path, modules) -> set[str]:
+    """Package modules that ``name`` imports anywhere in its source (lazy imports inside functions included).
+    ``from pkg import x`` is an import of ``pkg.x`` where that is a module (``modules`` or :data:`NATIVE`), else of
+    ``pkg`` (a name its ``__init__`` defines)."""
     is_pkg = path.name == "__init__.py"
     base = name.split(".") if is_pkg else name.split(".")[:-1]
     found = set()
@@ -42,9 +68,9 @@ def _imports(name: str, path: Path, modules: dict) -> set[str]:
             if node.level:
                 anchor = base[:len(base) - (node.level - 1)]
                 mod = ".".join(anchor + ([mod] if mod else []))
-            targets = [mod] + [f"{mod}.{a.name}" for a in node.names]
+            targets = [f"{mod}.{a.name}" for a in node.names]
         for t in targets:
-            while t and t not in modules:  # ``from pkg import name``: the module or its nearest package
+            while t and t not in modules and t != NATIVE:  # the module, or the nearest package defining the name
                 t = t.rpartition(".")[0]
             if t and t != name:
                 found.add(t)
@@ -94,6 +120,73 @@ def _graph() -> dict[str, set[str]]:
         # which _imports already resolved to the submodule where there is one
         graph[name] = {d for d in deps if not name.startswith(d + ".")}
     return graph
+
+
+def _layer(module: str) -> int | None:
+    """Index in :data:`LAYERS` of a package module (None: not in any layer)."""
+    parts = module.split(".")
+    top = parts[1] if len(parts) > 1 else ""
+    return next((i for i, (_, tops) in enumerate(LAYERS) if top in tops), None)
+
+
+def _edges() -> dict[str, set[str]]:
+    """Every import of every package module (lazy ones included), the package ``__init__`` as ``stereorepro``."""
+    modules = _modules()
+    return {name: _imports(name, path, modules) for name, path in modules.items()}
+
+
+def _upward(edges: dict[str, set[str]]) -> list[str]:
+    """The imports that break the layer order, as ``"importer (layer) -> imported (layer)"``."""
+    bad = []
+    for name, deps in sorted(edges.items()):
+        for dep in sorted(deps):
+            if TESTING in (name, dep):
+                if dep == TESTING and name not in TESTING_USERS:
+                    bad.append(f"{name} -> {dep} (only {sorted(TESTING_USERS)} import the test inputs)")
+                continue
+            lo, hi = _layer(name), _layer(dep)
+            if hi is not None and lo is not None and hi > lo:
+                bad.append(f"{name} ({LAYERS[lo][0]}) -> {dep} ({LAYERS[hi][0]})")
+    return bad
+
+
+class TestLayers:
+    def test_every_module_has_a_layer(self):
+        names = set(_modules()) - {TESTING}
+        assert sorted(n for n in names if _layer(n) is None) == []
+
+    def test_no_import_runs_up_the_layers(self):
+        assert _upward(_edges()) == []
+
+    def test_detects_an_upward_import(self):
+        """The check itself fails on an upward import (here: a file format importing the tracer, as the sequence
+        export did when it lived in io/), on an import of the package ``__init__`` from inside (what reading
+        ``__version__`` from it was) and on a new importer of the test inputs."""
+        edges = _edges()
+        edges["stereorepro.io.frames"] = edges["stereorepro.io.frames"] | {"stereorepro.render.tracer"}
+        edges["stereorepro.measure.metrics"] = edges["stereorepro.measure.metrics"] | {"stereorepro"}
+        edges["stereorepro.accumulate"] = edges["stereorepro.accumulate"] | {TESTING}
+        assert _upward(edges) == [
+            "stereorepro.accumulate -> stereorepro._testing (only ['stereorepro.denoise', 'stereorepro.io.onnx'] "
+            "import the test inputs)",
+            "stereorepro.io.frames (io) -> stereorepro.render.tracer (render)",
+            "stereorepro.measure.metrics (measure) -> stereorepro (cli)"]
+
+    def test_relative_imports_resolve(self):
+        """``from .. import _backend`` is an import of the module, ``from .. import _core`` of the compiled core."""
+        edges = _edges()
+        assert "stereorepro._backend" in edges["stereorepro.reproject.functional"]
+        assert NATIVE in edges["stereorepro.reproject._native"]
+        assert "stereorepro" not in edges["stereorepro.reproject._native"]
+
+    def test_version_without_the_package(self):
+        """The version has one home, which imports nothing; the installed metadata agrees with it."""
+        from importlib.metadata import version
+
+        from stereorepro._version import __version__
+
+        assert _edges()["stereorepro._version"] == set()
+        assert stereorepro.__version__ == __version__ == version("stereorepro")
 
 
 class TestImportGraph:
@@ -146,35 +239,37 @@ class TestPublicSurface:
              "fit_ladder", "ladder_rmse", "mse", "rmse", "ssim", "suggest_reference_spp",
              "SpatiotemporalReprojection", "PathTracer", "RenderResult", "read_exr", "write_exr", "list_scenes",
              "load_scene", "__version__"]
-    #: Module paths of the previous layout and names they held.
-    OLD_MODULES = {
-        "stereorepro.native": ["available", "select_backend", "native_unsupported", "native_backward_reproject",
-                               "native_temporal_reproject", "ENV_VAR", "BACKENDS", "check_backend"],
-        "stereorepro.pipeline": ["SpatiotemporalReprojection", "EyeState"],
-        "stereorepro.reproject_cli": ["REQUIRED_CHANNELS", "NO_HISTORY", "SequenceError", "EyeCamera",
-                                      "FrameSequence", "load_sequence", "read_frame", "reproject_sequence",
-                                      "export_sequence", "register"],
-        "stereorepro.experiment": ["ExperimentConfig", "run_experiment", "REFERENCE_OFFSET", "register", "SCHEMES",
-                                   "RenderCache", "tables_markdown", "THRESHOLD_ROWS"],
-        "stereorepro.onnx_export": ["export_onnx", "example_inputs", "onnx_input_dims"],
-        "stereorepro.metrics": ["rmse", "effective_spp_many", "ladder_rmse", "EffectiveSppLadder"],
+    #: Sub-packages and the names they export.
+    MODULES = {
         "stereorepro.scenes": ["Scene", "SceneError", "SceneGeometry", "list_scenes", "load_scene", "scenes_dir",
-                               "shared_scenes_dir", "KNOWN_EFFECTS"],
-        "stereorepro.render": ["PathTracer", "RenderResult", "ray_epsilon", "read_exr", "write_exr",
-                               "exr_to_tensors"],
+                               "shared_scenes_dir", "KNOWN_EFFECTS", "expand_path"],
+        "stereorepro.render": ["PathTracer", "RenderResult", "ray_epsilon"],
+        "stereorepro.io": ["atomic_path", "atomic_write", "read_exr", "write_exr", "exr_to_tensors", "export_onnx",
+                           "onnx_input_dims"],
+        "stereorepro.measure": ["rmse", "effective_spp_many", "ladder_rmse", "EffectiveSppLadder"],
+        "stereorepro.workflows.experiment": ["ExperimentConfig", "run_experiment", "REFERENCE_OFFSET", "SCHEMES",
+                                             "RenderCache", "tables_markdown", "THRESHOLD_ROWS"],
         "stereorepro._checks": ["ShapeError", "check_shape"],
         "stereorepro.cli": ["main", "parse_resolution", "UserError", "build_parser"],
     }
+    #: Module paths of an earlier layout: gone (module paths inside the package are not a contract).
+    REMOVED = ["stereorepro.native", "stereorepro.pipeline", "stereorepro.reproject_cli", "stereorepro.experiment",
+               "stereorepro.onnx_export", "stereorepro.metrics", "stereorepro.synthetic", "stereorepro.io.sequence",
+               "stereorepro.io.diagnose", "stereorepro.measure.experiment"]
 
     def test_old_names_importable(self):
         for name in self.NAMES:
             assert getattr(stereorepro, name) is not None, name
 
-    @pytest.mark.parametrize("module", sorted(OLD_MODULES))
-    def test_old_modules_importable(self, module):
+    @pytest.mark.parametrize("module", sorted(MODULES))
+    def test_modules_export(self, module):
         mod = importlib.import_module(module)
-        missing = [n for n in self.OLD_MODULES[module] if not hasattr(mod, n)]
+        missing = [n for n in self.MODULES[module] if not hasattr(mod, n)]
         assert missing == []
+
+    def test_removed_modules(self):
+        """(By file: an editable install's import map can still list a removed module.)"""
+        assert sorted(set(self.REMOVED) & set(_modules())) == []
 
     def test_all_is_complete_and_resolves(self):
         public = {n for n in dir(stereorepro) if not n.startswith("_")}
@@ -191,7 +286,9 @@ class TestPublicSurface:
         for e in (SceneError, SequenceError, ShapeError):
             assert issubclass(e, ValueError)  # code written against ValueError keeps working
         assert stereorepro.scenes.SceneError is SceneError
-        assert stereorepro.reproject_cli.SequenceError is SequenceError
+        from stereorepro.io import frames
+
+        assert frames.SequenceError is SequenceError
 
 
 def test_every_module_imports():

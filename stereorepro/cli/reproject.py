@@ -1,5 +1,5 @@
-"""Sub-commands ``stereorepro reproject`` (:func:`stereorepro.io.sequence.reproject_sequence`) and
-``stereorepro export-sequence`` (:func:`stereorepro.io.frames.export_sequence`)."""
+"""Sub-commands ``stereorepro reproject`` (:func:`stereorepro.workflows.sequence.reproject_sequence`) and
+``stereorepro export-sequence`` (:func:`stereorepro.workflows.export.export_sequence`)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,9 @@ import sys
 import torch
 
 from ..errors import SceneError, SequenceError, UserError
-from ..io.frames import SOURCES, export_sequence
-from ..io.sequence import MODES, reproject_sequence
+from ..io.frames import SOURCES
+from ..workflows.export import export_sequence
+from ..workflows.sequence import MODES, reproject_sequence
 from ._args import nonnegative_int, parse_resolution, positive_float, positive_int
 
 

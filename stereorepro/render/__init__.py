@@ -2,11 +2,9 @@
 
 Stages (:mod:`.tracer`): generate → intersect → shade + NEE → bounce → shadow, over structure-of-arrays batches;
 :mod:`.bsdf`, :mod:`.lights` and :mod:`.rng` hold their maths, :mod:`._embree` is the only importer of embreex.
-Scenes are loaded by :func:`stereorepro.scenes.load_scene`; frames are written by :mod:`stereorepro.io.exr`
-(``read_exr`` / ``write_exr`` stay importable from here).
+Scenes are loaded by :func:`stereorepro.scenes.load_scene`; frames are written by :mod:`stereorepro.io.exr`.
 """
 
-from ..io.exr import exr_to_tensors, read_exr, write_exr  # noqa: F401
-from .tracer import PathTracer, RenderResult, ray_epsilon  # noqa: F401
+from .tracer import PathTracer, RenderResult, ray_epsilon
 
-__all__ = ["PathTracer", "RenderResult", "ray_epsilon", "read_exr", "write_exr", "exr_to_tensors"]
+__all__ = ["PathTracer", "RenderResult", "ray_epsilon"]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from stereorepro.cli import main
-from stereorepro.render import exr_to_tensors, read_exr
+from stereorepro.io.exr import exr_to_tensors, read_exr
 
 
 class TestRenderCli:

@@ -23,7 +23,7 @@ import torch
 from stereorepro import camera_motion
 from stereorepro.cli import main
 from stereorepro.io.frames import load_sequence, read_frame
-from stereorepro.render import read_exr
+from stereorepro.io.exr import read_exr
 
 ROOT = Path(__file__).resolve().parents[2]
 W, H = 64, 36

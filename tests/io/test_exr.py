@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from stereorepro.render import RenderResult, exr_to_tensors, read_exr, write_exr
+from stereorepro.io.exr import exr_to_tensors, read_exr, write_exr
+from stereorepro.render import RenderResult
 
 
 def _result(H=5, W=7):

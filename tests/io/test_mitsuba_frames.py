@@ -13,7 +13,7 @@ import torch
 from stereorepro import StereoRig, intrinsics_from_fov, look_at
 from stereorepro.cli import main
 from stereorepro.io.mitsuba import AOVS, FLIP, render_gbuffer, sensor_to_camera
-from stereorepro.render import read_exr, write_exr
+from stereorepro.io.exr import read_exr, write_exr
 
 mi = pytest.importorskip("mitsuba")
 mi.set_variant("scalar_rgb")

@@ -15,24 +15,45 @@ import math
 import pytest
 import torch
 
-from stereorepro import StereoReprojection, TemporalReprojection, native
+from stereorepro import StereoReprojection, TemporalReprojection
+from stereorepro._backend import ENV_VAR
 from stereorepro.camera import compose_warp
 from stereorepro.errors import ShapeError
 from stereorepro.reproject import _native, functional
 from stereorepro.reproject import (
     Reason,
+    Thresholds,
+    View,
     backward_reproject,
+    native_unsupported,
+    select_backend,
     stereo_reproject,
     temporal_blend,
     temporal_reproject,
 )
 from stereorepro._testing import camera_pair, default_scene, raycast
 
-if not native.available():
+if not _native.available():
     pytest.skip("stereorepro._core without the reprojection kernels", allow_module_level=True)
 
-from stereorepro.native import _core, native_backward_reproject, native_temporal_reproject  # noqa: E402
+from stereorepro.reproject._native import _core  # noqa: E402
 from test_reproject import ARGS, plane_pair, scene_pair  # noqa: E402  (tests/reproject/ is on sys.path)
+
+
+def native_backward_reproject(*args, want_confidence: bool = True, **kwargs):
+    """:func:`backward_reproject` on the native backend, flat arguments; ``want_confidence=False`` runs the kernel's
+    variant without the confidence output (confidence None)."""
+    if want_confidence:
+        return backward_reproject(*args, backend="native", **kwargs)
+    src, dst = View(*args[1:5]), View(*args[5:9])
+    sampling = args[11] if len(args) > 11 else kwargs.get("sampling", "bilinear")
+    return functional.warp_values(args[0], src, dst, Thresholds(*args[9:11]), sampling, False, "native",
+                                  confidence=False)
+
+
+def native_temporal_reproject(*args, **kwargs):
+    """:func:`temporal_reproject` on the native backend, flat arguments."""
+    return temporal_reproject(*args, backend="native", **kwargs)
 
 MAX_TIE_FRACTION = 1e-4  # 0.01 %
 
@@ -255,9 +276,9 @@ class TestNativeStereo:
     def test_exceptions(self):
         inp = plane_pair()
         args = [inp[a] for a in ARGS]
-        with pytest.raises(TypeError, match="float32"):
+        with pytest.raises(RuntimeError, match="float32"):  # backend="native" says why it is not possible
             native_backward_reproject(*[a.double() if a.dim() == 4 else a for a in args], 0.01, 0.1)
-        with pytest.raises(ValueError, match="soft"):
+        with pytest.raises(RuntimeError, match="soft"):
             native_backward_reproject(*args, 0.01, 0.1, soft=True)
         with pytest.raises(ValueError, match="sampling"):
             native_backward_reproject(*args, 0.01, 0.1, sampling="bicubic")
@@ -389,10 +410,10 @@ class TestNativeTemporal:
     def test_exceptions(self):
         inp = self._inputs()
         args = [inp[k] for k in self.NAMES]
-        with pytest.raises(TypeError, match="history_len"):
+        with pytest.raises(RuntimeError, match="float64"):  # backend="native" says why it is not possible
             native_temporal_reproject(*[a.double() if k == "history_len" else a for k, a in zip(self.NAMES, args)],
                                       0.05, 0.3)
-        with pytest.raises(ValueError, match="soft"):
+        with pytest.raises(RuntimeError, match="soft"):
             native_temporal_reproject(*args, 0.05, 0.3, soft=True)
         with pytest.raises(ShapeError, match="history_len"):  # checked by temporal_reproject before dispatch
             temporal_reproject(*[torch.zeros(1, 2, 36, 48) if k == "history_len" else a
@@ -452,54 +473,54 @@ class TestBackendSelection:
         return inp
 
     def test_select(self, monkeypatch):
-        monkeypatch.delenv(native.ENV_VAR, raising=False)
+        monkeypatch.delenv(ENV_VAR, raising=False)
         inp = self._stereo_inputs()
         imgs = [inp[a] for a in ARGS if inp[a].dim() == 4]
         cams = [inp[a] for a in ARGS if inp[a].dim() == 3]
-        assert native.select_backend("auto", imgs, cams) == "native"
-        assert native.select_backend("torch", imgs, cams) == "torch"
-        assert native.select_backend("native", imgs, cams) == "native"
-        assert native.select_backend("auto", imgs, cams, soft=True) == "torch"
-        assert native.select_backend("auto", [x.double() for x in imgs], cams) == "torch"
-        assert native.select_backend("auto", [x.half() for x in imgs], cams) == "native"
-        assert native.select_backend("auto", [x.bfloat16() for x in imgs], cams) == "torch"
+        assert select_backend("auto", imgs, cams) == "native"
+        assert select_backend("torch", imgs, cams) == "torch"
+        assert select_backend("native", imgs, cams) == "native"
+        assert select_backend("auto", imgs, cams, soft=True) == "torch"
+        assert select_backend("auto", [x.double() for x in imgs], cams) == "torch"
+        assert select_backend("auto", [x.half() for x in imgs], cams) == "native"
+        assert select_backend("auto", [x.bfloat16() for x in imgs], cams) == "torch"
         grad = [imgs[0].clone().requires_grad_(True)] + imgs[1:]
-        assert native.select_backend("auto", grad, cams) == "torch"
+        assert select_backend("auto", grad, cams) == "torch"
         with torch.no_grad():
-            assert native.select_backend("auto", grad, cams) == "native"
+            assert select_backend("auto", grad, cams) == "native"
         thr = torch.tensor(0.05, requires_grad=True)
-        assert native.select_backend("auto", imgs, cams + [thr]) == "torch"
+        assert select_backend("auto", imgs, cams + [thr]) == "torch"
         with pytest.raises(RuntimeError, match="float32"):
-            native.select_backend("native", [x.double() for x in imgs], cams)
+            select_backend("native", [x.double() for x in imgs], cams)
         with pytest.raises(RuntimeError, match="soft"):
-            native.select_backend("native", imgs, cams, soft=True)
+            select_backend("native", imgs, cams, soft=True)
         with pytest.raises(RuntimeError, match="requires grad"):
-            native.select_backend("native", grad, cams)
+            select_backend("native", grad, cams)
         with pytest.raises(RuntimeError, match="CPU"):
-            native.select_backend("native", imgs + [torch.zeros(1, device="meta")], cams)
+            select_backend("native", imgs + [torch.zeros(1, device="meta")], cams)
         with pytest.raises(ValueError, match="backend"):
-            native.select_backend("cuda", imgs, cams)
+            select_backend("cuda", imgs, cams)
         with pytest.raises(ValueError, match="backend"):
             StereoReprojection(0.05, 0.3, backend="fast")
 
     def test_env_var(self, monkeypatch):
         inp = self._stereo_inputs()
         imgs = [inp[a] for a in ARGS if inp[a].dim() == 4]
-        monkeypatch.setenv(native.ENV_VAR, "torch")
-        assert native.select_backend("native", imgs) == "torch"
-        monkeypatch.setenv(native.ENV_VAR, "native")
-        assert native.select_backend("torch", imgs) == "native"
-        with pytest.raises(RuntimeError, match=native.ENV_VAR):
-            native.select_backend("auto", [x.double() for x in imgs])
-        monkeypatch.setenv(native.ENV_VAR, "AUTO")
-        assert native.select_backend("torch", imgs) == "native"
-        monkeypatch.setenv(native.ENV_VAR, "gpu")
-        with pytest.raises(ValueError, match=native.ENV_VAR):
-            native.select_backend("auto", imgs)
+        monkeypatch.setenv(ENV_VAR, "torch")
+        assert select_backend("native", imgs) == "torch"
+        monkeypatch.setenv(ENV_VAR, "native")
+        assert select_backend("torch", imgs) == "native"
+        with pytest.raises(RuntimeError, match=ENV_VAR):
+            select_backend("auto", [x.double() for x in imgs])
+        monkeypatch.setenv(ENV_VAR, "AUTO")
+        assert select_backend("torch", imgs) == "native"
+        monkeypatch.setenv(ENV_VAR, "gpu")
+        with pytest.raises(ValueError, match=ENV_VAR):
+            select_backend("auto", imgs)
 
     def test_dispatch(self, monkeypatch):
         """Which implementation the functions and modules run, observed by counting native calls."""
-        monkeypatch.delenv(native.ENV_VAR, raising=False)
+        monkeypatch.delenv(ENV_VAR, raising=False)
         calls = count_native_calls(monkeypatch)
         inp = self._stereo_inputs()
         args = [inp[a] for a in ARGS]
@@ -510,10 +531,10 @@ class TestBackendSelection:
         stereo_reproject(*[a.double() for a in args], 0.05, 0.3)
         stereo_reproject(args[0].clone().requires_grad_(True), *args[1:], 0.05, 0.3)
         assert calls == ["s"]
-        monkeypatch.setenv(native.ENV_VAR, "torch")
+        monkeypatch.setenv(ENV_VAR, "torch")
         StereoReprojection(0.05, 0.3, backend="native")(*args)
         assert calls == ["s"]
-        monkeypatch.delenv(native.ENV_VAR)
+        monkeypatch.delenv(ENV_VAR)
         t = TestNativeTemporal()._inputs(H=12, W=16)
         TemporalReprojection(0.05, 0.3)(*[t[k] for k in TemporalReprojection.input_names])
         assert calls == ["s", "t"]
@@ -521,9 +542,9 @@ class TestBackendSelection:
         assert calls == ["s", "t"]
 
     def test_without_core(self, monkeypatch):
-        monkeypatch.delenv(native.ENV_VAR, raising=False)
+        monkeypatch.delenv(ENV_VAR, raising=False)
         monkeypatch.setattr(_native, "_core", None)
-        assert not native.available()
+        assert not _native.available()
         inp = self._stereo_inputs()
         args = [inp[a] for a in ARGS]
         out = StereoReprojection(0.05, 0.3)(*args)  # auto: torch
@@ -542,7 +563,7 @@ class TestBackendSelection:
         from stereorepro import export_onnx
         from stereorepro._testing import example_inputs
 
-        monkeypatch.setenv(native.ENV_VAR, "native")
+        monkeypatch.setenv(ENV_VAR, "native")
         module = StereoReprojection(0.3, 0.3)
         path = export_onnx(module, tmp_path / "s.onnx")
         graph = onnx.load(str(path)).graph
@@ -550,7 +571,7 @@ class TestBackendSelection:
         xs = example_inputs(module, height=10, width=14)
         outs = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(
             None, {n: x.numpy() for n, x in zip(module.input_names, xs)})
-        monkeypatch.delenv(native.ENV_VAR)
+        monkeypatch.delenv(ENV_VAR)
         with torch.no_grad():
             ref = StereoReprojection(0.3, 0.3, backend="torch")(*xs)
         for o, r in zip(outs, ref):
@@ -777,7 +798,7 @@ class TestNativeFloat16:
         assert bool((reason[[1, 2, 3, 4]] == Reason.NORMAL).all()) and bool((reason[[0, 5]] == Reason.KEPT).all())
 
     def test_auto_picks_native(self, monkeypatch):
-        monkeypatch.delenv(native.ENV_VAR, raising=False)
+        monkeypatch.delenv(ENV_VAR, raising=False)
         calls = count_native_calls(monkeypatch)
         inp, *_ = scene_pair(H=12, W=16)
         for layout, names in STEREO_HALF.items():
@@ -795,11 +816,11 @@ class TestNativeFloat16:
         stereo_reproject(*[bf[a] for a in ARGS], 0.05, 0.3)
         assert calls == []  # bfloat16: torch
         imgs = [inp[a].half() for a in ARGS if inp[a].dim() == 4]
-        assert native.select_backend("auto", imgs) == "native"
-        assert native.native_unsupported(imgs) is None
-        assert "bfloat16" in native.native_unsupported([x.bfloat16() for x in imgs])
+        assert select_backend("auto", imgs) == "native"
+        assert native_unsupported(imgs) is None
+        assert "bfloat16" in native_unsupported([x.bfloat16() for x in imgs])
         with pytest.raises(RuntimeError, match="bfloat16"):
-            native.select_backend("native", [x.bfloat16() for x in imgs])
+            select_backend("native", [x.bfloat16() for x in imgs])
 
     def test_kernel_dtypes_checked(self):
         """Direct kernel calls: image arrays float32 or float16 (TypeError otherwise), no hidden conversions."""

@@ -150,7 +150,7 @@ class TestExperiment:
             run_experiment(ExperimentConfig(out=str(tmp_path), metric="srgb", **SMALL))
 
     def test_exr_output(self, first_run, tmp_path):
-        from stereorepro.render import read_exr
+        from stereorepro.io.exr import read_exr
 
         out, _ = first_run
         run_experiment(ExperimentConfig(out=str(tmp_path), cache_dir=str(out / "cache"), exr=True,

@@ -11,10 +11,11 @@ import torch
 
 from stereorepro import SpatiotemporalReprojection, StereoReprojection
 from stereorepro.cli import main
-from stereorepro.render import read_exr, write_exr
 from stereorepro.errors import SequenceError
-from stereorepro.io.frames import REQUIRED_CHANNELS, export_sequence, load_sequence, read_frame
-from stereorepro.io.sequence import NO_HISTORY, reproject_sequence
+from stereorepro.io.exr import read_exr, write_exr
+from stereorepro.io.frames import REQUIRED_CHANNELS, load_sequence, read_frame
+from stereorepro.workflows.export import export_sequence
+from stereorepro.workflows.sequence import NO_HISTORY, reproject_sequence
 
 W, H, N = 32, 18, 3
 
@@ -222,7 +223,7 @@ class TestReprojectCliExceptions:
         assert _frames(out) == ["keep.txt"]
 
     def test_failure_mid_sequence_leaves_nothing(self, work_dir, tmp_path, monkeypatch):
-        import stereorepro.io.sequence as rc
+        import stereorepro.workflows.sequence as rc
 
         real = rc.read_frame
 

@@ -28,9 +28,9 @@ import numpy as np
 import torch
 
 from ..camera import has_surface
-from ..reproject import Reason
+from ..io.frames import FrameSequence, read_frame
+from ..reproject import Reason, Thresholds, View
 from ..reproject.functional import warp_values
-from .frames import FrameSequence, read_frame
 
 __all__ = ["diagnose_conventions", "HYPOTHESES", "POSITION_SHARE_WARN", "POSITION_SHARE_ALARM"]
 
@@ -67,8 +67,10 @@ def _variant(frame: dict, hypothesis: str | None) -> dict:
 
 
 def _position_share(src: dict, dst: dict, pos: float, nrm: float, sampling: str) -> float:
-    _, _, reason = warp_values(src["color"], src["depth"], src["normal"], src["K"], src["cam_from_world"],
-                               dst["depth"], dst["normal"], dst["K"], dst["cam_from_world"], pos, nrm, sampling)
+    def view(f: dict) -> View:
+        return View.unchecked(f["depth"], f["normal"], f["K"], f["cam_from_world"])
+
+    reason = warp_values(src["color"], view(src), view(dst), Thresholds(pos, nrm), sampling, confidence=False).reason
     surf = has_surface(dst["depth"])
     n = int(surf.sum())
     return float(((reason == int(Reason.POSITION)) & surf).sum()) / n if n else 0.0

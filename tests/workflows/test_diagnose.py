@@ -10,10 +10,11 @@ import numpy as np
 import pytest
 
 from stereorepro.cli import main
-from stereorepro.io.diagnose import diagnose_conventions
-from stereorepro.io.frames import export_sequence, load_sequence
-from stereorepro.io.sequence import reproject_sequence
-from stereorepro.render import read_exr, write_exr
+from stereorepro.io.exr import read_exr, write_exr
+from stereorepro.io.frames import load_sequence
+from stereorepro.workflows.diagnose import diagnose_conventions
+from stereorepro.workflows.export import export_sequence
+from stereorepro.workflows.sequence import reproject_sequence
 
 W, H = 96, 54
 

@@ -36,11 +36,11 @@ from torch import Tensor
 
 from ..accumulate import SpatiotemporalReprojection, temporal_step
 from ..errors import SequenceError
+from ..io.atomic import atomic_write, staged_outputs
+from ..io.exr import write_exr
+from ..io.frames import EYES, FrameSequence, load_sequence, read_frame
 from ..reproject import Reason, StereoReprojection, TemporalReprojection
-from .atomic import atomic_write, staged_outputs
 from .diagnose import diagnose_conventions
-from .exr import write_exr
-from .frames import EYES, FrameSequence, load_sequence, read_frame
 
 __all__ = ["MODES", "NO_HISTORY", "reproject_sequence"]
 
@@ -157,7 +157,7 @@ def reproject_sequence(input_dir, out_dir, mode: str = "both", eye: str = "right
     Returns:
         the summary written to ``summary.json``. Its ``mean_discard_pct`` averages the frames that have a history
         (``NO_HISTORY`` frames, the first of an accumulation, are listed in ``no_history_frames``); ``warnings``
-        lists the likely convention mistakes (:func:`stereorepro.io.diagnose.diagnose_conventions`) and frames
+        lists the likely convention mistakes (:func:`stereorepro.workflows.diagnose.diagnose_conventions`) and frames
         whose normals are zero or not finite on more than 1 % of the surface pixels.
 
     Raises:
