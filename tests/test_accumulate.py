@@ -6,7 +6,7 @@ import functools
 import pytest
 import torch
 
-from conftest import backend_arg
+from base import BaseTester
 from stereorepro import (PinholeCamera, SpatiotemporalReprojection, stereo_reproject, temporal_blend,
                          temporal_reproject)
 from stereorepro.accumulate import EyeState, blend_histories, temporal_step, warp_history
@@ -60,18 +60,19 @@ def run_sequence(st, n=4):
     return outs
 
 
-class TestSpatiotemporalReprojection:
-    def test_smoke(self):
-        outs = run_sequence(SpatiotemporalReprojection(*THR), n=2)
+class TestSpatiotemporalReprojection(BaseTester):
+    def test_smoke(self, backend):
+        outs = run_sequence(SpatiotemporalReprojection(*THR, backend=self.backend_arg(backend)), n=2)
         f, right, mask, left = outs[-1]
         assert right.shape == left.shape == (1, 3, H, W) and mask.dtype == torch.bool
 
-    def test_trace_mask_is_stereo_discard(self):
-        st = SpatiotemporalReprojection(*THR, temporal=False)
+    def test_trace_mask_is_stereo_discard(self, backend):
+        be = self.backend_arg(backend)
+        st = SpatiotemporalReprojection(*THR, temporal=False, backend=be)
         f, right, mask, left = run_sequence(st, n=1)[0]
         r, lf = f["right"], f["left"]
         ref, valid, _ = stereo_reproject(r["color"], r["depth"], r["normal"], r["K"], r["cam_from_world"],
-                                         lf["depth"], lf["normal"], lf["K"], lf["cam_from_world"], *THR)
+                                         lf["depth"], lf["normal"], lf["K"], lf["cam_from_world"], *THR, backend=be)
         assert torch.equal(mask, ~valid) and 0 < mask.float().mean() < 0.3
         # stereo only: kept pixels are the reprojection, discarded ones the traced samples (only those are read)
         assert torch.equal(left, torch.where(valid, ref, lf["color"]))
@@ -82,19 +83,20 @@ class TestSpatiotemporalReprojection:
         f, right, mask, left = run_sequence(st, n=1)[0]
         assert mask.all() and torch.equal(left, f["left"]["color"])
 
-    def test_temporal_right_matches_module(self):
-        st = SpatiotemporalReprojection(*THR)
+    def test_temporal_right_matches_module(self, backend):
+        be = self.backend_arg(backend)
+        st = SpatiotemporalReprojection(*THR, backend=be)
         outs = run_sequence(st, n=2)
         f0, right0, *_ = outs[0]
         f1, right1, *_ = outs[1]
         r0, r1 = f0["right"], f1["right"]
         ref, n, valid = temporal_reproject(r1["color"], r1["depth"], r1["normal"], r1["K"], r1["cam_from_world"],
                                            right0, torch.ones_like(r0["depth"]), r0["depth"], r0["normal"],
-                                           r0["K"], r0["cam_from_world"], *THR)
+                                           r0["K"], r0["cam_from_world"], *THR, backend=be)
         assert torch.equal(right1, ref) and torch.equal(st.right_valid, valid)
 
-    def test_accumulation_reduces_error(self):
-        st = SpatiotemporalReprojection(*THR)
+    def test_accumulation_reduces_error(self, backend):
+        st = SpatiotemporalReprojection(*THR, backend=self.backend_arg(backend))
         outs = run_sequence(st, n=6)
         f, right, mask, left = outs[-1]
         for eye, img in (("right", right), ("left", left)):
@@ -184,7 +186,7 @@ def _assert_states_equal(a, b):
         assert sa.history_len.dtype == sb.history_len.dtype
 
 
-class TestBlendHistories:
+class TestBlendHistories(BaseTester):
     def test_smoke(self):
         traced, s, n_s, sv, hist, n_h, hv = _blend_inputs(dtype=torch.float32)
         out, n = blend_histories(traced, s, n_s, sv, hist, n_h, hv)
@@ -301,12 +303,12 @@ class TestBlendHistories:
             assert torch.isfinite(t.grad).all()
 
 
-class TestBlendedLeftEye:
+class TestBlendedLeftEye(BaseTester):
     def test_default_is_the_fill_bit_for_bit(self, backend):
         """The default (and ``left_mode="fill"``) is today's rule, re-derived here from the pure functions:
         right = the temporal chain, left = stereo reprojection where kept, the traced samples accumulated into
         the left eye's own history elsewhere."""
-        be = backend_arg(backend)
+        be = self.backend_arg(backend)
         frames = [frame(i) for i in range(4)]
         st = SpatiotemporalReprojection(*THR, backend=be)
         st_fill = SpatiotemporalReprojection(*THR, backend=be, left_mode="fill")
@@ -343,7 +345,7 @@ class TestBlendedLeftEye:
     def test_empty_right_history_is_the_fill(self, backend):
         """A right eye with nothing to give (no surface anywhere: every left pixel discarded): the blend is the
         fill, bit for bit, over a sequence (colours and both eyes' states)."""
-        be = backend_arg(backend)
+        be = self.backend_arg(backend)
         frames = [frame(i) for i in range(4)]
         for f in frames:
             f["right"]["depth"] = torch.full_like(f["right"]["depth"], float("nan"))
@@ -420,18 +422,20 @@ class TestBlendedLeftEye:
         assert g_r.abs().sum() > 0 and g_l.abs().sum() > 0
 
 
-class TestAlternateEyes:
-    def test_smoke(self):
-        outs = run_eyes(SpatiotemporalReprojection(*THR, alternate=True), [frame(i) for i in range(2)])
+class TestAlternateEyes(BaseTester):
+    def test_smoke(self, backend):
+        outs = run_eyes(SpatiotemporalReprojection(*THR, alternate=True, backend=self.backend_arg(backend)),
+                        [frame(i) for i in range(2)])
         for full, mask, out in outs:
             assert out["left"].shape == out["right"].shape == (1, 3, H, W) and mask.dtype == torch.bool
 
-    def test_traces_the_right_eye_per_frame(self):
+    def test_traces_the_right_eye_per_frame(self, backend):
         """Right in full on even frames, left on odd ones; the full eye takes the one temporal step on its own
         history, the other eye is its reprojection plus its traced discards; the paper's calls refuse the
         frames that trace the left eye."""
+        be = self.backend_arg(backend)
         frames = [frame(i) for i in range(4)]
-        st = SpatiotemporalReprojection(*THR, alternate=True)
+        st = SpatiotemporalReprojection(*THR, alternate=True, backend=be)
         states = {"left": None, "right": None}
         for i, f in enumerate(frames):
             full = st.fully_traced_eye()
@@ -452,7 +456,7 @@ class TestAlternateEyes:
             assert (st.right_valid is None) == (full == "left" or prev is None)
             mask = st.other_trace_mask(b["depth"], b["normal"], b["K"], b["cam_from_world"])
             ref_s, kept, _ = stereo_reproject(out_full, a["depth"], a["normal"], a["K"], a["cam_from_world"],
-                                              b["depth"], b["normal"], b["K"], b["cam_from_world"], *THR)
+                                              b["depth"], b["normal"], b["K"], b["cam_from_world"], *THR, backend=be)
             assert torch.equal(mask, ~kept) and 0 < mask.float().mean() < 0.3  # both directions reproject
             out_other = st.other(torch.where(mask, b["color"], float("nan")))
             assert torch.equal(torch.where(kept, out_other, 0.0), torch.where(kept, ref_s, 0.0))
