@@ -134,6 +134,45 @@ def _check_output_dir(out: Path, input_root: Path) -> None:
         raise SequenceError(f"{out}: is the input directory; write the outputs to another directory")
 
 
+def _check_options(mode: str, eye: str, sampling: str, alpha: float) -> None:
+    if mode not in MODES:
+        raise SequenceError(f"mode must be one of {MODES}, got {mode!r}")
+    if eye not in ("left", "right", "both"):
+        raise SequenceError(f"eye must be left, right or both, got {eye!r}")
+    if sampling not in ("bilinear", "nearest"):
+        raise SequenceError(f"sampling must be bilinear or nearest, got {sampling!r}")
+    if not (0.0 < float(alpha) <= 1.0):
+        raise SequenceError(f"alpha must be in (0, 1], got {alpha}")
+
+
+def _thresholds(seq: FrameSequence, position_threshold: float | None,
+                normal_threshold: float | None) -> tuple[float, float]:
+    """The thresholds given, else those of ``cameras.json``; each required and positive."""
+    pos = position_threshold if position_threshold is not None else seq.position_threshold
+    nrm = normal_threshold if normal_threshold is not None else seq.normal_threshold
+    for name, v in (("position_threshold", pos), ("normal_threshold", nrm)):
+        if v is None:
+            raise SequenceError(f"--{name.replace('_', '-')} is required ({seq.root / 'cameras.json'} has no "
+                                f"reprojection.{name})")
+        if not (math.isfinite(v) and v > 0):
+            raise SequenceError(f"{name} must be a positive number, got {v}")
+    return pos, nrm
+
+
+def _normal_warnings(per_frame: list[dict], eyes: tuple[str, ...]) -> list[dict]:
+    """A warning per frame and eye whose normals are zero or not finite on more than 1 % of the surface."""
+    out = []
+    for f in per_frame:
+        for e in eyes:
+            ns = f[e]["normals"]
+            if ns["surface"] and ns["invalid"] > 0.01 * ns["surface"]:
+                out.append({"test": "normals", "frame": f["frame"], "eye": e, "message":
+                            f"frame {f['frame']} {e}: normals are zero or not finite on "
+                            f"{100.0 * ns['invalid'] / ns['surface']:.1f} % of the surface pixels "
+                            "(those pixels fail the normal test)"})
+    return out
+
+
 def reproject_sequence(input_dir, out_dir, mode: str = "both", eye: str = "right",
                        position_threshold: float | None = None, normal_threshold: float | None = None,
                        alpha: float = 0.2, sampling: str = "bilinear", device="cpu", log=None, warn=None,
@@ -163,24 +202,10 @@ def reproject_sequence(input_dir, out_dir, mode: str = "both", eye: str = "right
     Raises:
         SequenceError: the input is malformed or an option is invalid; nothing was written.
     """
-    if mode not in MODES:
-        raise SequenceError(f"mode must be one of {MODES}, got {mode!r}")
-    if eye not in ("left", "right", "both"):
-        raise SequenceError(f"eye must be left, right or both, got {eye!r}")
-    if sampling not in ("bilinear", "nearest"):
-        raise SequenceError(f"sampling must be bilinear or nearest, got {sampling!r}")
-    if not (0.0 < float(alpha) <= 1.0):
-        raise SequenceError(f"alpha must be in (0, 1], got {alpha}")
+    _check_options(mode, eye, sampling, alpha)
     eyes = (EYES if eye == "both" else (eye,)) if mode == "temporal" else EYES
     seq = load_sequence(input_dir, eyes, source)
-    pos = position_threshold if position_threshold is not None else seq.position_threshold
-    nrm = normal_threshold if normal_threshold is not None else seq.normal_threshold
-    for name, v in (("position_threshold", pos), ("normal_threshold", nrm)):
-        if v is None:
-            raise SequenceError(f"--{name.replace('_', '-')} is required ({seq.root / 'cameras.json'} has no "
-                                f"reprojection.{name})")
-        if not (math.isfinite(v) and v > 0):
-            raise SequenceError(f"{name} must be a positive number, got {v}")
+    pos, nrm = _thresholds(seq, position_threshold, normal_threshold)
     device = torch.device(device)
     if device.type == "cuda" and not torch.cuda.is_available():
         raise SequenceError("device cuda asked for but torch.cuda.is_available() is False")
@@ -198,14 +223,7 @@ def reproject_sequence(input_dir, out_dir, mode: str = "both", eye: str = "right
             per_frame = _process(seq, mode, eyes, float(pos), float(nrm), float(alpha), sampling, device, emit,
                                  log)
         eyes_out = ("left",) if mode == "stereo" else eyes
-        for f in per_frame:
-            for e in eyes_out:
-                ns = f[e]["normals"]
-                if ns["surface"] and ns["invalid"] > 0.01 * ns["surface"]:
-                    warnings.append({"test": "normals", "frame": f["frame"], "eye": e, "message":
-                                     f"frame {f['frame']} {e}: normals are zero or not finite on "
-                                     f"{100.0 * ns['invalid'] / ns['surface']:.1f} % of the surface pixels "
-                                     "(those pixels fail the normal test)"})
+        warnings += _normal_warnings(per_frame, eyes_out)
         for w in warnings:
             warn(w["message"])
         with_history = {e: [f[e]["discard_pct"] for f in per_frame if not f[e]["no_history"]] for e in eyes_out}
