@@ -15,6 +15,7 @@ import math
 import pytest
 import torch
 
+from base import BaseTester
 from stereorepro import StereoReprojection, TemporalReprojection
 from stereorepro._backend import ENV_VAR
 from stereorepro.camera import compose_warp
@@ -57,6 +58,10 @@ def native_temporal_reproject(*args, **kwargs):
 
 MAX_TIE_FRACTION = 1e-4  # 0.01 %
 
+#: The parity tests compare native with each torch implementation: the ``backend`` fixture restricted to the
+#: torch general path (``torch``) and the torch fast path (``fast``), the reference side of every comparison.
+AGAINST_TORCH = pytest.mark.parametrize("backend", ["torch", "fast"], indirect=True)
+
 
 def assert_parity(ref, got, what=""):
     """ref / got: (values, valid, reason[, confidence]). Returns the number of valid/reason mismatches (ties)."""
@@ -79,8 +84,9 @@ def assert_parity(ref, got, what=""):
 
 
 def both_stereo(inp, pos=0.01, nrm=0.1, sampling="bilinear"):
+    """(torch, native) outputs: torch on the path the ``backend`` fixture chose (general or fast)."""
     args = [inp[a] for a in ARGS]
-    ref = backward_reproject(*args, pos, nrm, sampling)
+    ref = backward_reproject(*args, pos, nrm, sampling, backend="torch")
     got = native_backward_reproject(*args, pos, nrm, sampling)
     return ref, got
 
@@ -256,13 +262,14 @@ def count_native_calls(monkeypatch) -> list:
     return calls
 
 
-class TestNativeStereo:
+class TestNativeStereo(BaseTester):
     def test_smoke(self):
         values, valid, reason, conf = native_backward_reproject(*[plane_pair()[a] for a in ARGS], 0.01, 0.1)
         assert values.shape == (1, 3, 6, 8) and valid.dtype == torch.bool and reason.dtype == torch.uint8
         assert conf.shape == (1, 1, 6, 8) and conf.dtype == torch.float32
 
-    def test_cardinality(self):
+    @AGAINST_TORCH
+    def test_cardinality(self, backend):
         src = plane_pair(H=6, W=8, B=2)
         dst = plane_pair(H=5, W=7, B=2)
         inp = {**{k: v for k, v in src.items() if k.startswith("src")},
@@ -320,7 +327,8 @@ class TestNativeStereo:
 
     @pytest.mark.parametrize("sampling", ["bilinear", "nearest"])
     @pytest.mark.parametrize("case", sorted(HARD_CASES))
-    def test_parity_hard_cases(self, case, sampling):
+    @AGAINST_TORCH
+    def test_parity_hard_cases(self, case, sampling, backend):
         inp, pos, nrm = HARD_CASES[case]()
         ref, got = both_stereo(inp, pos, nrm, sampling)
         assert_parity(ref, got, case)
@@ -334,14 +342,16 @@ class TestNativeStereo:
 
     @pytest.mark.parametrize("hw", RESOLUTIONS)
     @pytest.mark.parametrize("sampling", ["bilinear", "nearest"])
-    def test_parity_random_scenes(self, hw, sampling):
+    @AGAINST_TORCH
+    def test_parity_random_scenes(self, hw, sampling, backend):
         for seed in range(3):
             inp, pos, nrm = random_scene(*hw, seed=seed + 17 * hw[0] + hw[1])
             ref, got = both_stereo(inp, pos, nrm, sampling)
             assert_parity(ref, got, f"{hw} seed {seed}")
 
     @pytest.mark.parametrize("sampling", ["bilinear", "nearest"])
-    def test_parity_rectified_rig(self, sampling):
+    @AGAINST_TORCH
+    def test_parity_rectified_rig(self, sampling, backend):
         # A parallel rig's epipolar lines are rows: every tap row has fy = 0, so the kernel's vector path skips the
         # zero-weight y1 taps. Widths that are multiples of 8 (vector path only) and not (scalar tail).
         for H, W, baseline in ((40, 64, 0.065), (41, 75, 0.13), (16, 128, 0.3)):
@@ -358,7 +368,8 @@ class TestNativeStereo:
         assert lean[3] is None
         assert all(torch.equal(a, b) for a, b in zip(full[:3], lean[:3]))
 
-    def test_parity_different_source_size(self):
+    @AGAINST_TORCH
+    def test_parity_different_source_size(self, backend):
         src, *_ = scene_pair(H=40, W=56, forward=0.1)
         dst, *_ = scene_pair(H=33, W=47)
         inp = {**{k: v for k, v in src.items() if k.startswith("src")},
@@ -366,7 +377,8 @@ class TestNativeStereo:
         ref, got = both_stereo(inp, 0.1, 0.3)
         assert_parity(ref, got, "Hs != H")
 
-    def test_module(self):
+    @AGAINST_TORCH
+    def test_module(self, backend):
         inp, *_ = scene_pair(forward=0.1)
         args = [inp[a] for a in ARGS]
         with torch.no_grad():
@@ -375,7 +387,7 @@ class TestNativeStereo:
         assert_parity(ref, got, "module")
 
 
-class TestNativeTemporal:
+class TestNativeTemporal(BaseTester):
     NAMES = TemporalReprojection.input_names
 
     def _inputs(self, H=36, W=48, seed=0, n=3.0, forward=0.1):
@@ -426,12 +438,14 @@ class TestNativeTemporal:
 
     @pytest.mark.parametrize("kw", [dict(), dict(alpha=0.5, warmup=False), dict(alpha=1.0), dict(alpha=1e-9),
                                     dict(max_history=4.0), dict(sampling="nearest")], ids=str)
-    def test_parity(self, kw):
+    @AGAINST_TORCH
+    def test_parity(self, kw, backend):
         for seed, n in [(0, 3.0), (1, 0.0), (2, None), (3, 1e9)]:
             inp = self._inputs(seed=seed, n=n)
             self._parity(*self._both(inp, **kw), f"{kw} n={n}")
 
-    def test_parity_hard_cases(self):
+    @AGAINST_TORCH
+    def test_parity_hard_cases(self, backend):
         inp = self._inputs(n=4.0)
         inp["history_color"] = inp["history_color"].clone()
         inp["history_color"][..., 2, 2] = float("nan")
@@ -446,7 +460,8 @@ class TestNativeTemporal:
         self._parity(*self._both(inp), "hard")
 
     @pytest.mark.parametrize("hw", RESOLUTIONS)
-    def test_parity_random_scenes(self, hw):
+    @AGAINST_TORCH
+    def test_parity_random_scenes(self, hw, backend):
         for seed in range(2):
             s, pos, nrm = random_scene(*hw, seed=seed + 31 * hw[0] + hw[1])
             g = torch.Generator().manual_seed(seed)
@@ -458,7 +473,8 @@ class TestNativeTemporal:
                        prev_cam_from_world=s["src_cam_from_world"])
             self._parity(*self._both(inp, pos, nrm), f"{hw} seed {seed}")
 
-    def test_module(self):
+    @AGAINST_TORCH
+    def test_module(self, backend):
         inp = self._inputs(n=None)
         args = [inp[k] for k in self.NAMES]
         with torch.no_grad():
@@ -467,7 +483,7 @@ class TestNativeTemporal:
         self._parity(ref, got, "module")
 
 
-class TestBackendSelection:
+class TestBackendSelection(BaseTester):
     def _stereo_inputs(self):
         inp, *_ = scene_pair(H=12, W=16)
         return inp
@@ -633,7 +649,7 @@ def hdr(inp: dict, seed: int, key="src_color") -> dict:
     return dict(inp, **{key: x * torch.exp2(e)})
 
 
-class TestNativeFloat16:
+class TestNativeFloat16(BaseTester):
     NAMES = TemporalReprojection.input_names
 
     def _stereo_both(self, inp, pos, nrm, sampling="bilinear", confidence=False):
@@ -664,7 +680,8 @@ class TestNativeFloat16:
 
     @pytest.mark.parametrize("layout", sorted(STEREO_HALF))
     @pytest.mark.parametrize("sampling", ["bilinear", "nearest"])
-    def test_parity_stereo(self, layout, sampling):
+    @AGAINST_TORCH
+    def test_parity_stereo(self, layout, sampling, backend):
         for hw in RESOLUTIONS:
             for seed in range(2):
                 inp, pos, nrm = random_scene(*hw, seed=seed + 7 * hw[1])
@@ -674,7 +691,8 @@ class TestNativeFloat16:
                 assert_bytes_equal(ref, got, f"{layout} {hw} seed {seed}")
 
     @pytest.mark.parametrize("layout", sorted(STEREO_HALF))
-    def test_parity_backward_confidence(self, layout):
+    @AGAINST_TORCH
+    def test_parity_backward_confidence(self, layout, backend):
         for C in (1, 3, 5):
             for hw in ((36, 48), (29, 67)):
                 inp, pos, nrm = random_scene(*hw, seed=C + hw[1])
@@ -687,7 +705,8 @@ class TestNativeFloat16:
 
     @pytest.mark.parametrize("layout", ["colour+normals", "all"])
     @pytest.mark.parametrize("case", sorted(HARD_CASES))
-    def test_parity_hard_cases(self, case, layout):
+    @AGAINST_TORCH
+    def test_parity_hard_cases(self, case, layout, backend):
         inp, pos, nrm = HARD_CASES[case]()
         inp = to_half(inp, STEREO_HALF[layout])
         for sampling in ("bilinear", "nearest"):
@@ -696,7 +715,8 @@ class TestNativeFloat16:
     @pytest.mark.parametrize("layout", sorted(TEMPORAL_HALF))
     @pytest.mark.parametrize("kw", [dict(), dict(alpha=0.5, warmup=False), dict(alpha=1.0), dict(max_history=4.0),
                                     dict(sampling="nearest"), dict(return_reason=True)], ids=str)
-    def test_parity_temporal(self, layout, kw):
+    @AGAINST_TORCH
+    def test_parity_temporal(self, layout, kw, backend):
         for hw in ((36, 48), (23, 61), (5, 7)):
             inp = to_half(self._temporal_inputs(*hw, seed=hw[1]), TEMPORAL_HALF[layout])
             ref, got = self._temporal_both(inp, **kw)
@@ -704,7 +724,8 @@ class TestNativeFloat16:
             assert_bytes_equal(ref, got, f"{layout} {kw} {hw}")
 
     @pytest.mark.parametrize("W", [7, 64, 69])
-    def test_every_half_exact(self, W):
+    @AGAINST_TORCH
+    def test_every_half_exact(self, W, backend):
         """Every float16 bit pattern through an exact warp (integer shift: one tap of weight 1): finite values come
         out as they went in (widening and narrowing are exact), non-finite ones are discarded (NONFINITE)."""
         bits = torch.arange(-32768, 32768, dtype=torch.int32).to(torch.int16)
@@ -723,7 +744,8 @@ class TestNativeFloat16:
         assert torch.equal(out.float()[finite.expand_as(out)], colour[..., :-1].float()[finite.expand_as(out)])
 
     @pytest.mark.parametrize("W", [7, 64, 69])
-    def test_rounding_to_half(self, W):
+    @AGAINST_TORCH
+    def test_rounding_to_half(self, W, backend):
         """The colour output's float32 -> float16 rounding, probed through temporal with alpha = 0 (no warmup): the
         output is then the float32 history itself, rounded to the float16 current colour's dtype. Values around
         every rounding boundary: ties to even, subnormals, underflow to 0, 65504 and the overflow at 65520."""
@@ -752,7 +774,8 @@ class TestNativeFloat16:
         assert torch.equal(got[0][..., 1:], hist[..., :-1].half())  # torch's rounding of the float32 history
 
     @pytest.mark.parametrize("W", [6, 40, 45])
-    def test_nonfinite_and_huge_colour(self, W):
+    @AGAINST_TORCH
+    def test_nonfinite_and_huge_colour(self, W, backend):
         """NaN / ±inf / 65504 / -65504 / subnormal float16 colours, in the source (stereo) and in the history and the
         current frame (temporal; a float32 history overflows the float16 output)."""
         H = 9
@@ -783,7 +806,8 @@ class TestNativeFloat16:
         assert_bytes_equal(*self._temporal_both(t16, 0.1, 0.1), "temporal, float16 history")
 
     @pytest.mark.parametrize("W", [7, 48])
-    def test_zero_and_nan_normals(self, W):
+    @AGAINST_TORCH
+    def test_zero_and_nan_normals(self, W, backend):
         """Zero, NaN and ±inf float16 normals (source and destination) read as zero vectors: NORMAL."""
         inp = plane_pair(H=6, W=W, shift_px=1)
         sn, dn = inp["src_normal"].clone(), inp["dst_normal"].clone()
