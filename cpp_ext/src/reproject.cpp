@@ -954,6 +954,7 @@ void bind_reproject(nb::module_ &m) {
     nb::dict constants;
     constants["COORD_MARGIN"] = nb::cast(kCoordMargin);
     constants["F32_EXACT_INT"] = nb::cast(kF32ExactInt);
+    constants["MAX_CHANNELS"] = nb::cast(kMaxStackChannels);
     const std::pair<const char *, uint8_t> reasons[] = {
         {"REASON_KEPT", KEPT},
         {"REASON_NO_SURFACE_DST", NO_SURFACE_DST},

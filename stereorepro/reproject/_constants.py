@@ -29,6 +29,10 @@ F32_EXACT_INT = 2 ** 24
 #: code a tap can report (they run up to ``NONFINITE``).
 TAP_OK_CODE = float(Reason.NONFINITE) + 1.0
 
+#: Most value channels the native kernels carry per pixel (the temporal kernel's history colour plus its length):
+#: inputs with more run on torch (``backend="auto"``).
+NATIVE_MAX_CHANNELS = 16
+
 #: What the native kernels hold as their own compile-time copies (``_core.reproject_constants`` must equal it).
-MIRRORED_IN_CORE = {"COORD_MARGIN": COORD_MARGIN, "F32_EXACT_INT": F32_EXACT_INT,
+MIRRORED_IN_CORE = {"COORD_MARGIN": COORD_MARGIN, "F32_EXACT_INT": F32_EXACT_INT, "MAX_CHANNELS": NATIVE_MAX_CHANNELS,
                     **{f"REASON_{r.name}": int(r) for r in Reason if r <= Reason.NONFINITE}}

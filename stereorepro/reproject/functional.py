@@ -48,6 +48,7 @@ from ..camera import compose_warp, rectify_warp
 from ..errors import ShapeError
 from . import _fast, _flat, _general, _lean, _native
 from ._flat import stereo_views, temporal_views
+from ._constants import NATIVE_MAX_CHANNELS
 from ._general import as_scalar, compute_dtype, inference_only, squared_thresholds
 from .view import Blend, History, ReprojectionResult, TemporalResult, Thresholds, View
 
@@ -68,7 +69,7 @@ EXPORT_LEAN = True
 
 
 def native_unsupported(images: Iterable[Tensor], others: Iterable = (), soft: bool = False,
-                       motion: bool = False) -> str | None:
+                       motion: bool = False, channels: int = 0) -> str | None:
     """Why the native kernels cannot run these inputs, or None when they can.
 
     Args:
@@ -77,6 +78,7 @@ def native_unsupported(images: Iterable[Tensor], others: Iterable = (), soft: bo
         others: other inputs (cameras, thresholds, alpha): only device and autograd are checked.
         soft: soft accept tests (torch only).
         motion: motion vectors given (torch only).
+        channels: value channels carried per pixel (at most :data:`~._constants.NATIVE_MAX_CHANNELS` natively).
     """
     images = list(images)
     tensors = images + [x for x in others if isinstance(x, Tensor)]
@@ -88,6 +90,8 @@ def native_unsupported(images: Iterable[Tensor], others: Iterable = (), soft: bo
         return "soft=True (differentiable thresholds) is implemented in torch only"
     if motion:
         return "motion vectors (motion=...) are implemented in torch only"
+    if channels > NATIVE_MAX_CHANNELS:
+        return f"the native kernels carry at most {NATIVE_MAX_CHANNELS} value channels, got {channels}"
     devices = {str(t.device) for t in tensors if t.device.type != "cpu"}
     if devices:
         return f"the native kernels run on the CPU only, got tensors on {sorted(devices)}"
@@ -101,7 +105,7 @@ def native_unsupported(images: Iterable[Tensor], others: Iterable = (), soft: bo
 
 
 def select_backend(backend: str, images: Iterable[Tensor], others: Iterable = (), soft: bool = False,
-                   motion: bool = False) -> str:
+                   motion: bool = False, channels: int = 0) -> str:
     """Resolve ``backend`` (``"auto"`` | ``"torch"`` | ``"native"``) to ``"torch"`` or ``"native"``.
 
     * ``STEREOREPRO_BACKEND`` overrides ``backend`` when set (:mod:`stereorepro._backend`: the rule the tracer
@@ -112,7 +116,7 @@ def select_backend(backend: str, images: Iterable[Tensor], others: Iterable = ()
     * ``"native"`` runs native and raises RuntimeError saying why when it is not possible;
     * tracing, ONNX export and ``torch.compile`` always use torch, whatever was asked.
     """
-    chosen = _backend.resolve(backend, BACKENDS, lambda: native_unsupported(images, others, soft, motion),
+    chosen = _backend.resolve(backend, BACKENDS, lambda: native_unsupported(images, others, soft, motion, channels),
                               reference_only=tracing())
     return "native" if chosen == "native" else "torch"
 
@@ -256,7 +260,7 @@ def warp_values(values: Tensor, src: View, dst: View, thresholds: Thresholds, sa
         return ReprojectionResult(*_empty_outputs(values, dst.depth, confidence))
     images = (values, src.depth, src.normal, dst.depth, dst.normal)
     others = (src.K, src.cam_from_world, dst.K, dst.cam_from_world, thresholds.position, thresholds.normal)
-    if select_backend(backend, images, others, soft, dst.motion is not None) == "native":
+    if select_backend(backend, images, others, soft, dst.motion is not None, values.shape[1]) == "native":
         out = _native_backward(values, src, dst, thresholds, sampling, confidence, rectified)
     else:
         out = _torch_backward(values, src, dst, thresholds, sampling, soft, rectified)
@@ -549,7 +553,8 @@ def reproject_history(current_color: Tensor, view: View, history: History, prev_
               prev_view.normal)
     others = (view.K, view.cam_from_world, prev_view.K, prev_view.cam_from_world, thr.position, thr.normal,
               blend.alpha)
-    native = select_backend(backend, images, others, soft, view.motion is not None) == "native"
+    channels = history.color.shape[1] + 1  # the history length rides along
+    native = select_backend(backend, images, others, soft, view.motion is not None, channels) == "native"
     if native and not return_reason:
         return TemporalResult(*_native_temporal(current_color, view, history, prev_view, thr, blend, sampling))
     work = compute_dtype(*history)

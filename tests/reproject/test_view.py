@@ -276,3 +276,16 @@ class TestInputDescription(BaseTester):
         with pytest.raises(TypeError, match="input_fields"):
             sr.export_onnx(NoFields(), tmp_path / "x.onnx", inputs=(torch.zeros(1),))
         assert not (tmp_path / "x.onnx").exists()
+
+
+class TestChannels(BaseTester):
+    def test_many_channels_fall_back_to_torch(self):
+        from stereorepro.reproject import _native
+
+        color, src, dst = make_views()
+        values = torch.rand(1, 20, 9, 12)  # more than the native kernels carry
+        auto = backward_reproject(values, src, dst, (0.05, 0.2))
+        self.assert_identical(auto, backward_reproject(values, src, dst, (0.05, 0.2), backend="torch"))
+        if _native.available():
+            with pytest.raises(RuntimeError, match="at most 16 value channels"):
+                backward_reproject(values, src, dst, (0.05, 0.2), backend="native")
