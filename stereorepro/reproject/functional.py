@@ -42,11 +42,11 @@ import torch
 from torch import Tensor
 
 from .. import _backend
-from .._checks import (check_blend, check_device, check_floating, check_sampling, check_shape, check_thresholds,
-                       tracing)
+from .._checks import (STEREO_NAMES, check_blend, check_device, check_floating, check_motion, check_sampling,
+                       check_shape, check_thresholds, tracing)
 from ..camera import compose_warp, rectify_warp
 from ..errors import ShapeError
-from . import _fast, _flat, _general, _lean, _native
+from . import _fast, _general, _lean, _native
 from ._flat import stereo_views, temporal_views
 from ._constants import NATIVE_MAX_CHANNELS
 from ._general import as_scalar, compute_dtype, inference_only, squared_thresholds
@@ -238,7 +238,7 @@ def backward_reproject(
     if not isinstance(src, View):
         _deprecated("backward_reproject", "backward_reproject(values, src: View, dst: View, (position_threshold, "
                     "normal_threshold), ...)")
-        return _flat.backward_reproject(values, src, dst, thresholds, *legacy_args, **_given(
+        return _flat_backward(values, src, dst, thresholds, *legacy_args, **_given(
             sampling=(sampling, "bilinear"), soft=(soft, False), backend=(backend, "auto"),
             rectified=(rectified, False)), **legacy_kwargs)
     _no_extra("backward_reproject", legacy_args, legacy_kwargs)
@@ -374,7 +374,7 @@ def stereo_reproject(
     if not isinstance(src, View):
         _deprecated("stereo_reproject", "stereo_reproject(src_color, src: View, dst: View, (position_threshold, "
                     "normal_threshold), ...)")
-        return _flat.stereo_reproject(color, src, dst, thresholds, *legacy_args, **_given(
+        return _flat_stereo(color, src, dst, thresholds, *legacy_args, **_given(
             sampling=(sampling, "bilinear"), soft=(soft, False), backend=(backend, "auto"),
             rectified=(rectified, False)), **legacy_kwargs)
     _no_extra("stereo_reproject", legacy_args, legacy_kwargs)
@@ -521,7 +521,7 @@ def temporal_reproject(
     if not isinstance(view, View):
         _deprecated("temporal_reproject", "temporal_reproject(current_color, view: View, history: History, "
                     "prev_view: View, (position_threshold, normal_threshold), ...)")
-        return _flat.temporal_reproject(current_color, view, history, prev_view, thresholds, *legacy_args, **_given(
+        return _flat_temporal(current_color, view, history, prev_view, thresholds, *legacy_args, **_given(
             sampling=(sampling, "bilinear"), soft=(soft, False), backend=(backend, "auto"),
             return_reason=(return_reason, False)), **legacy_kwargs)
     _no_extra("temporal_reproject", legacy_args, legacy_kwargs)
@@ -569,3 +569,58 @@ def reproject_history(current_color: Tensor, view: View, history: History, prev_
     blend_fn = _lean.lean_blend if not native and _exporting_lean(soft, view.motion) else temporal_blend
     color, n = blend_fn(current_color, warped[:, :3], warped[:, 3:4], confidence, *blend)
     return TemporalResult(color, n, valid, reason if return_reason else None)
+
+
+# The flat forms of the ops (deprecated): checks under the flat argument names, then the View forms' code.
+
+
+def _flat_backward(src_values, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal, dst_K,
+                       dst_cam_from_world, position_threshold, normal_threshold, sampling="bilinear", soft=False,
+                       temperature=0.1, check=True, backend="auto", motion=None, motion_world=None,
+                       rectified=False) -> ReprojectionResult:
+    """The flat form of :func:`~stereorepro.reproject.backward_reproject` (deprecated)."""
+    check_sampling(sampling)
+    src, dst = stereo_views(src_values, (src_depth, src_normal, src_K, src_cam_from_world),
+                            (dst_depth, dst_normal, dst_K, dst_cam_from_world), dict(STEREO_NAMES,
+                                                                                    src_values="src_values"), check)
+    if check:
+        check_thresholds(position_threshold, normal_threshold)
+        check_motion(motion, motion_world, dst_depth, "motion", "motion_world")
+    if rectified and motion is not None:
+        raise ValueError("backward_reproject: rectified=True declares a same-instant stereo pair; it cannot be "
+                         "combined with motion vectors")
+    dst = View.unchecked(dst_depth, dst_normal, dst_K, dst_cam_from_world, motion, motion_world)
+    thr = Thresholds(position_threshold, normal_threshold, temperature)
+    return warp_values(src_values, src, dst, thr, sampling, soft, backend, rectified)
+
+
+def _flat_stereo(src_color, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal, dst_K,
+                     dst_cam_from_world, position_threshold, normal_threshold, sampling="bilinear", soft=False,
+                     temperature=0.1, backend="auto", rectified=False) -> tuple[Tensor, Tensor, Tensor]:
+    """The flat form of :func:`~stereorepro.reproject.stereo_reproject` (deprecated)."""
+    check_shape(src_color, ["B", "3", "H", "W"], "src_color")
+    check_sampling(sampling)
+    src, dst = stereo_views(src_color, (src_depth, src_normal, src_K, src_cam_from_world),
+                            (dst_depth, dst_normal, dst_K, dst_cam_from_world))
+    check_thresholds(position_threshold, normal_threshold)
+    thr = Thresholds(position_threshold, normal_threshold, temperature)
+    out = warp_values(src_color, src, dst, thr, sampling, soft, backend, rectified, confidence=False)
+    return out[0], out[1], out[2]
+
+
+def _flat_temporal(current_color, depth, normal, K, cam_from_world, history_color, history_len, prev_depth,
+                       prev_normal, prev_K, prev_cam_from_world, position_threshold, normal_threshold, alpha=0.2,
+                       warmup=True, max_history=255.0, sampling="bilinear", soft=False, temperature=0.1,
+                       backend="auto", return_reason=False, motion=None, motion_world=None) -> tuple[Tensor, ...]:
+    """The flat form of :func:`~stereorepro.reproject.temporal_reproject` (deprecated)."""
+    history = History(history_color, history_len)
+    view, prev_view = temporal_views(current_color, (depth, normal, K, cam_from_world), history,
+                                     (prev_depth, prev_normal, prev_K, prev_cam_from_world), (motion, motion_world))
+    check_sampling(sampling)
+    if not tracing():
+        check_thresholds(position_threshold, normal_threshold)
+        check_blend(alpha, max_history)
+    out = reproject_history(current_color, view, history, prev_view,
+                                       Thresholds(position_threshold, normal_threshold, temperature),
+                                       Blend(alpha, warmup, max_history), sampling, soft, backend, return_reason)
+    return tuple(out) if return_reason else tuple(out[:3])
