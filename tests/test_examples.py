@@ -6,6 +6,7 @@ each on 2 cores); assertions are on the JSON it writes.
 
 from __future__ import annotations
 
+import argparse
 import json
 
 import numpy as np
@@ -105,6 +106,24 @@ class TestExamples:
         for label in ("hand_set", "learned"):
             h = res["held_out"][label]
             assert np.isfinite(h["rmse_mean"]) and h["effective_spp_median"] > 0
+
+
+    def test_train_thresholds_learned_beat_hand_set(self, tmp_path):
+        """What the example shows (docs/used_by.md): given enough training frames, the learned thresholds and alpha
+        beat the hand-set ones on held-out frames (with hard tests). A fixed small case: 64x36, 60 Adam steps over
+        10-frame windows of frames 0-29, held-out frames 40-49, 32-spp references, seed 0. Measured: RMSE 0.1930
+        (hand-set) -> 0.1911 (learned), effective spp 3.82 -> 3.89, the same in repeated runs. (The smoke run
+        trains on 16 frames for 40 steps: too little, its learned values are slightly worse, as the docs say.)"""
+        ex = load_example("train_thresholds")
+        settings = ex.Settings(64, 36, (0, 30), (36, 50), 4, 10, 32, 8, 60)
+        args = argparse.Namespace(smoke=True, out=str(tmp_path), scene="living_room_moving_light", seed=0)
+        with ex.cpu_training_threads():
+            res = ex._run(settings, args)
+        hand, learned = res["held_out"]["hand_set"], res["held_out"]["learned"]
+        assert res["nonfinite_steps"] == [] and res["learned"] != res["hand_set"]
+        assert learned["rmse_mean"] < hand["rmse_mean"] - 1e-3, (learned["rmse_mean"], hand["rmse_mean"])
+        assert learned["effective_spp_median"] > hand["effective_spp_median"]
+        assert learned["rmse_mean"] < res["held_out"]["input_1spp"]["rmse_mean"] / 1.5
 
 
 # ---------------------------------------------------------------------------------------------- support table
