@@ -456,7 +456,8 @@ class TestStereoReproject(BaseTester):
 
     def test_analytic_scene_discards(self, backend):
         inp, gd, *_ = scene_pair(H=72, W=96, baseline=0.065)
-        out, valid, reason = run(inp, 0.15, 0.2, backend=self.backend_arg(backend))  # ~2 pixel footprints at 5 units and 72 rows
+        # ~2 pixel footprints at 5 units and 72 rows
+        out, valid, reason = run(inp, 0.15, 0.2, backend=self.backend_arg(backend))
         counts = torch.bincount(reason.flatten().long(), minlength=len(Reason))
         assert 0.9 < valid.float().mean() < 1.0
         assert counts[Reason.OUT_OF_FRAME] > 0 and counts[Reason.POSITION] > 0  # frame edge and silhouettes
