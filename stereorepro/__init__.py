@@ -1,9 +1,12 @@
 """stereorepro: spatiotemporal sample reprojection for real-time stereoscopic path tracing.
 
-The package follows the pipeline: :mod:`~stereorepro.scenes` → :mod:`~stereorepro.render` →
-:mod:`~stereorepro.reproject` → :mod:`~stereorepro.accumulate` → :mod:`~stereorepro.measure`, with
-:mod:`~stereorepro.io` and :mod:`~stereorepro.cli` at the edges. Conventions (camera axes, pixel centres, depth,
-"no surface") are documented once in :mod:`stereorepro.camera`.
+The package is layered along the pipeline, lowest first (a module imports only from its own layer and the ones
+below; ``tests/test_package.py`` holds the order and enforces it): the foundation (:mod:`~stereorepro.errors`,
+:mod:`~stereorepro.camera`, checks) → :mod:`~stereorepro.io` (file formats) → :mod:`~stereorepro.scenes` →
+:mod:`~stereorepro.render` → :mod:`~stereorepro.reproject` → :mod:`~stereorepro.accumulate` →
+:mod:`~stereorepro.denoise` → :mod:`~stereorepro.measure` → :mod:`~stereorepro.workflows` (the application layer:
+frame sequences, the experiment) → :mod:`~stereorepro.cli`. Conventions (camera axes, pixel centres, depth,
+"no surface", motion) are documented once in :mod:`stereorepro.camera`.
 
 ``import stereorepro`` loads the reprojection layer only (torch and numpy); the renderer, the scenes and the EXR
 frame I/O are imported on first use of their names (``stereorepro.PathTracer``, ``load_scene``, ``read_exr``).

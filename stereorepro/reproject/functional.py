@@ -9,8 +9,8 @@ it, and read the 2×2 bilinear taps around that point in the source image (or th
 3. ``|P_src − P_dst| <= position_threshold`` (scene units; both points in the source camera's frame),
 4. ``|N_src − N_dst| <= normal_threshold`` (unit world-space shading normals), and
 5. its values are finite (policy: a NaN/Inf sample is rejected like an occluded one, so it never leaks).
-   Non-finite *normals* (source or destination) are read as zero vectors, so they fail the normal test for any
-   ``normal_threshold < 1`` and are reported as ``NORMAL``.
+   Non-finite *normal components* (source or destination) are read as zero, so a normal with one is no longer a
+   unit vector: it fails the normal test at ordinary thresholds and is reported as ``NORMAL``.
 
 Accepted bilinear weights are renormalised by their sum; a pixel is ``valid`` when the accepted weight is > 0.
 The same-instant stereo case and the temporal case are the same operation with different cameras
@@ -63,7 +63,7 @@ BACKENDS = _backend.OP_NAMES
 #: Whether the torch backend may take the inference fast path (tests switch it off to exercise the general path).
 FAST_PATH = True
 
-#: Whether ONNX export writes the export formulation (:mod:`._lean`) for hard tests without motion vectors
+#: Whether ONNX export writes the export formulation (:mod:`._lean`) for hard tests, motion vectors or not
 #: (False: the general path, traced as it is; the benchmark compares both).
 EXPORT_LEAN = True
 
@@ -73,11 +73,11 @@ def native_unsupported(images: Iterable[Tensor], others: Iterable = (), soft: bo
     """Why the native kernels cannot run these inputs, or None when they can.
 
     Args:
-        images: image tensors (colours, depths, normals, history length): float32 or float16, each on its own
-            (float16 is read as it is and computed in float32, as torch computes it).
+        images: image tensors (colours, depths, normals, history length, motion vectors): float32 or float16, each
+            on its own (float16 is read as it is and computed in float32, as torch computes it).
         others: other inputs (cameras, thresholds, alpha): only device and autograd are checked.
         soft: soft accept tests (torch only).
-        motion: motion vectors given (torch only).
+        motion: motion vectors given (read by the native kernels too; their tensors belong in ``images``).
         channels: value channels carried per pixel (at most :data:`~._constants.NATIVE_MAX_CHANNELS` natively).
     """
     images = list(images)
@@ -88,8 +88,6 @@ def native_unsupported(images: Iterable[Tensor], others: Iterable = (), soft: bo
         return "tracing / ONNX export / torch.compile need the torch path"
     if soft:
         return "soft=True (differentiable thresholds) is implemented in torch only"
-    if motion:
-        return "motion vectors (motion=...) are implemented in torch only"
     if channels > NATIVE_MAX_CHANNELS:
         return f"the native kernels carry at most {NATIVE_MAX_CHANNELS} value channels, got {channels}"
     devices = {str(t.device) for t in tensors if t.device.type != "cpu"}
@@ -258,7 +256,7 @@ def warp_values(values: Tensor, src: View, dst: View, thresholds: Thresholds, sa
     combined scheme's stereo step call it."""
     if _is_empty(dst.depth):
         return ReprojectionResult(*_empty_outputs(values, dst.depth, confidence))
-    images = (values, src.depth, src.normal, dst.depth, dst.normal)
+    images = (values, src.depth, src.normal, dst.depth, dst.normal) + _motion_of(dst)
     others = (src.K, src.cam_from_world, dst.K, dst.cam_from_world, thresholds.position, thresholds.normal)
     if select_backend(backend, images, others, soft, dst.motion is not None, values.shape[1]) == "native":
         out = _native_backward(values, src, dst, thresholds, sampling, confidence, rectified)
@@ -267,10 +265,15 @@ def warp_values(values: Tensor, src: View, dst: View, thresholds: Thresholds, sa
     return ReprojectionResult(out[0], out[1], out[2], out[3] if confidence else None)
 
 
-def _exporting_lean(soft: bool, motion) -> bool:
-    """Whether this call is being exported in the export formulation (:mod:`._lean`): hard tests, no motion
-    vectors, :data:`EXPORT_LEAN`."""
-    return EXPORT_LEAN and not soft and motion is None and torch.onnx.is_in_onnx_export()
+def _motion_of(view: View) -> tuple[Tensor, ...]:
+    """The motion tensors ``view`` carries (none, motion, or motion and motion_world)."""
+    return tuple(x for x in (view.motion, view.motion_world) if x is not None)
+
+
+def _exporting_lean(soft: bool) -> bool:
+    """Whether this call is being exported in the export formulation (:mod:`._lean`): hard tests,
+    :data:`EXPORT_LEAN`."""
+    return EXPORT_LEAN and not soft and torch.onnx.is_in_onnx_export()
 
 
 def _warp(src: View, dst: View, dtype: torch.dtype, rectified: bool):
@@ -286,23 +289,21 @@ def _torch_backward(values: Tensor, src: View, dst: View, thr: Thresholds, sampl
     wdt = compute_dtype(values, src.depth, src.normal, dst.depth, dst.normal)
     warp = _warp(src, dst, wdt, rectified)
     motion, motion_world = dst.motion, dst.motion_world
-    if _exporting_lean(soft, motion):
+    src_rotation = src.cam_from_world[:, :3, :3] if motion is not None else None
+    if _exporting_lean(soft):
         return _lean.lean_reproject(values, src.depth, src.normal, dst.depth, dst.normal, warp, thr.position,
-                                    thr.normal, sampling, rectified)
+                                    thr.normal, sampling, rectified, motion, motion_world, src_rotation)
     inference = inference_only((values, src.depth, src.normal, dst.depth, dst.normal, src.K, dst.K,
                                 src.cam_from_world, dst.cam_from_world, thr.position, thr.normal, motion,
                                 motion_world))
-    if motion is not None:  # motion vectors: the general path (the fast path and native warp with cameras only)
-        return _general.general_reproject(values, src.depth, src.normal, dst.depth, dst.normal, warp, thr.position,
-                                          thr.normal, sampling, soft, thr.temperature, inference, motion,
-                                          motion_world, src.cam_from_world[:, :3, :3])
     if inference and not soft and FAST_PATH:  # the usual inference case: same results, less memory traffic
         thr2 = squared_thresholds(thr.position, thr.normal, wdt, dst.depth.device)
         if bool(torch.isfinite(thr2).all()):
             return _fast.fast_reproject(values, src.depth, src.normal, dst.depth, dst.normal, warp, thr2,
-                                        thr.position, thr.normal, sampling)
+                                        thr.position, thr.normal, sampling, motion, motion_world, src_rotation)
     return _general.general_reproject(values, src.depth, src.normal, dst.depth, dst.normal, warp, thr.position,
-                                      thr.normal, sampling, soft, thr.temperature, inference)
+                                      thr.normal, sampling, soft, thr.temperature, inference, motion, motion_world,
+                                      src_rotation)
 
 
 def _native_thresholds(thr: Thresholds) -> tuple[float, float]:
@@ -317,7 +318,8 @@ def _native_backward(values: Tensor, src: View, dst: View, thr: Thresholds, samp
     float32 or float16 images)."""
     warp = _warp(src, dst, torch.float32, rectified)
     return _native.reproject(values, src.depth, src.normal, warp, dst.depth, dst.normal, _native_thresholds(thr),
-                             sampling == "bilinear", want_confidence)
+                             sampling == "bilinear", want_confidence, dst.motion, dst.motion_world,
+                             src.cam_from_world[:, :3, :3])
 
 
 def _native_temporal(current_color: Tensor, view: View, history: History, prev_view: View, thr: Thresholds,
@@ -330,7 +332,8 @@ def _native_temporal(current_color: Tensor, view: View, history: History, prev_v
     return _native.temporal_reproject(current_color, history.color, history.length, prev_view.depth,
                                       prev_view.normal, warp, view.depth, view.normal, _native_thresholds(thr),
                                       sampling == "bilinear", float(a), bool(blend.warmup),
-                                      float(as_scalar(blend.max_history, like)))
+                                      float(as_scalar(blend.max_history, like)), view.motion, view.motion_world,
+                                      prev_view.cam_from_world[:, :3, :3])
 
 
 def stereo_reproject(
@@ -550,7 +553,7 @@ def reproject_history(current_color: Tensor, view: View, history: History, prev_
         n = torch.zeros(view.depth.shape, dtype=compute_dtype(*history), device=view.depth.device)
         return TemporalResult(color, n, valid, reason if return_reason else None)
     images = (current_color, view.depth, view.normal, history.color, history.length, prev_view.depth,
-              prev_view.normal)
+              prev_view.normal) + _motion_of(view)
     others = (view.K, view.cam_from_world, prev_view.K, prev_view.cam_from_world, thr.position, thr.normal,
               blend.alpha)
     channels = history.color.shape[1] + 1  # the history length rides along
@@ -566,7 +569,7 @@ def reproject_history(current_color: Tensor, view: View, history: History, prev_
         warped, valid, reason, den = _torch_backward(values, prev_view, view, thr, sampling, soft)
         confidence = den if soft else valid
     # exporting the reprojection's export formulation: its blend too (the history it warps is finite)
-    blend_fn = _lean.lean_blend if not native and _exporting_lean(soft, view.motion) else temporal_blend
+    blend_fn = _lean.lean_blend if not native and _exporting_lean(soft) else temporal_blend
     color, n = blend_fn(current_color, warped[:, :3], warped[:, 3:4], confidence, *blend)
     return TemporalResult(color, n, valid, reason if return_reason else None)
 
