@@ -29,7 +29,7 @@ from _bench_common import header, save
 from stereorepro.camera import camera_motion, has_surface
 from stereorepro.workflows.experiment.config import RIGHT
 from stereorepro.render import PathTracer
-from stereorepro.reproject import Reason, backward_reproject
+from stereorepro.reproject import Reason, View, backward_reproject
 from stereorepro.scenes import load_scene
 
 #: The paper's Table 1 temporal discards (average %), for the comparison column.
@@ -75,8 +75,8 @@ def measure(scene_name: str, W: int, H: int, frames: int, k: int) -> dict:
         prev, gp = view(prev_f)
         cam, g = view(cur_f)
         _, valid, reason, _ = backward_reproject(
-            torch.zeros(1, 3, H, W), gp.depth, gp.normal, prev.K.float(), prev.cam_from_world.double(),
-            g.depth, g.normal, cam.K.float(), cam.cam_from_world.double(), thr_p, thr_n)
+            torch.zeros(1, 3, H, W), View(gp.depth, gp.normal, prev.K.float(), prev.cam_from_world.double()),
+            View(g.depth, g.normal, cam.K.float(), cam.cam_from_world.double()), (thr_p, thr_n))
         surf = has_surface(g.depth)
         disc = ~valid & surf
         surf_total += int(surf.sum())
