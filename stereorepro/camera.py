@@ -66,6 +66,7 @@ __all__ = [
     "Warp",
     "compose_warp",
     "camera_motion",
+    "world_motion_from_view_z",
     "halton",
     "jitter_offset",
     "jitter_intrinsics",
@@ -389,6 +390,61 @@ def camera_motion(depth: Tensor, K: Tensor, cam_from_world: Tensor, prev_K: Tens
     motion = uv - pixel_centers(H, W, d.device, d.dtype)
     keep = ok & (z > 0)
     return torch.where(keep, motion, torch.full((), float("nan"), dtype=d.dtype, device=d.device)).to(depth.dtype)
+
+
+def world_motion_from_view_z(depth: Tensor, motion: Tensor, view_z_delta: Tensor, K: Tensor, cam_from_world: Tensor,
+                             prev_K: Tensor, prev_cam_from_world: Tensor) -> Tensor:
+    """World-space motion from 2.5D motion (screen motion + view-z delta, the input NVIDIA's NRD recommends): the
+    ``motion_world`` the reprojection ops read (:class:`~stereorepro.View`), converted once, at the boundary.
+
+    A pixel's surface point ``P`` (this frame's depth and camera) was, at the previous instant, at the previous
+    camera's pixel ``pixel + motion`` with camera z ``depth + view_z_delta``; unprojected there by the previous
+    camera it gives ``P_prev``, and ``motion_world = P_prev − P``. That is the point's own motion, rigid or not, as
+    exact as its inputs (computed in float64): a renderer may store the 2.5D form in float16 (screen offsets and a
+    z difference keep their precision where world-space deltas far from the origin do not).
+
+    Args:
+        depth: (B, 1, H, W) camera-z depth of this frame.
+        motion: (B, 2, H, W) screen motion to the previous frame in pixels (``prev_pixel = pixel + motion``).
+        view_z_delta: (B, 1, H, W) the point's camera z in the previous camera minus its camera z in this one
+            (NRD's ``viewZ_prev − viewZ``).
+        K, cam_from_world: (B, 3, 3), (B, 4, 4) this frame's camera; prev_K, prev_cam_from_world: the previous.
+
+    Returns:
+        motion_world: (B, 3, H, W) in the dtype of ``motion``; NaN where there is no surface, where ``motion`` or
+        ``view_z_delta`` is not finite, or where the previous camera z is not > 0 (the ops read no history there).
+
+    Example:
+        >>> import torch
+        >>> from stereorepro import intrinsics_from_fov
+        >>> K, T = intrinsics_from_fov(60.0, 7, 5), torch.eye(4)[None]
+        >>> depth = torch.full((1, 1, 5, 7), 2.0)
+        >>> mw = world_motion_from_view_z(depth, torch.zeros(1, 2, 5, 7), torch.full((1, 1, 5, 7), 0.5), K, T, K, T)
+        >>> [round(float(x), 6) + 0.0 for x in mw[0, :, 2, 3]]  # the centre pixel's point moved 0.5 along its ray
+        [0.0, 0.0, 0.5]
+    """
+    bind = check_shape(depth, ["B", "1", "H", "W"], "depth")
+    check_shape(motion, ["B", "2", "H", "W"], "motion", bind)
+    check_shape(view_z_delta, ["B", "1", "H", "W"], "view_z_delta", bind)
+    check_camera(K, cam_from_world, "world_motion_from_view_z: camera", {"B": bind["B"]})
+    check_camera(prev_K, prev_cam_from_world, "world_motion_from_view_z: previous camera", {"B": bind["B"]})
+    d, mo, dz = depth.double(), motion.double(), view_z_delta.double()
+    B, _, H, W = d.shape
+    one = torch.ones((), dtype=d.dtype, device=d.device)
+    ok = has_surface(d)
+    z_prev = d + dz
+    keep = ok & torch.isfinite(mo).all(1, keepdim=True) & torch.isfinite(dz) & (z_prev > 0)
+    pixel = pixel_centers(H, W, d.device, d.dtype).unsqueeze(0)  # 1x2xHxW
+    uv1_prev = torch.cat([pixel + torch.where(keep, mo, 0.0), one.expand(B, 1, H, W)], 1)
+    p_prev = (inverse_intrinsics(prev_K.double()) @ uv1_prev.reshape(B, 3, H * W)) * torch.where(
+        keep, z_prev, one).reshape(B, 1, H * W)  # Bx3xHW, the previous camera's frame
+    p_cam = unproject(torch.where(ok, d, one), K.double()).reshape(B, 3, H * W)
+    world_from_cam, world_from_prev = invert_rigid(cam_from_world.double()), invert_rigid(prev_cam_from_world.double())
+    # P_prev − P, rotation parts first: the translations cancel exactly when both cameras coincide
+    delta = (world_from_prev[:, :3, :3] @ p_prev - world_from_cam[:, :3, :3] @ p_cam
+             + (world_from_prev[:, :3, 3:] - world_from_cam[:, :3, 3:]))
+    nan = torch.full((), math.nan, dtype=d.dtype, device=d.device)
+    return torch.where(keep, delta.reshape(B, 3, H, W), nan).to(motion.dtype)
 
 
 def _integer(value, name: str) -> int:

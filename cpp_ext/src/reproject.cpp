@@ -16,6 +16,11 @@
 // t_src_from_dst, K_src_inv of stereorepro.camera.Warp) are composed in Python by stereorepro.camera.compose_warp
 // (float64, then cast), the same helper the torch path uses. Layout: NCHW, C-contiguous, CPU.
 //
+// Motion vectors (optional, of the destination view, float32 or float16 planes): the source position is
+// `pixel + motion` instead of the projection, and the position test compares the source tap with
+// q + R_src * motion_world (R_src the source camera's rotation); non-finite motion reads no tap (OUT_OF_FRAME), and
+// BEHIND_CAMERA means the moved point's z <= 0 (the torch reference's _motion_source, same arithmetic order).
+//
 // Image dtypes: every image plane (colour / values, depths, normals, history length, current colour) is float32
 // or float16, each on its own (mixed inputs need no conversion); float16 planes are widened exactly on load
 // (F16C vcvtph2ps in the vector path, half_to_float in the scalar one) and all arithmetic stays the float32 above,
@@ -196,6 +201,7 @@ SR_INLINE float load(const Plane &p, int64_t i) {
 // ---- per-batch-item inputs ---------------------------------------------------------------------------------
 struct Camera {  // row-major 3x3 matrices, composed in Python
     const float *P, *kt, *M, *t, *Ki;
+    const float *R;  // rotation of the source camera (its cam_from_world), for the world motion; else nullptr
 };
 
 struct Source {  // one batch item of the source view
@@ -206,6 +212,9 @@ struct Source {  // one batch item of the source view
 
 struct Dest {  // one batch item of the destination view
     Plane depth, n0, n1, n2;
+    Plane mo0, mo1;       // screen motion to the source instant (x, y in pixels), when motion
+    Plane mw0, mw1, mw2;  // world motion of the surface point to the source instant, when world
+    bool motion = false, world = false;
     int64_t H, W;
 };
 
@@ -258,6 +267,28 @@ SR_INLINE uint8_t tap(const Source &s, const Camera &cam, const Tests &th, float
     return code;
 }
 
+// Motion vectors of destination pixel p (uc, vc its centre): the source coordinates (u, v) = centre + motion, or
+// the lower clamp where the motion (or world motion) is not finite; the point q moved by R_src · world motion
+// (zero where not finite), q + ((R[i,0]*m0 + R[i,1]*m1) + R[i,2]*m2). Returns the moved point's z > 0 (false:
+// BEHIND_CAMERA), as the torch reference's _motion_source.
+SR_INLINE bool motion_source(const Dest &d, const Camera &cam, int64_t p, float uc, float vc, float &qx, float &qy,
+                             float &qz, float &u, float &v) {
+    const float m0 = d.mo0[p], m1 = d.mo1[p];
+    bool ok = finitef(m0) & finitef(m1);
+    if (d.world) {
+        float w0 = d.mw0[p], w1 = d.mw1[p], w2 = d.mw2[p];
+        ok = ok & finitef(w0) & finitef(w1) & finitef(w2);
+        if (!ok) w0 = w1 = w2 = 0.0f;
+        const float *R = cam.R;
+        qx = qx + ((R[0] * w0 + R[1] * w1) + R[2] * w2);
+        qy = qy + ((R[3] * w0 + R[4] * w1) + R[5] * w2);
+        qz = qz + ((R[6] * w0 + R[7] * w1) + R[8] * w2);
+    }
+    u = ok ? uc + m0 : -kCoordMargin;
+    v = ok ? vc + m1 : -kCoordMargin;
+    return (qz > 0.0f) & finitef(u) & finitef(v);
+}
+
 // Where a row's results go: C value rows, confidence, reason and valid (one byte, 0/1), each W long.
 struct RowOut {
     OutPlane num[kMaxStackChannels];
@@ -282,20 +313,26 @@ inline void warp_pixel(const Source &s, const Dest &d, const Camera &cam, const 
     const int64_t p = y * d.W + x;
     const float zr = load<L::depth>(d.depth, p);
     if (!(finitef(zr) & (zr > 0.0f))) return invalid(NO_SURFACE_DST, 0.0f);
-    const float inv_z = 1.0f / zr;
     const float uc = (float)x + 0.5f, vc = (float)y + 0.5f;
-    const float *P = cam.P, *kt = cam.kt, *M = cam.M, *t = cam.t;
-    const float wx = ((P[0] * uc + P[1] * vc) + P[2]) + kt[0] * inv_z;
-    const float wy = ((P[3] * uc + P[4] * vc) + P[5]) + kt[1] * inv_z;
-    const float wz = ((P[6] * uc + P[7] * vc) + P[8]) + kt[2] * inv_z;
-    if (!(wz > 0.0f)) return invalid(BEHIND_CAMERA, 0.0f);
-    float u = wx / wz, v = wy / wz;
-    if (!(finitef(u) & finitef(v))) return invalid(BEHIND_CAMERA, 0.0f);
+    const float *M = cam.M, *t = cam.t;
+    float qx = ((M[0] * uc + M[1] * vc) + M[2]) * zr + t[0];
+    float qy = ((M[3] * uc + M[4] * vc) + M[5]) * zr + t[1];
+    float qz = ((M[6] * uc + M[7] * vc) + M[8]) * zr + t[2];
+    float u, v;
+    if (d.motion) {  // the source position from the motion vectors, the point moved with the world motion
+        if (!motion_source(d, cam, p, uc, vc, qx, qy, qz, u, v)) return invalid(BEHIND_CAMERA, 0.0f);
+    } else {
+        const float inv_z = 1.0f / zr;
+        const float *P = cam.P, *kt = cam.kt;
+        const float wx = ((P[0] * uc + P[1] * vc) + P[2]) + kt[0] * inv_z;
+        const float wy = ((P[3] * uc + P[4] * vc) + P[5]) + kt[1] * inv_z;
+        const float wz = ((P[6] * uc + P[7] * vc) + P[8]) + kt[2] * inv_z;
+        if (!(wz > 0.0f)) return invalid(BEHIND_CAMERA, 0.0f);
+        u = wx / wz, v = wy / wz;
+        if (!(finitef(u) & finitef(v))) return invalid(BEHIND_CAMERA, 0.0f);
+    }
     u = std::min(std::max(u, -kCoordMargin), (float)s.Ws + kCoordMargin);
     v = std::min(std::max(v, -kCoordMargin), (float)s.Hs + kCoordMargin);
-    const float qx = ((M[0] * uc + M[1] * vc) + M[2]) * zr + t[0];
-    const float qy = ((M[3] * uc + M[4] * vc) + M[5]) * zr + t[1];
-    const float qz = ((M[6] * uc + M[7] * vc) + M[8]) * zr + t[2];
     float nd0 = load<L::normals>(d.n0, p), nd1 = load<L::normals>(d.n1, p), nd2 = load<L::normals>(d.n2, p);
     nd0 = finitef(nd0) ? nd0 : 0.0f;
     nd1 = finitef(nd1) ? nd1 : 0.0f;
@@ -519,12 +556,15 @@ SR_AVX2 SR_INLINE void tap(const Source &s, const Consts &k, const Taps<NC> &g, 
 // The camera of a batch item broadcast to 8 lanes, and the per-row constants of the tap tests.
 struct Warp8 {
     __m256 P[9], M[9], kt[3], t[3];
+    __m256 R[9];  // rotation of the source camera (world motion only)
     __m256 umax, vmax;  // upper clamps of the source coordinates
 };
 
 SR_AVX2 SR_INLINE void broadcast_camera(const Source &s, const Camera &cam, const Tests &th, Warp8 &w, Consts &k) {
     for (int i = 0; i < 9; ++i) w.P[i] = set(cam.P[i]), w.M[i] = set(cam.M[i]);
     for (int i = 0; i < 3; ++i) w.kt[i] = set(cam.kt[i]), w.t[i] = set(cam.t[i]);
+    if (cam.R)
+        for (int i = 0; i < 9; ++i) w.R[i] = set(cam.R[i]);
     w.umax = set((float)s.Ws + kCoordMargin), w.vmax = set((float)s.Hs + kCoordMargin);
     k.Ki0 = set(cam.Ki[0]), k.Ki1 = set(cam.Ki[1]), k.Ki2 = set(cam.Ki[2]), k.Ki4 = set(cam.Ki[4]);
     k.Ki5 = set(cam.Ki[5]);
@@ -547,21 +587,39 @@ SR_AVX2 SR_INLINE void project8(const Dest &d, const Warp8 &w, int64_t p, __m256
     const __m256 zr = ld8<L::depth>(d.depth, p);
     px.dst_ok = band(isfinite(zr), gt(zr, zero));
     const __m256 z = sel(px.dst_ok, zr, one);
-    const __m256 inv_z = _mm256_div_ps(one, z);
     const __m256 *P = w.P, *M = w.M, *kt = w.kt, *t = w.t;
-    const __m256 wx = add(add(add(mul(P[0], uc), mul(P[1], vc)), P[2]), mul(kt[0], inv_z));
-    const __m256 wy = add(add(add(mul(P[3], uc), mul(P[4], vc)), P[5]), mul(kt[1], inv_z));
-    __m256 wz = add(add(add(mul(P[6], uc), mul(P[7], vc)), P[8]), mul(kt[2], inv_z));
-    __m256 front = gt(wz, zero);
-    wz = sel(front, wz, one);
-    const __m256 u = _mm256_div_ps(wx, wz), v = _mm256_div_ps(wy, wz);
+    px.qx = add(mul(add(add(mul(M[0], uc), mul(M[1], vc)), M[2]), z), t[0]);
+    px.qy = add(mul(add(add(mul(M[3], uc), mul(M[4], vc)), M[5]), z), t[1]);
+    px.qz = add(mul(add(add(mul(M[6], uc), mul(M[7], vc)), M[8]), z), t[2]);
+    __m256 u, v, front;
+    if (d.motion) {  // motion_source() of the scalar path
+        const __m256 m0 = ld8(d.mo0, p), m1 = ld8(d.mo1, p);
+        __m256 ok = band(isfinite(m0), isfinite(m1));
+        if (d.world) {
+            __m256 w0 = ld8(d.mw0, p), w1 = ld8(d.mw1, p), w2 = ld8(d.mw2, p);
+            ok = band(ok, band(isfinite(w0), band(isfinite(w1), isfinite(w2))));
+            w0 = band(w0, ok), w1 = band(w1, ok), w2 = band(w2, ok);
+            const __m256 *R = w.R;
+            px.qx = add(px.qx, add(add(mul(R[0], w0), mul(R[1], w1)), mul(R[2], w2)));
+            px.qy = add(px.qy, add(add(mul(R[3], w0), mul(R[4], w1)), mul(R[5], w2)));
+            px.qz = add(px.qz, add(add(mul(R[6], w0), mul(R[7], w1)), mul(R[8], w2)));
+        }
+        u = sel(ok, add(uc, m0), lo);
+        v = sel(ok, add(vc, m1), lo);
+        front = gt(px.qz, zero);
+    } else {
+        const __m256 inv_z = _mm256_div_ps(one, z);
+        const __m256 wx = add(add(add(mul(P[0], uc), mul(P[1], vc)), P[2]), mul(kt[0], inv_z));
+        const __m256 wy = add(add(add(mul(P[3], uc), mul(P[4], vc)), P[5]), mul(kt[1], inv_z));
+        __m256 wz = add(add(add(mul(P[6], uc), mul(P[7], vc)), P[8]), mul(kt[2], inv_z));
+        front = gt(wz, zero);
+        wz = sel(front, wz, one);
+        u = _mm256_div_ps(wx, wz), v = _mm256_div_ps(wy, wz);
+    }
     front = band(front, band(isfinite(u), isfinite(v)));
     px.front = front;
     px.u = _mm256_min_ps(_mm256_max_ps(sel(front, u, lo), lo), w.umax);
     px.v = _mm256_min_ps(_mm256_max_ps(sel(front, v, lo), lo), w.vmax);
-    px.qx = add(mul(add(add(mul(M[0], uc), mul(M[1], vc)), M[2]), z), t[0]);
-    px.qy = add(mul(add(add(mul(M[3], uc), mul(M[4], vc)), M[5]), z), t[1]);
-    px.qz = add(mul(add(add(mul(M[6], uc), mul(M[7], vc)), M[8]), z), t[2]);
     px.nd0 = fin0(ld8<L::normals>(d.n0, p));
     px.nd1 = fin0(ld8<L::normals>(d.n1, p));
     px.nd2 = fin0(ld8<L::normals>(d.n2, p));
@@ -777,7 +835,10 @@ struct TemporalSink {
 struct Batch {  // pointers and strides shared by all rows
     std::vector<Plane> chan;  // B * C value planes
     Plane src_depth, src_normal, dst_depth, dst_normal;
+    Plane motion, motion_world;  // (B, 2, H, W), (B, 3, H, W) when has_motion / has_world
+    bool has_motion = false, has_world = false;
     const float *P, *kt, *M, *t, *Ki;
+    const float *R = nullptr;  // (B, 9) source rotations, when has_world
     int64_t B, C, Hs, Ws, H, W;
 };
 
@@ -816,7 +877,19 @@ void run_rows(const Batch &bt, const Tests &th, const Sink &sink) {
             d.n2 = bt.dst_normal + (b * 3 + 2) * HW;
             d.H = bt.H;
             d.W = bt.W;
-            const Camera cam{bt.P + 9 * b, bt.kt + 3 * b, bt.M + 9 * b, bt.t + 3 * b, bt.Ki + 9 * b};
+            d.motion = bt.has_motion;
+            d.world = bt.has_world;
+            if (bt.has_motion) {
+                d.mo0 = bt.motion + (b * 2 + 0) * HW;
+                d.mo1 = bt.motion + (b * 2 + 1) * HW;
+            }
+            if (bt.has_world) {
+                d.mw0 = bt.motion_world + (b * 3 + 0) * HW;
+                d.mw1 = bt.motion_world + (b * 3 + 1) * HW;
+                d.mw2 = bt.motion_world + (b * 3 + 2) * HW;
+            }
+            const Camera cam{bt.P + 9 * b, bt.kt + 3 * b, bt.M + 9 * b,
+                             bt.t + 3 * b, bt.Ki + 9 * b, bt.has_world ? bt.R + 9 * b : nullptr};
             const RowOut o = sink.row(b, y, scratch.data());
             warp_row<NC, BILINEAR, L>(s, d, cam, th, y, o, vector);
             sink.finish(b, y, o);
@@ -887,9 +960,29 @@ void check_geometry(Batch &bt, const CA &src_depth, const CA &src_normal, const 
     bt.Ki = Ks_inv.data();
 }
 
+// Checks the optional motion arrays (of the destination view) and the source rotations, and fills bt's motion.
+void check_motion(Batch &bt, const std::optional<CA> &motion, const std::optional<CA> &motion_world,
+                  const std::optional<CF> &R) {
+    if (!motion) {
+        if (motion_world) throw std::invalid_argument("reproject: motion_world needs motion");
+        return;
+    }
+    expect_shape(*motion, "motion", {bt.B, 2, bt.H, bt.W});
+    bt.motion = plane_of(*motion, "motion");
+    bt.has_motion = true;
+    if (!motion_world) return;
+    expect_shape(*motion_world, "motion_world", {bt.B, 3, bt.H, bt.W});
+    if (!R) throw std::invalid_argument("reproject: motion_world needs R (the source rotations)");
+    expect_shape(*R, "R", {bt.B, 9});
+    bt.motion_world = plane_of(*motion_world, "motion_world");
+    bt.R = R->data();
+    bt.has_world = true;
+}
+
 void reproject(CA src_values, CA src_depth, CA src_normal, CF P, CF kt, CF M, CF t, CF Ks_inv, CA dst_depth,
                CA dst_normal, float pos_thr2, float nrm_thr2, bool bilinear, OA out_values, OB out_valid,
-               OU8 out_reason, std::optional<OF> out_confidence) {
+               OU8 out_reason, std::optional<OF> out_confidence, std::optional<CA> motion,
+               std::optional<CA> motion_world, std::optional<CF> R) {
     if (src_values.ndim() != 4) throw std::invalid_argument("reproject: src_values must be 4-D (B, C, Hs, Ws)");
     Batch bt;
     bt.B = src_values.shape(0);
@@ -903,6 +996,7 @@ void reproject(CA src_values, CA src_depth, CA src_normal, CF P, CF kt, CF M, CF
     expect_shape(out_valid, "out_valid", {bt.B, 1, bt.H, bt.W});
     expect_shape(out_reason, "out_reason", {bt.B, 1, bt.H, bt.W});
     if (out_confidence) expect_shape(*out_confidence, "out_confidence", {bt.B, 1, bt.H, bt.W});
+    check_motion(bt, motion, motion_world, R);
     const int64_t HWs = bt.Hs * bt.Ws;
     bt.chan.resize(bt.B * bt.C);
     const Plane values = plane_of(src_values, "src_values");
@@ -914,7 +1008,8 @@ void reproject(CA src_values, CA src_depth, CA src_normal, CF P, CF kt, CF M, CF
 
 void temporal_reproject(CA current, CA history_color, CA history_len, CA prev_depth, CA prev_normal, CF P, CF kt,
                         CF M, CF t, CF Ks_inv, CA depth, CA normal, float pos_thr2, float nrm_thr2, bool bilinear,
-                        float alpha, bool warmup, float max_history, OA out_color, OF out_len, OB out_valid) {
+                        float alpha, bool warmup, float max_history, OA out_color, OF out_len, OB out_valid,
+                        std::optional<CA> motion, std::optional<CA> motion_world, std::optional<CF> R) {
     if (history_color.ndim() != 4)
         throw std::invalid_argument("temporal_reproject: history_color must be 4-D (B, C, Hs, Ws)");
     Batch bt;
@@ -931,6 +1026,7 @@ void temporal_reproject(CA current, CA history_color, CA history_len, CA prev_de
     expect_shape(out_color, "out_color", {bt.B, Cc, bt.H, bt.W});
     expect_shape(out_len, "out_len", {bt.B, 1, bt.H, bt.W});
     expect_shape(out_valid, "out_valid", {bt.B, 1, bt.H, bt.W});
+    check_motion(bt, motion, motion_world, R);
     const int64_t HWs = bt.Hs * bt.Ws;
     bt.chan.resize(bt.B * bt.C);
     const Plane hc = plane_of(history_color, "history_color"), hl = plane_of(history_len, "history_len");
@@ -972,13 +1068,17 @@ void bind_reproject(nb::module_ &m) {
           nb::arg("dst_depth").noconvert(), nb::arg("dst_normal").noconvert(), nb::arg("pos_thr2"),
           nb::arg("nrm_thr2"), nb::arg("bilinear"), nb::arg("out_values").noconvert(),
           nb::arg("out_valid").noconvert(), nb::arg("out_reason").noconvert(),
-          nb::arg("out_confidence").noconvert().none(),
+          nb::arg("out_confidence").noconvert().none(), nb::arg("motion").noconvert().none() = nb::none(),
+          nb::arg("motion_world").noconvert().none() = nb::none(), nb::arg("R").noconvert().none() = nb::none(),
           "Fused hard backward reprojection (NCHW, C-contiguous CPU arrays; no copies are made). Image arrays "
           "(values, depths, normals, out_values) are float32 or float16, each on its own; compute is float32.\n"
           "Camera arrays P, M, Ks_inv are (B, 9) row-major and kt, t are (B, 3), composed by "
           "stereorepro.camera.compose_warp. pos_thr2 / nrm_thr2 are the float32 squared thresholds.\n"
           "Writes out_values (B, C, H, W), out_valid (B, 1, H, W) bool, out_reason (B, 1, H, W) uint8 and "
-          "out_confidence (B, 1, H, W) in place; out_confidence may be None (not computed).");
+          "out_confidence (B, 1, H, W) in place; out_confidence may be None (not computed).\n"
+          "motion (B, 2, H, W) and motion_world (B, 3, H, W) (float32 or float16, optional) are the destination's "
+          "motion vectors: taps at pixel + motion, the position test against q + R * motion_world, R (B, 9) the "
+          "source camera's rotation (row-major); non-finite motion: OUT_OF_FRAME.");
     m.def("temporal_reproject", &temporal_reproject, nb::arg("current").noconvert(),
           nb::arg("history_color").noconvert(), nb::arg("history_len").noconvert(),
           nb::arg("prev_depth").noconvert(), nb::arg("prev_normal").noconvert(), nb::arg("P").noconvert(),
@@ -986,8 +1086,10 @@ void bind_reproject(nb::module_ &m) {
           nb::arg("Ks_inv").noconvert(), nb::arg("depth").noconvert(), nb::arg("normal").noconvert(),
           nb::arg("pos_thr2"), nb::arg("nrm_thr2"), nb::arg("bilinear"), nb::arg("alpha"), nb::arg("warmup"),
           nb::arg("max_history"), nb::arg("out_color").noconvert(), nb::arg("out_len").noconvert(),
-          nb::arg("out_valid").noconvert(),
+          nb::arg("out_valid").noconvert(), nb::arg("motion").noconvert().none() = nb::none(),
+          nb::arg("motion_world").noconvert().none() = nb::none(), nb::arg("R").noconvert().none() = nb::none(),
           "Fused temporal reprojection: warps [history_color, history_len] like `reproject` and blends with "
           "`current` in the same pass (a = max(1/(n+1), alpha) with warmup, else alpha). Writes out_color "
-          "(float32 or float16), out_len (float32) and out_valid in place; image inputs float32 or float16.");
+          "(float32 or float16), out_len (float32) and out_valid in place; image inputs float32 or float16. "
+          "motion, motion_world, R: as in `reproject` (the motion of this frame to the previous one).");
 }

@@ -13,7 +13,9 @@ op on a CPU:
 * one gather of all taps' table rows per row block; one pass of float ops over (channel, tap, pixel) arrays;
 * reasons only for invalid pixels (fast_reasons): no surface / behind the camera / every tap out of frame
   directly, the rest (occlusions, ...) through warp_pixels on those pixels alone;
-* destination rows in blocks of FAST_BLOCK_PIXELS, with scratch buffers reused across blocks (out= / in-place).
+* destination rows in blocks of FAST_BLOCK_PIXELS, with scratch buffers reused across blocks (out= / in-place);
+* motion vectors (fast_motion_source) replace the projection of a pixel by ``pixel + motion`` and move its point by
+  the world motion, as warp_pixels' motion source; a pixel that reads no tap is sent to the border as above.
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ import torch
 from torch import Tensor
 
 from ..camera import Warp, has_surface
-from ._constants import COORD_MARGIN, F32_EXACT_INT, TABLE_PAD
+from ._constants import COORD_MARGIN, F32_EXACT_INT, OFF_FRAME, TABLE_PAD
 from ._general import DstPixels, SourceTaps, TapTests, pixel_centres, raw_reader, warp_pixels
 from .reason import Reason
 
@@ -105,9 +107,59 @@ class _RowGeometry(NamedTuple):
     sampling: str
     padded_width: int  #: Wp, the width of the padded source table
     idx_dtype: torch.dtype  #: float dtype of the table-index arithmetic
+    u_c: Tensor | None = None  #: (1, 1, 1, W) destination pixel centres u (with motion vectors)
+    rotation: Tensor | None = None  #: (B, 3, 3, 1) the source camera's rotation (with world motion)
 
 
-def fast_geometry(geo: _RowGeometry, z: Tensor, n: Tensor, r0: int, r1: int, uv_raw: Tensor, sc: _Scratch):
+class _Motion(NamedTuple):
+    """Motion vectors of the destination (see :func:`warp_pixels`), with the source camera's rotation."""
+
+    motion: Tensor  #: (B, 2, H, W) screen motion to the source instant
+    world: Tensor | None  #: (B, 3, H, W) world motion of the destination points
+    rotation: Tensor | None  #: (B, 3, 3) rotation of the source ``cam_from_world`` (with ``world``)
+
+    def rows(self, r0: int, r1: int) -> tuple[Tensor, Tensor | None]:
+        """Motion and world motion of rows r0 .. r1 - 1, flattened to (B, 2 | 3, N)."""
+        def flat(x):
+            return None if x is None else x[:, :, r0:r1].reshape(x.shape[0], x.shape[1], -1)
+        return flat(self.motion), flat(self.world)
+
+    def pixels(self, b: int, p: Tensor, yy: Tensor, xx: Tensor) -> tuple[Tensor, Tensor | None]:
+        """Motion and world motion of pixels ``p`` of batch item ``b`` as (1, 2 | 3, 1, K)."""
+        def take(x):
+            return None if x is None else _gather_pixels(x, b, p, yy, xx).view(1, x.shape[1], 1, -1)
+        return take(self.motion), take(self.world)
+
+
+def fast_motion_source(geo: _RowGeometry, zc: Tensor, motion: tuple[Tensor, Tensor | None], point: Tensor, r0: int,
+                       r1: int, uv_raw: Tensor) -> None:
+    """The source pixel of N destination pixels from their motion vectors (warp_pixels' motion source).
+
+    Writes ``uv_raw`` (B, 2, N): pixel centre + motion; the lower clamp (OFF_FRAME) where the motion or world motion
+    is not finite; NaN where the pixel has no surface (``zc`` <= 0) or its moved point is not in front of the source
+    camera. Moves ``point`` (B, 3, N), the destination point in the source camera frame, by R_src · world motion
+    (zero where not finite), in place.
+    """
+    mo, mw = motion
+    B, N, wdt = zc.shape[0], zc.shape[-1], zc.dtype
+    h = r1 - r0
+    mo = mo.to(wdt)
+    ok = torch.isfinite(mo).all(1, keepdim=True)
+    if mw is not None:
+        mw = mw.to(wdt)
+        ok &= torch.isfinite(mw).all(1, keepdim=True)
+        mw = torch.where(ok, mw, 0.0)
+        R = geo.rotation  # (B, 3, 3, 1): R[:, :, j] is column j as (B, 3, 1)
+        point += R[:, :, 0] * mw[:, 0:1] + R[:, :, 1] * mw[:, 1:2] + R[:, :, 2] * mw[:, 2:3]
+    uv = uv_raw.view(B, 2, h, -1)
+    torch.add(mo[:, 0:1].view(B, 1, h, -1), geo.u_c, out=uv[:, 0:1])
+    torch.add(mo[:, 1:2].view(B, 1, h, -1), geo.v_c[:, :, r0:r1], out=uv[:, 1:2])
+    uv_raw.masked_fill_(~ok, OFF_FRAME)
+    uv_raw.masked_fill_(~((zc > 0) & (point[:, 2:3] > 0)), math.nan)
+
+
+def fast_geometry(geo: _RowGeometry, z: Tensor, n: Tensor, r0: int, r1: int, uv_raw: Tensor, sc: _Scratch,
+                  motion: tuple[Tensor, Tensor | None] | None = None):
     """Destination rows r0 .. r1 - 1 -> taps: the fast path's share of the projection and tap weights of
     :func:`warp_pixels` (same arithmetic for every pixel that can have an accepted tap).
 
@@ -116,6 +168,7 @@ def fast_geometry(geo: _RowGeometry, z: Tensor, n: Tensor, r0: int, r1: int, uv_
         z: (B, 1, N) depth, n: (B, 3, N) normal of the N = (r1 - r0)·W pixels (any float dtype and strides).
         uv_raw: (B, 2, N), written: the source pixel (u, v) before clamping; non-finite where the pixel has a
             surface but is behind the source camera or projects to infinity (``front`` False in warp_pixels).
+        motion: the pixels' motion (B, 2, N) and world motion (B, 3, N) or None (see :func:`fast_motion_source`).
 
     Returns:
         point_normal: (B, 6, N) the destination point in the source camera frame and the sanitised destination normal.
@@ -144,7 +197,10 @@ def fast_geometry(geo: _RowGeometry, z: Tensor, n: Tensor, r0: int, r1: int, uv_
     point_normal = v["point_normal"]
     torch.mul(base[:, 3:], zc, out=point_normal[:, :3]).add_(t)  # (ray_src_from_pixel_dst @ [u, v, 1]) z + t
     torch.nan_to_num(n.to(wdt), 0.0, 0.0, 0.0, out=point_normal[:, 3:])
-    torch.div(w[:, :2], torch.clamp_min(w[:, 2:3], 0.0, out=inv), out=uv_raw)  # wz <= 0: ±inf or NaN
+    if motion is None:
+        torch.div(w[:, :2], torch.clamp_min(w[:, 2:3], 0.0, out=inv), out=uv_raw)  # wz <= 0: ±inf or NaN
+    else:
+        fast_motion_source(geo, zc, motion, point_normal[:, :3], r0, r1, uv_raw)
     # the taps' x = clamp(u, -COORD_MARGIN, Ws + COORD_MARGIN) - 0.5 in warp_pixels; here u - 0.5 clamped to
     # [-COORD_MARGIN - 1, Ws + COORD_MARGIN - 1] (integer bounds, so that pixels off the frame have f = 0): the same
     # bits wherever a tap can be in the frame. Non-finite coordinates go below the lower bound, then to it.
@@ -204,12 +260,13 @@ def _gather_pixels(x: Tensor, b: int, p: Tensor, yy: Tensor, xx: Tensor) -> Tens
 
 
 def fast_reasons(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, dst_depth: Tensor, dst_normal: Tensor,
-                 warp: Warp, tests: TapTests, b: int, p: Tensor, uv: Tensor) -> Tensor:
+                 warp: Warp, tests: TapTests, b: int, p: Tensor, uv: Tensor, motion: _Motion | None = None) -> Tensor:
     """Reason codes (K,) uint8 of the invalid destination pixels ``p`` (flat indices) of batch item ``b``.
 
     ``uv`` (2, K) is their unclamped source pixel from :func:`fast_geometry`. No surface, behind the camera and
     "every tap out of frame" (the image border: most invalid pixels) follow from it and the depth as in
-    :func:`warp_pixels`; the others (occlusions, ...) go through :func:`warp_pixels` on those pixels only.
+    :func:`warp_pixels`; the others (occlusions, ...) go through :func:`warp_pixels` on those pixels only (with
+    their ``motion``, when given).
     """
     C, Hs, Ws = src_values.shape[1:]
     wdt, dev = warp.K_src_inv.dtype, dst_depth.device
@@ -232,9 +289,11 @@ def fast_reasons(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, dst_
     rest = torch.nonzero(code == int(Reason.KEPT)).squeeze(1)
     if rest.numel():
         k, p, yy, xx = rest.numel(), p[rest], yy[rest], xx[rest]
-        source = SourceTaps(raw_reader(src_values, src_depth, src_normal, b, wdt), C, Hs, Ws)
+        rotation = None if motion is None or motion.rotation is None else motion.rotation[b:b + 1]
+        source = SourceTaps(raw_reader(src_values, src_depth, src_normal, b, wdt), C, Hs, Ws, rotation)
         pixels = DstPixels(z[rest].view(1, 1, 1, k), _gather_pixels(dst_normal, b, p, yy, xx).view(1, 3, 1, k),
-                           (xx.to(wdt) + 0.5).view(1, 1, 1, k), (yy.to(wdt) + 0.5).view(1, 1, 1, k))
+                           (xx.to(wdt) + 0.5).view(1, 1, 1, k), (yy.to(wdt) + 0.5).view(1, 1, 1, k),
+                           *(motion.pixels(b, p, yy, xx) if motion is not None else ()))
         _, _, reason, _ = warp_pixels(source, Warp(*(c[b:b + 1] for c in warp)), pixels, tests, wdt)
         code[rest] = reason.view(k)
     return code
@@ -242,8 +301,10 @@ def fast_reasons(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, dst_
 
 def fast_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, dst_depth: Tensor,
                     dst_normal: Tensor, warp: Warp, thr2: Tensor, position_threshold, normal_threshold,
-                    sampling: str) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """:func:`backward_reproject` for hard tests without autograd or tracing (see the module notes)."""
+                    sampling: str, motion: Tensor | None = None, motion_world: Tensor | None = None,
+                    src_rotation: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """:func:`backward_reproject` for hard tests without autograd or tracing (see the module notes); ``motion``
+    (B, 2, H, W), ``motion_world`` (B, 3, H, W) and ``src_rotation`` (B, 3, 3) as in :func:`general_reproject`."""
     hom = warp.pixel_src_from_pixel_dst
     wdt, dev = hom.dtype, dst_depth.device
     B, C, Hs, Ws = src_values.shape
@@ -259,8 +320,10 @@ def fast_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, ds
     hi = torch.tensor([Ws + COORD_MARGIN + off, Hs + COORD_MARGIN + off], dtype=wdt, device=dev).view(1, 2, 1)
     pp = torch.cat([hom, warp.ray_src_from_pixel_dst], 1)  # (B, 6, 3)
     u_c, v_c = pixel_centres(0, H, W, wdt, dev)
+    mv = None if motion is None else _Motion(motion, motion_world, src_rotation)
+    rotation = None if motion_world is None else src_rotation.to(wdt).reshape(B, 3, 3, 1)
     geo = _RowGeometry(pp, pp[:, :, 0, None, None] * u_c, v_c, warp.K_src_t, warp.t_src_from_dst, lo, hi,
-                       torch.ones((), dtype=wdt, device=dev), sampling, Wp, idx_dtype)
+                       torch.ones((), dtype=wdt, device=dev), sampling, Wp, idx_dtype, u_c, rotation)
     sc = _Scratch(dev)
 
     values = torch.empty(B, C, H, W, dtype=wdt, device=dev)
@@ -280,7 +343,7 @@ def fast_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, ds
         N = (r1 - r0) * W
         point_normal, wts, corner = fast_geometry(geo, dst_depth[:, :, r0:r1].reshape(B, 1, N),
                                          dst_normal[:, :, r0:r1].reshape(B, 3, N), r0, r1,
-                                         uv_raw[:, :, r0 * W:r1 * W], sc)
+                                         uv_raw[:, :, r0 * W:r1 * W], sc, None if mv is None else mv.rows(r0, r1))
         offs = offsets
         if rectified and not torch.count_nonzero(wts[:, 1, 0]):  # (1 - fx)·fy, 1 - fx > 0
             # fy = 0 for every pixel (rectified stereo): the y0 + 1 taps weigh 0, the y0 taps give the same sums
@@ -300,5 +363,5 @@ def fast_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, ds
             values[b].view(C, H * W).index_fill_(1, p, 0.0)  # +0 where nothing is accepted, as the general path
             reason[b].view(H * W).index_copy_(0, p, fast_reasons(
                 src_values, src_depth, src_normal, dst_depth, dst_normal, warp,
-                TapTests(position_threshold, normal_threshold, sampling), b, p, uv_raw[b].index_select(1, p)))
+                TapTests(position_threshold, normal_threshold, sampling), b, p, uv_raw[b].index_select(1, p), mv))
     return values.to(src_values.dtype), valid, reason, den

@@ -221,9 +221,12 @@ class _Sizes(NamedTuple):
     Wp: object  #: source width with the border of the tables, Ws + 2·TABLE_PAD
 
 
-def _project(warp: Warp, dst_depth: Tensor, size: _Sizes) -> tuple[Tensor, Tensor, list[Tensor], Tensor, Tensor]:
+def _project(warp: Warp, dst_depth: Tensor, size: _Sizes, motion: tuple | None = None
+             ) -> tuple[Tensor, Tensor, list[Tensor], Tensor, Tensor]:
     """Destination pixels -> source coordinates and source-camera points (warp_pixels' arithmetic), on (B, H, W)
-    with the pixel centres broadcast ((1, 1, W) and (1, H, 1)).
+    with the pixel centres broadcast ((1, 1, W) and (1, H, 1)). With ``motion`` = (motion (B, 2, H, W),
+    motion_world (B, 3, H, W) or None, source rotation (B, 3, 3)): the coordinates and moved points of
+    :func:`_motion_source`.
 
     Returns:
         u, v: (B, H·W) source coordinates, clamped; OFF_FRAME where the pixel has no surface or is not in front of
@@ -246,18 +249,50 @@ def _project(warp: Warp, dst_depth: Tensor, size: _Sizes) -> tuple[Tensor, Tenso
     wx = coef(hom, 0, 0) * u_c + coef(hom, 0, 1) * v_c + coef(hom, 0, 2) + coef(kt, 0, 0) * inv_z
     wy = coef(hom, 1, 0) * u_c + coef(hom, 1, 1) * v_c + coef(hom, 1, 2) + coef(kt, 1, 0) * inv_z
     wz = coef(hom, 2, 0) * u_c + coef(hom, 2, 1) * v_c + coef(hom, 2, 2) + coef(kt, 2, 0) * inv_z
-    u = wx / wz  # wz <= 0: sent to the border below
-    v = wy / wz
-    q = [((coef(ray, i, 0) * u_c + coef(ray, i, 1) * v_c + coef(ray, i, 2)) * z_dst + coef(t, i, 0)).reshape(B, -1)
+    q = [((coef(ray, i, 0) * u_c + coef(ray, i, 1) * v_c + coef(ray, i, 2)) * z_dst + coef(t, i, 0))
          for i in range(3)]
-    front = (wz > 0) & _finite(u) & _finite(v)
+    if motion is None:
+        u = wx / wz  # wz <= 0: sent to the border below
+        v = wy / wz
+        front = (wz > 0) & _finite(u) & _finite(v)
+        sent = front & dst_ok
+    else:
+        u, v, front, moved = _motion_source(motion, q, u_c, v_c, size)
+        sent = front & dst_ok & moved
+    q = [x.reshape(B, -1) for x in q]
     # arithmetic instead of Where (far dearer per element in onnxruntime): made finite and clamped, the coordinate
     # times 1 plus -0 where kept, times 0 plus OFF_FRAME elsewhere: exactly u, or OFF_FRAME
-    sent = (front & dst_ok).to(wdt)
+    sent = sent.to(wdt)
     far = (1.0 - sent) * OFF_FRAME
     u = (_export_or_eager(_SomeFinite, u).clamp(-COORD_MARGIN, Ws + COORD_MARGIN) * sent + far).reshape(B, -1)
     v = (_export_or_eager(_SomeFinite, v).clamp(-COORD_MARGIN, Hs + COORD_MARGIN) * sent + far).reshape(B, -1)
     return u, v, q, front, dst_ok
+
+
+def _motion_source(motion: tuple, q: list[Tensor], u_c: Tensor, v_c: Tensor, size: _Sizes):
+    """:func:`._general._motion_source` on (B, H, W): u, v = pixel centre + motion; ``q`` (3 × (B, H, W)) moved in
+    place by R_src · world motion (zero where not finite: finite values times 0, no ``Where``). Returns u, v,
+    ``front`` (the moved point's z > 0, with finite u, v where the motion is finite) and ``moved`` (the motion and
+    world motion are finite: elsewhere the pixel is sent to OFF_FRAME, where every tap is off the frame)."""
+    mo, mw, rotation = motion
+    B, H, W = size.B, size.H, size.W
+    wdt = q[0].dtype
+    mo = mo.to(wdt).reshape(B, 2, H, W)
+    u, v = u_c + mo[:, 0], v_c + mo[:, 1]
+    ok = _finite(mo[:, 0]) & _finite(mo[:, 1])
+    if mw is not None:
+        mw = mw.to(wdt).reshape(B, 3, H, W)
+        comps = [mw[:, i] for i in range(3)]
+        for x in comps:
+            ok = ok & _finite(x)
+        keep = ok.to(wdt)
+        comps = [_export_or_eager(_SomeFinite, x) * keep for x in comps]
+        R = rotation.to(wdt)
+        for i in range(3):
+            r = [R[:, i, j].reshape(B, 1, 1) for j in range(3)]
+            q[i] = q[i] + (r[0] * comps[0] + r[1] * comps[1] + r[2] * comps[2])
+    front = (q[2] > 0) & ((_finite(u) & _finite(v)) | ~ok)
+    return u, v, front, ok
 
 
 def _tap_corners(u: Tensor, v: Tensor, sampling: str, rectified: bool, Wp):
@@ -370,12 +405,15 @@ def _reasons(geo: _TapGeometry, taps, corner: Tensor, tap_tables: list[Tensor], 
 
 def lean_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, dst_depth: Tensor,
                    dst_normal: Tensor, warp: Warp, position_threshold, normal_threshold, sampling: str,
-                   rectified: bool = False) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+                   rectified: bool = False, motion: Tensor | None = None, motion_world: Tensor | None = None,
+                   src_rotation: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """:func:`~stereorepro.reproject.backward_reproject` with hard tests, in the export formulation.
 
     Args: as :func:`._general.general_reproject` (``src_values`` (B, C, Hs, Ws), ``dst_depth`` (B, 1, H, W),
         ``dst_normal`` (B, 3, H, W), ``warp`` composed), plus ``rectified``: read only the taps of row y0 (the
-        warp must have been rectified: :func:`~stereorepro.camera.rectify_warp`).
+        warp must have been rectified: :func:`~stereorepro.camera.rectify_warp`), and the destination's motion
+        vectors ``motion`` (B, 2, H, W), ``motion_world`` (B, 3, H, W) with the source rotation ``src_rotation``
+        (B, 3, 3) (see :func:`._general.general_reproject`).
 
     Returns:
         values (B, C, H, W) in the dtype of ``src_values``, valid (B, 1, H, W) bool, reason (B, 1, H, W) uint8,
@@ -391,7 +429,8 @@ def lean_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, ds
     H, W = dst_depth.shape[-2:]
     size = _Sizes(B, H, W, Hs, Ws, Ws + 2 * TABLE_PAD)
     tap_tables = source_tables(src_values, src_depth, src_normal, wdt)
-    u, v, q, front, dst_ok = _project(warp, dst_depth, size)
+    moving = None if motion is None else (motion, motion_world, src_rotation)
+    u, v, q, front, dst_ok = _project(warp, dst_depth, size, moving)
     n_dst = _finite_or_zero(dst_normal.to(wdt)).reshape(B, 3, -1)
     nd = [n_dst[:, c] for c in range(3)]
     like = torch.empty((), dtype=wdt, device=dev)

@@ -58,6 +58,19 @@ def _warp_args(warp) -> tuple[Tensor, ...]:
                                                                 warp.K_src_inv))
 
 
+def _motion_args(motion: Tensor | None, motion_world: Tensor | None, src_rotation: Tensor | None
+                 ) -> tuple[Tensor | None, Tensor | None, Tensor | None]:
+    """The kernels' motion arguments: the motion planes as they are (float32 or float16, contiguous) and the source
+    camera's rotation (B, 9) float32, rounded as the torch reference rounds it (only with ``motion_world``)."""
+    if motion is None:
+        return None, None, None
+    mo = _image_contiguous(motion, "motion")
+    if motion_world is None:
+        return mo, None, None
+    R = src_rotation.detach().to(torch.float32).reshape(src_rotation.shape[0], 9).contiguous().cpu()
+    return mo, _image_contiguous(motion_world, "motion_world"), R
+
+
 def core_constants() -> dict | None:
     """The constants the kernels were compiled with (``_core.reproject_constants``: their copies of
     :data:`stereorepro.reproject._constants.MIRRORED_IN_CORE`), or None without the core."""
@@ -65,7 +78,8 @@ def core_constants() -> dict | None:
 
 
 def reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, warp, dst_depth: Tensor,
-              dst_normal: Tensor, thr2: tuple[float, float], bilinear: bool, want_confidence: bool = True
+              dst_normal: Tensor, thr2: tuple[float, float], bilinear: bool, want_confidence: bool = True,
+              motion: Tensor | None = None, motion_world: Tensor | None = None, src_rotation: Tensor | None = None
               ) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
     """Backward reprojection with hard tests.
 
@@ -76,6 +90,10 @@ def reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, warp, d
         thr2: squared position and normal thresholds (float32 values).
         bilinear: 2×2 taps, else the nearest one.
         want_confidence: also write the accepted weight (else None: saves writing it).
+        motion: optional (B, 2, H, W) screen motion of the destination pixels to the source instant (taps at
+            ``pixel + motion``); motion_world: optional (B, 3, H, W) world motion of their points (the position
+            test against ``P + motion_world``), with src_rotation (B, 3, 3) the source ``cam_from_world``'s
+            rotation. float32 or float16.
 
     Returns:
         values (B, C, H, W) of src_values' dtype, valid (B, 1, H, W) bool, reason (B, 1, H, W) uint8, confidence
@@ -94,13 +112,14 @@ def reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, warp, d
     reason = torch.empty(B, 1, H, W, dtype=torch.uint8)
     confidence = torch.empty(B, 1, H, W, dtype=torch.float32) if want_confidence else None
     _core.reproject(sv, sd, sn, *_warp_args(warp), dd, dn, float(thr2[0]), float(thr2[1]), bool(bilinear), values,
-                    valid, reason, confidence)
+                    valid, reason, confidence, *_motion_args(motion, motion_world, src_rotation))
     return values, valid, reason, confidence
 
 
 def temporal_reproject(current_color: Tensor, history_color: Tensor, history_len: Tensor, prev_depth: Tensor,
                        prev_normal: Tensor, warp, depth: Tensor, normal: Tensor, thr2: tuple[float, float],
-                       bilinear: bool, alpha: float, warmup: bool, max_history: float
+                       bilinear: bool, alpha: float, warmup: bool, max_history: float, motion: Tensor | None = None,
+                       motion_world: Tensor | None = None, src_rotation: Tensor | None = None
                        ) -> tuple[Tensor, Tensor, Tensor]:
     """Temporal reprojection in one fused pass: warp [history_color, history_len] and blend with the current frame.
 
@@ -112,6 +131,8 @@ def temporal_reproject(current_color: Tensor, history_color: Tensor, history_len
         thr2, bilinear: as :func:`reproject`.
         alpha: minimum weight of the current frame, already clamped to [0, 1]; warmup: ``max(1/(n+1), alpha)``;
             max_history: cap of n.
+        motion, motion_world, src_rotation: this frame's motion to the previous one, as :func:`reproject`
+            (src_rotation: the previous camera's).
 
     Returns:
         color (B, 3, H, W) of current_color's dtype, history_len (B, 1, H, W) float32, valid (B, 1, H, W) bool.
@@ -130,5 +151,6 @@ def temporal_reproject(current_color: Tensor, history_color: Tensor, history_len
     n_out = torch.empty(B, 1, H, W, dtype=torch.float32)
     valid = torch.empty(B, 1, H, W, dtype=torch.bool)
     _core.temporal_reproject(cur, hc, hl, pd, pn, *_warp_args(warp), dd, dn, float(thr2[0]), float(thr2[1]),
-                             bool(bilinear), float(alpha), bool(warmup), float(max_history), color, n_out, valid)
+                             bool(bilinear), float(alpha), bool(warmup), float(max_history), color, n_out, valid,
+                             *_motion_args(motion, motion_world, src_rotation))
     return color, n_out, valid

@@ -39,6 +39,41 @@ def both(inp, sampling="bilinear", rectified=False, values=None):
     return ref, got
 
 
+def moving(inp: tuple, seed: int = 0, hostile: bool = False) -> tuple:
+    """``inp`` (a motion module's example inputs: motion, motion_world last) with the motion of a moving patch
+    added and perturbed (taps anywhere in the pixel); ``hostile``: NaN / ±inf / huge entries in both motions and
+    points moved behind the previous camera."""
+    *rest, motion, motion_world = inp
+    B, _, H, W = motion.shape
+    g = torch.Generator().manual_seed(seed)
+    motion = torch.nan_to_num(motion, nan=0.0) + 0.3 * torch.randn(motion.shape, generator=g, dtype=motion.dtype)
+    motion_world = motion_world + 0.002 * torch.randn(motion_world.shape, generator=g, dtype=motion.dtype)
+    patch = (slice(None), slice(None), slice(H // 4, H // 2), slice(W // 3, W // 2))
+    motion[patch] += torch.tensor([-2.5, 1.25], dtype=motion.dtype).view(1, 2, 1, 1)
+    motion_world[patch] += torch.tensor([0.05, -0.02, 0.01], dtype=motion.dtype).view(1, 3, 1, 1)
+    if hostile:
+        specials = torch.tensor([float("nan"), float("inf"), -float("inf"), 1e30, -3e38], dtype=motion.dtype)
+        for m in (motion, motion_world):
+            odd = torch.rand(m.shape, generator=g) < 0.05
+            m[odd] = specials[torch.randint(0, len(specials), (int(odd.sum()),), generator=g)]
+        motion_world[:, 2, :2] = -100.0  # moved behind the previous camera
+    return (*rest, motion, motion_world)
+
+
+def both_motion(hostile: bool, sampling: str = "bilinear", world: bool = True, dtype=torch.float32):
+    """(general path, export formulation) of a temporal case with motion vectors, on the same warp, in eager."""
+    m = TemporalReprojection(*THR, motion_vectors=True)
+    cur, dd, dn, dK, dT, hc, hl, sd, sn, sK, sT, mo, mw = moving(
+        example_inputs(m, batch=2, height=29, width=43, dtype=dtype), seed=1, hostile=hostile)
+    mw = mw if world else None
+    values = torch.cat([hc, hl], 1)
+    warp = compose_warp(sK, sT, dK, dT, _general.compute_dtype(values, dd))
+    R = sT[:, :3, :3]
+    ref = _general.general_reproject(values, sd, sn, dd, dn, warp, *THR, sampling, False, 0.1, False, mo, mw, R)
+    got = _lean.lean_reproject(values, sd, sn, dd, dn, warp, *THR, sampling, False, mo, mw, R)
+    return ref, got
+
+
 def assert_same(ref, got, atol=1e-6):
     for name, r, g in zip(("values", "valid", "reason", "confidence"), ref, got):
         assert r.dtype == g.dtype and r.shape == g.shape, name
@@ -70,6 +105,18 @@ class TestLeanReproject(BaseTester):
         ref, got = both(inp, values=values)
         assert got[0].shape == (1, 4, 20, 30)
         assert_same(ref, got)
+
+    @pytest.mark.parametrize("sampling", ["bilinear", "nearest"])
+    @pytest.mark.parametrize("hostile", [False, True], ids=["scene", "hostile"])
+    @pytest.mark.parametrize("world", [True, False], ids=["world", "screen"])
+    def test_motion_equals_general(self, sampling, hostile, world, dtype):
+        """Motion vectors (taps at pixel + motion, the point moved by the world motion; non-finite motion out of
+        frame, moved points behind the previous camera): the general path's decisions."""
+        ref, got = both_motion(hostile, sampling, world, dtype)
+        assert_same(ref, got)
+        assert 0.2 < float(ref[1].float().mean()) < 1.0
+        if hostile:
+            assert ({2, 3, 5} if world else {3, 5}) <= set(ref[2].unique().tolist())  # behind, out of frame, position
 
     def test_rectified_equals_general(self):
         """On a rectified warp the vertical fraction is 0: the two taps of row y0 give the four taps' results."""
@@ -231,11 +278,13 @@ MODULES = {
     "stereo_rectified": lambda: StereoReprojection(*THR, rectified=True),
     "temporal": lambda: TemporalReprojection(*THR),
     "temporal_fixed_alpha": lambda: TemporalReprojection(*THR, warmup=False),
+    "temporal_motion": lambda: TemporalReprojection(*THR, motion_vectors=True),
 }
 
 
-def _inputs(name, module, **kw):
-    return example_inputs(module, head_motion=name != "stereo_rectified", **kw)
+def _inputs(name, module, seed=0, **kw):
+    inp = example_inputs(module, head_motion=name != "stereo_rectified", seed=seed, **kw)
+    return moving(inp, seed, hostile=True) if name == "temporal_motion" else inp
 
 
 def _computed_where(model) -> list[str]:
@@ -325,6 +374,10 @@ class TestExportedGraph:
         assert len(computed) <= 3, computed
         temporal = onnx.load(str(export_onnx(TemporalReprojection(*THR), tmp_path / "temporal.onnx")))
         assert len(_computed_where(temporal)) <= len(computed), _computed_where(temporal)
+        with_motion = onnx.load(str(export_onnx(TemporalReprojection(*THR, motion_vectors=True),
+                                                tmp_path / "motion.onnx")))
+        assert len(_computed_where(with_motion)) <= len(computed), _computed_where(with_motion)
+        assert "NonZero" not in [n.op_type for n in with_motion.graph.node]
         # the general formulation, still available, is what the benchmark compares against
         functional.EXPORT_LEAN = False
         try:

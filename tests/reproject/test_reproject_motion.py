@@ -9,6 +9,7 @@ import torch
 
 from base import BaseTester
 from stereorepro import SpatiotemporalReprojection, TemporalReprojection, camera_motion, intrinsics_from_fov
+from stereorepro.camera import world_motion_from_view_z
 from stereorepro.errors import ShapeError
 from stereorepro._testing import example_inputs
 from stereorepro.reproject import Reason
@@ -48,15 +49,13 @@ def moving_object(dtype=torch.float64):
 
 class TestMotionReproject(BaseTester):
     def test_smoke(self, device, dtype, backend):
-        """Motion vectors run on torch (the general path, fast path or not); the native backend refuses them."""
+        """Motion vectors run on every backend (torch's general and fast paths, native: float32 on the CPU)."""
+        self.skip_unless_runs(backend, dtype, device)
         args, motion, mw, obj, dis = moving_object(dtype)
         args, motion, mw = [a.to(device) for a in args], motion.to(device), mw.to(device)
-        if backend == "native":
-            with pytest.raises(RuntimeError, match="motion vectors"), torch.no_grad():
-                temporal_reproject(*args, *THR, motion=motion, motion_world=mw, backend="native")
-            return
-        c, n, valid, reason = temporal_reproject(*args, *THR, motion=motion, motion_world=mw, return_reason=True,
-                                                 backend=self.backend_arg(backend))
+        with torch.no_grad():
+            c, n, valid, reason = temporal_reproject(*args, *THR, motion=motion, motion_world=mw, return_reason=True,
+                                                     backend=self.backend_arg(backend))
         assert c.shape == (1, 3, H, W) and n.shape == valid.shape == reason.shape == (1, 1, H, W)
         assert c.dtype == dtype and c.device.type == device.type
 
@@ -113,9 +112,9 @@ class TestMotionReproject(BaseTester):
         with pytest.raises(TypeError, match="floating"):
             temporal_reproject(*args, *THR, motion=motion.long())
         f32 = [a.float() for a in args]
-        with pytest.raises(RuntimeError, match="motion vectors"):
+        with pytest.raises(RuntimeError, match="float32 or float16"):  # float64 motion: torch only
             with torch.no_grad():
-                temporal_reproject(*f32, *THR, motion=motion.float(), backend="native")
+                temporal_reproject(*f32, *THR, motion=motion.double(), backend="native")
         with pytest.raises(TypeError, match="needs `motion`"):
             TemporalReprojection(*THR, motion_vectors=True)(*args)
 
@@ -207,3 +206,94 @@ class TestMotionReproject(BaseTester):
         assert torch.equal(torch.from_numpy(got[2]), ref[2]) and bool(ref[2][obj].all())
         assert float((torch.from_numpy(got[0]) - ref[0]).abs().max()) <= 1e-5
         assert float((torch.from_numpy(got[1]) - ref[1]).abs().max()) <= 1e-5
+
+
+def _rotation_about(axis: torch.Tensor, angle: float) -> torch.Tensor:
+    a = axis / axis.norm()
+    k = torch.tensor([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]], dtype=torch.float64)
+    return torch.eye(3, dtype=torch.float64) + math.sin(angle) * k + (1 - math.cos(angle)) * (k @ k)
+
+
+class TestWorldMotionFromViewZ(BaseTester):
+    """2.5D motion (screen motion + view-z delta) converted into world motion at the boundary."""
+
+    @staticmethod
+    def rigid_case(B=2, H=18, W=26):
+        """A realistic frame pair (moving cameras) whose geometry also moved rigidly, P_prev = R·P + t: the true
+        world motion and the 2.5D motion a renderer would write for it."""
+        m = TemporalReprojection(*THR, motion_vectors=True, backend="torch")
+        x = example_inputs(m, batch=B, height=H, width=W, dtype=torch.float64)
+        depth, K, T, pK, pT = x[1], x[3], x[4], x[9], x[10]
+        from stereorepro.camera import invert_rigid, project, unproject
+
+        R = _rotation_about(torch.tensor([0.3, 1.0, -0.2], dtype=torch.float64), 0.05)
+        t = torch.tensor([0.04, -0.02, 0.1], dtype=torch.float64).view(1, 3, 1)
+        p_cam = unproject(depth, K).reshape(B, 3, -1)
+        wfc = invert_rigid(T)
+        P = wfc[:, :3, :3] @ p_cam + wfc[:, :3, 3:]
+        P_prev = R @ P + t
+        q = (pT[:, :3, :3] @ P_prev + pT[:, :3, 3:]).reshape(B, 3, H, W)
+        uv, z_prev = project(q, pK)
+        from stereorepro.camera import pixel_centers
+
+        motion = uv - pixel_centers(H, W, dtype=torch.float64)
+        truth = (P_prev - P).reshape(B, 3, H, W)
+        return x, motion, z_prev - depth, truth
+
+    def test_smoke(self):
+        x, motion, dz, truth = self.rigid_case()
+        mw = world_motion_from_view_z(x[1], motion, dz, x[3], x[4], x[9], x[10])
+        assert mw.shape == truth.shape and mw.dtype == motion.dtype
+        assert world_motion_from_view_z(x[1], motion.float(), dz, x[3], x[4], x[9], x[10]).dtype == torch.float32
+
+    def test_rigid_motion_gives_the_3d_motion(self):
+        """Rotation + translation of the geometry, cameras moving too: the conversion recovers the world motion
+        (float64 within 1e-12 scene units; float32 2.5D inputs within their rounding)."""
+        x, motion, dz, truth = self.rigid_case()
+        surface = torch.isfinite(x[1]) & (x[1] > 0)
+        mw = world_motion_from_view_z(x[1], motion, dz, x[3], x[4], x[9], x[10])
+        s = surface.expand_as(mw)
+        assert bool(surface.float().mean() > 0.5) and float(truth[s].abs().max()) > 0.05
+        assert float((mw[s] - truth[s]).abs().max()) < 1e-12
+        assert bool(torch.isnan(mw[~s]).all())
+        mw32 = world_motion_from_view_z(x[1].float(), motion.float(), dz.float(), *(c.float() for c in
+                                                                                    (x[3], x[4], x[9], x[10])))
+        assert float((mw32.double()[s] - truth[s]).abs().max()) < 1e-5
+
+    def test_ops_give_the_3d_result(self, backend):
+        """A moving object (moving_object: a patch moved SHIFT pixels at z = 2, world motion known): 2.5D motion
+        converted gives the 3D motion's outputs, history kept on the object."""
+        args, motion, mw, obj, dis = moving_object(torch.float64)
+        depth, K, T, pK, pT = args[1], args[3], args[4], args[9], args[10]
+        converted = world_motion_from_view_z(depth, motion, torch.zeros_like(depth), K, T, pK, pT)
+        assert float((converted - mw).abs().max()) < 1e-12
+        f32 = [a.float() for a in args]
+        with torch.no_grad():
+            ref = temporal_reproject(*f32, *THR, motion=motion.float(), motion_world=mw.float(), return_reason=True,
+                                     backend="torch")
+            got = temporal_reproject(*f32, *THR, motion=motion.float(), motion_world=converted.float(),
+                                     return_reason=True, backend=self.backend_arg(backend))
+        self.assert_identical(got, ref)
+        assert bool(got[2][obj].all())
+
+    def test_hard_cases(self):
+        """No surface, non-finite motion or delta, a previous z <= 0: NaN (the ops read no history there)."""
+        x, motion, dz, truth = self.rigid_case(B=1)
+        depth, motion, dz = x[1].clone(), motion.clone(), dz.clone()
+        depth[..., 0, 0] = 0.0
+        motion[:, 0, 1, 1] = math.nan
+        dz[..., 2, 2] = math.inf
+        dz[..., 3, 3] = -depth[..., 3, 3] - 1.0
+        mw = world_motion_from_view_z(depth, motion, dz, x[3], x[4], x[9], x[10])
+        for y in range(4):
+            assert bool(torch.isnan(mw[0, :, y, y]).all())
+        assert bool(torch.isfinite(mw[0, :, 4, 5]).all())
+
+    def test_exceptions(self):
+        x, motion, dz, truth = self.rigid_case(B=1)
+        with pytest.raises(ShapeError, match="motion"):
+            world_motion_from_view_z(x[1], motion[:, :1], dz, x[3], x[4], x[9], x[10])
+        with pytest.raises(ShapeError, match="view_z_delta"):
+            world_motion_from_view_z(x[1], motion, dz[..., :-1], x[3], x[4], x[9], x[10])
+        with pytest.raises(ShapeError, match="previous camera"):
+            world_motion_from_view_z(x[1], motion, dz, x[3], x[4], x[9][:, :2], x[10])
