@@ -39,7 +39,7 @@ SCALE = float(os.environ.get("STEREOREPRO_FUZZ_SCALE", "1"))
 #: Examples per test in one default run; each example runs every backend that applies to it.
 EXAMPLES = {"stereo": 2000, "backward": 2000, "temporal": 2000, "blend": 2000, "temporal_motion": 600,
             "grad_stereo": 300,
-            "grad_temporal": 300, "onnx_stereo": 400, "onnx_temporal": 400, "lean": 500}
+            "grad_temporal": 300, "onnx_stereo": 400, "onnx_temporal": 400, "onnx_temporal_motion": 300, "lean": 500}
 
 FLT_MAX = float(np.finfo(np.float32).max)
 SPECIAL_DEPTHS = (0.0, -1.0, math.inf, -math.inf, math.nan, 1e-12, 1e30, FLT_MAX, 1e-20, 1e-38)
@@ -258,6 +258,18 @@ def assert_masks(valid: torch.Tensor, reason: torch.Tensor, dst_depth: torch.Ten
     assert not bool((valid & ~has).any()), "a destination pixel without a surface was reported valid"
 
 
+def motion_inputs(c: Case) -> tuple[torch.Tensor, torch.Tensor]:
+    """Random motion (B, 2, H, W) and world motion (B, 3, H, W) in the case's dtype: small to large screen motion,
+    10 % NaN / ±inf / 1e30 entries in each."""
+    rng = np.random.default_rng(c.seed + 4)
+    mo = rng.normal(scale=float(rng.choice([0.5, 3.0, 50.0])), size=(c.B, 2, c.H, c.W))
+    mw = rng.normal(scale=0.05, size=(c.B, 3, c.H, c.W)) * (rng.uniform() < 0.5)
+    for a in (mo, mw):
+        odd = rng.uniform(size=a.shape) < 0.1
+        a[odd] = rng.choice([math.nan, math.inf, -math.inf, 1e30], size=int(odd.sum()))
+    return torch.from_numpy(mo).to(c.dtype), torch.from_numpy(mw).to(c.dtype)
+
+
 def _native_ok(c: Case) -> bool:
     return HAS_NATIVE and c.dtype in _native.DTYPES
 
@@ -332,14 +344,8 @@ class TestFuzz:
         @given(cases(max_side=20), st.booleans())
         def check(c, with_reason):
             args, (alpha, warmup, max_history) = temporal_inputs(c)
-            rng = np.random.default_rng(c.seed + 4)
-            mo = rng.normal(scale=float(rng.choice([0.5, 3.0, 50.0])), size=(c.B, 2, c.H, c.W))
-            mw = rng.normal(scale=0.05, size=(c.B, 3, c.H, c.W)) * (rng.uniform() < 0.5)
-            for a in (mo, mw):
-                odd = rng.uniform(size=a.shape) < 0.1
-                a[odd] = rng.choice([math.nan, math.inf, -math.inf, 1e30], size=int(odd.sum()))
-            motion, motion_world = torch.from_numpy(mo).to(c.dtype), torch.from_numpy(mw).to(c.dtype)
-            if rng.uniform() < 0.3:
+            motion, motion_world = motion_inputs(c)
+            if c.seed % 3 == 0:
                 motion_world = None
             with torch.no_grad():
                 outs = run_backends(lambda be: temporal_reproject(*args, c.thr_p, c.thr_n, alpha, warmup, max_history,
@@ -475,6 +481,31 @@ class TestFuzzOnnx:
                 ref = module(*args)
             got = [torch.from_numpy(g) for g in sess.run(None, {n: a.numpy() for n, a in zip(names, args)})]
             COUNTS[("TemporalReprojection", "onnxruntime")] += 1
+            finite_in = torch.isfinite(args[0]).all(1, keepdim=True).expand_as(args[0])
+            assert bool(torch.isfinite(got[0][finite_in]).all())
+            assert torch.equal(got[2], ref[2])
+            assert torch.allclose(got[0], ref[0], atol=1e-5, rtol=1e-5, equal_nan=True)
+            assert torch.allclose(got[1], ref[1], atol=1e-5, rtol=1e-5)
+        check()
+
+
+    def test_temporal_motion_onnxruntime(self, tmp_path_factory):
+        """The motion-vector graph (the export formulation with motion) on random and non-finite motion, sides up
+        to 20: valid identical, colour and count within 1e-5."""
+        from stereorepro.reproject import TemporalReprojection
+
+        module = TemporalReprojection(0.05, 0.1, motion_vectors=True, backend="torch")
+        sess = self._session(module, tmp_path_factory)
+        names = [i.name for i in sess.get_inputs()]
+
+        @fuzz_settings("onnx_temporal_motion")
+        @given(cases(dtypes=(torch.float32,), max_side=20).filter(lambda c: c.B > 0 and c.sampling == "bilinear"))
+        def check(c):
+            args = [a.float() for a in temporal_inputs(c)[0]] + list(motion_inputs(c))
+            with torch.no_grad():
+                ref = module(*args)
+            got = [torch.from_numpy(g) for g in sess.run(None, {n: a.numpy() for n, a in zip(names, args)})]
+            COUNTS[("TemporalReprojection with motion", "onnxruntime")] += 1
             finite_in = torch.isfinite(args[0]).all(1, keepdim=True).expand_as(args[0])
             assert bool(torch.isfinite(got[0][finite_in]).all())
             assert torch.equal(got[2], ref[2])
