@@ -33,6 +33,7 @@ from .camera import (
     pixel_centers,
     project,
     unproject,
+    world_motion_from_view_z,
 )
 from .denoise import ReprojectionDenoiser, denoise_features, empty_history, reproject_denoise, reprojection_features
 from .errors import CameraError, SceneError, SequenceError, ShapeError, StereoreproError, UserError
@@ -78,7 +79,7 @@ _LAZY = {
 
 __all__ = [
     # cameras and conventions
-    "DEFAULT_BASELINE", "DEFAULT_RESOLUTION", "Eye", "PinholeCamera", "StereoRig", "Warp", "camera_motion", "compose_warp", "has_surface", "intrinsics_from_fov", "invert_rigid",
+    "DEFAULT_BASELINE", "DEFAULT_RESOLUTION", "Eye", "PinholeCamera", "StereoRig", "Warp", "camera_motion", "world_motion_from_view_z", "compose_warp", "has_surface", "intrinsics_from_fov", "invert_rigid",
     "look_at", "pixel_centers", "project", "unproject",
     # the data model of the ops: G-buffer views, settings, named results
     "View", "Thresholds", "Blend", "History", "ReprojectionResult", "TemporalResult",
