@@ -61,6 +61,7 @@ from torch import Tensor
 from ._checks import (STEREO_NAMES, TEMPORAL_NAMES, check_camera, check_floating, check_motion,
                       check_reprojection_inputs, check_scalar, check_shape, tracing)
 from ._tensors import as_scalar, compute_dtype
+from .camera import Eye
 from .reproject import History, Reason, StereoReprojection, TemporalReprojection, Thresholds, View, temporal_reproject
 from .reproject.functional import temporal_blend, temporal_views, warp_values
 
@@ -309,8 +310,8 @@ class SpatiotemporalReprojection:
 
     With ``alternate=True`` ask which eye to trace in full, and use the eye-neutral calls::
 
-        full_eye = st.fully_traced_eye()                             # "right" on even frames, "left" on odd
-        other_eye = "left" if full_eye == "right" else "right"
+        full_eye = st.fully_traced_eye()                             # Eye.RIGHT on even frames, Eye.LEFT on odd
+        other_eye = full_eye.other
         out[full_eye] = st.full(trace(full_eye), *gbuffer[full_eye])
         mask = st.other_trace_mask(*gbuffer[other_eye])
         out[other_eye] = st.other(trace(other_eye, pixel_mask=mask))
@@ -342,7 +343,7 @@ class SpatiotemporalReprojection:
         self.left_state: EyeState | None = None
         #: Frames completed (:meth:`other` / :meth:`left` calls) since the last reset.
         self.frame_index = 0
-        self._frame_eye: str | None = None  # the eye full() accumulated last
+        self._frame_eye: Eye | None = None  # the eye full() accumulated last
         self._left_gbuffer: tuple | None = None
         self._stereo_out: tuple[Tensor, Tensor] | None = None
         #: (B, 1, H, W) bool: where the fully traced eye kept its history this frame (None on its first frame).
@@ -361,11 +362,11 @@ class SpatiotemporalReprojection:
         #: ``other_valid`` when the left eye is the reprojected one (always, unless alternate).
         self.left_valid: Tensor | None = None
 
-    def fully_traced_eye(self) -> str:
-        """``"right"`` or ``"left"``: the eye to trace in full at 1 spp for the frame in progress (always
-        ``"right"`` unless ``alternate``, then ``"left"`` on odd frames). The other eye traces only the pixels of
-        :meth:`other_trace_mask`."""
-        return "left" if self.alternate and self.frame_index % 2 == 1 else "right"
+    def fully_traced_eye(self) -> Eye:
+        """:attr:`Eye.RIGHT <stereorepro.camera.Eye>` or ``Eye.LEFT`` (equal to ``"right"`` / ``"left"``): the eye
+        to trace in full at 1 spp for the frame in progress (always the right eye unless ``alternate``, then the
+        left on odd frames). The other eye (``.other``) traces only the pixels of :meth:`other_trace_mask`."""
+        return Eye.LEFT if self.alternate and self.frame_index % 2 == 1 else Eye.RIGHT
 
     def _accumulate(self, state: EyeState | None, color, depth, normal, K, cam_from_world, motion=None,
                     motion_world=None):
@@ -498,7 +499,7 @@ class SpatiotemporalReprojection:
         depth, normal, K, cam_from_world, motion, motion_world = self._left_gbuffer
         check_shape(traced_color, ["B", "3", "H", "W"], "traced_color",
                     {"B": depth.shape[0], "H": depth.shape[-2], "W": depth.shape[-1]})
-        eye = "left" if self._frame_eye == "right" else "right"
+        eye = self._frame_eye.other
         state = getattr(self, f"{eye}_state")
         if self.left_mode == "blend" and self._stereo_out is not None:
             s_color, s_len = self._stereo_out

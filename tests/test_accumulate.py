@@ -134,7 +134,7 @@ class TestSpatiotemporalReprojection(BaseTester):
         assert st.right_state is None and st.left_state is None
 
 
-# --- beyond the paper: the blended left eye and alternating eyes (issue #15 item 6) ---------------------------------
+# --- beyond the paper: the blended left eye and alternating eyes ---------------------------------------------------
 
 def _blend_inputs(B=2, C=3, h=5, w=7, dtype=torch.float64, seed=0):
     """Random inputs of blend_histories: colours, counts in [0.5, 8] kept away from the kink at 1/alpha − 1 = 4,
@@ -380,9 +380,8 @@ class TestBlendedLeftEye(BaseTester):
     @pytest.mark.parametrize("baseline", [0.0, 0.065])
     def test_static_blend_has_lower_variance(self, baseline):
         """A static scene, seeded noise: the blended left eye's error against the noise-free image (its variance:
-        with baseline 0 the stereo reprojection is the identity, so there is no bias) is below the fill's.
-        Measured here (frames 10-19): 0.00662 → 0.00459 (identity, ×0.69) and 0.00434 → 0.00308 (0.065, ×0.71);
-        the fill's 0.00662 is 1/9.0 of the 1-spp variance, the EMA's alpha/(2 − alpha)."""
+        with baseline 0 the stereo reprojection is the identity, so there is no bias) is below the fill's, and the
+        fill's error with the identity is the EMA's alpha/(2 − alpha) = 1/9 of the 1-spp variance."""
         frames = [frame(i, seed=7000 + i, static=True, baseline=baseline) for i in range(20)]
         err = {}
         for mode in ("fill", "blend"):
@@ -394,7 +393,7 @@ class TestBlendedLeftEye(BaseTester):
 
     def test_moving_blend_finite_and_better(self):
         """The moving test sequence (head moves and turns) with NaN outside the trace masks: finite, and the
-        blend's error is below the fill's (measured here, frames 8-13: 0.00440 → 0.00321, ×0.73)."""
+        blend's error is below the fill's (frames 8-13)."""
         frames = [frame(i) for i in range(14)]
         err = {}
         for mode in ("fill", "blend"):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ..camera import DEFAULT_RESOLUTION
 from ..errors import UserError
 from ..workflows.experiment import ExperimentConfig, run_experiment, tables_markdown
 from ._args import alpha_list, parse_resolution, positive_int, threshold_scale
@@ -16,7 +17,7 @@ def add_arguments(p: argparse.ArgumentParser, defaults: dict | None = None) -> N
     d = defaults or {}
     p.add_argument("--scene", default=d.get("scene"), required="scene" not in d, help="built-in name or .toml path")
     p.add_argument("--frames", type=positive_int, default=d.get("frames"), help="frames (default: the scene's)")
-    p.add_argument("--resolution", type=parse_resolution, default=d.get("resolution", (320, 180)), help="WxH")
+    p.add_argument("--resolution", type=parse_resolution, default=d.get("resolution", DEFAULT_RESOLUTION), help="WxH")
     p.add_argument("--reference-spp", type=positive_int, default=d.get("reference_spp", 256))
     p.add_argument("--ladder-spp", type=positive_int, default=d.get("ladder_spp", 16), help=">= 2")
     p.add_argument("--reference-chunk-spp", type=positive_int, default=None,

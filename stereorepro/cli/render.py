@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 
+from ..camera import DEFAULT_RESOLUTION, Eye
 from ..errors import UserError
 from ._args import nonnegative_int, parse_resolution, positive_int
 
@@ -41,7 +42,7 @@ def _cmd_render(args) -> int:
         cam = {"left": left, "right": right, "head": scene.camera(args.frame, w, h)}[args.eye]
         tracer = PathTracer(scene, seed=args.seed, workers=args.workers)
         res = tracer.render(cam, args.frame, args.spp, sample_offset=args.sample_offset,
-                            eye=1 if args.eye == "right" else 0, progress=not args.quiet)
+                            eye=Eye.RIGHT if args.eye == "right" else Eye.LEFT, progress=not args.quiet)
     except SceneError as e:
         raise UserError(str(e)) from None
     write_exr(args.out, res)  # a full disk / permission error: exit 2 with one line (cli.main's policy)
@@ -60,7 +61,7 @@ def register(subparsers) -> None:
     p.add_argument("--scene", required=True, help="built-in scene name or path to a .toml")
     p.add_argument("--frame", type=nonnegative_int, default=0)
     p.add_argument("--spp", type=positive_int, default=1)
-    p.add_argument("--resolution", type=parse_resolution, default=(320, 180), metavar="WxH")
+    p.add_argument("--resolution", type=parse_resolution, default=DEFAULT_RESOLUTION, metavar="WxH")
     p.add_argument("--out", required=True, help="output .exr (R,G,B, Z, N.X/Y/Z, P.X/Y/Z)")
     p.add_argument("--eye", choices=("left", "right", "head"), default="left")
     p.add_argument("--seed", type=int, default=0)

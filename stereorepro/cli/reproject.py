@@ -7,6 +7,7 @@ import sys
 
 import torch
 
+from ..camera import DEFAULT_RESOLUTION
 from ..errors import SceneError, SequenceError, UserError
 from ..io.frames import SOURCES
 from ..workflows.export import export_sequence
@@ -84,7 +85,7 @@ def register(subparsers) -> None:
     p.add_argument("--frames", type=positive_int, default=8, help="number of frames")
     p.add_argument("--start", type=nonnegative_int, default=0, help="first scene frame")
     p.add_argument("--stride", type=positive_int, default=1, help="scene frames between exported frames")
-    p.add_argument("--resolution", type=parse_resolution, default=(320, 180), metavar="WxH")
+    p.add_argument("--resolution", type=parse_resolution, default=DEFAULT_RESOLUTION, metavar="WxH")
     p.add_argument("--spp", type=positive_int, default=1)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--workers", type=positive_int, default=None)

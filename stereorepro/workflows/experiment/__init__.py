@@ -43,7 +43,7 @@ Layout: :mod:`.config` (settings and schemes), :mod:`.cache` (the content-addres
 from .cache import RenderCache
 from .config import REFERENCE_OFFSET, SCHEMES, THRESHOLD_ROWS, ExperimentConfig, Scheme
 from .report import cost_markdown, tables_markdown
-from .run import run_experiment
+from .run import ExperimentResults, run_experiment
 
-__all__ = ["ExperimentConfig", "run_experiment", "REFERENCE_OFFSET", "SCHEMES", "Scheme", "THRESHOLD_ROWS",
+__all__ = ["ExperimentConfig", "ExperimentResults", "run_experiment", "REFERENCE_OFFSET", "SCHEMES", "Scheme", "THRESHOLD_ROWS",
            "RenderCache", "tables_markdown", "cost_markdown"]

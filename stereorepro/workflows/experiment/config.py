@@ -6,6 +6,7 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+from ...camera import DEFAULT_RESOLUTION, Eye
 from ...scenes import THRESHOLD_ROWS
 
 __all__ = ["REFERENCE_OFFSET", "THRESHOLD_ROWS", "LEFT", "RIGHT", "METRICS", "Scheme", "SCHEMES", "MOTION_SCHEMES",
@@ -13,7 +14,7 @@ __all__ = ["REFERENCE_OFFSET", "THRESHOLD_ROWS", "LEFT", "RIGHT", "METRICS", "Sc
 
 #: First sample index of reference renders (ladders use 0..L-1: disjoint streams).
 REFERENCE_OFFSET = 1 << 24
-LEFT, RIGHT = 0, 1
+LEFT, RIGHT = Eye.LEFT, Eye.RIGHT
 
 #: The experiment's image metrics: ``"ldr"`` scores images clamped to [0, 1], ``"hdr"`` linear radiance.
 METRICS = ("ldr", "hdr")
@@ -29,7 +30,7 @@ class Scheme:
     name: str
     stereo: bool
     temporal: bool
-    eye: int  # evaluated eye
+    eye: Eye  # evaluated eye
     sampling: str = "bilinear"
     alpha: float = 0.2
     paper: bool = False  # one of the paper's three Table 2 columns
@@ -70,8 +71,8 @@ class ExperimentConfig:
     scene: str
     out: str
     frames: int | None = None  #: None = the scene's own frame count
-    width: int = 320
-    height: int = 180
+    width: int = DEFAULT_RESOLUTION[0]
+    height: int = DEFAULT_RESOLUTION[1]
     reference_spp: int = 256
     ladder_spp: int = 16
     #: Samples per reference chunk (a render task of its own; distributed runs spread the chunks over workers);

@@ -126,18 +126,18 @@ class RenderContext:
             self.cache = RenderCache(Path(self.spec.cache_dir), sweep_on_start=False)
 
     def key(self, frame: int, eye: int, **kw) -> dict:
-        return dict(json.loads(self.spec.base_key), frame=frame, eye=eye, **kw)
+        return dict(json.loads(self.spec.base_key), frame=frame, eye=int(eye), **kw)  # the key holds the eye's index
 
     def camera(self, frame: int, eye: int, jittered: bool = False):
         """(camera, previous frame's camera or None): the previous one only for scenes with moving objects.
         ``jittered``: both shifted by their frame's :func:`~stereorepro.camera.jitter_offset` (both eyes alike)."""
-        k = (frame, eye, jittered)
+        k = (frame, int(eye), jittered)
         if k not in self._cameras:
             from ...camera import jitter_offset
 
             W, H = self.spec.width, self.spec.height
-            cam = self.scene.stereo_cameras(frame, W, H)[eye]
-            prev = self.scene.stereo_cameras(frame - 1, W, H)[eye] if self.spec.moving and frame > 0 else None
+            cam = self.scene.stereo_cameras(frame, W, H)[int(eye)]
+            prev = self.scene.stereo_cameras(frame - 1, W, H)[int(eye)] if self.spec.moving and frame > 0 else None
             if jittered:
                 cam = cam.jittered(*jitter_offset(frame))
                 prev = prev.jittered(*jitter_offset(frame - 1)) if prev is not None else None
@@ -293,9 +293,9 @@ def _torch_threads(n: int | None):
 class _Scored:
     """An image held in float64 once, for many RMSEs: ``a.rmse(b)`` is bit for bit
     ``float(metrics.rmse(a.image, b.image)[0])`` (the same float64 difference, square and sum; every pixel valid),
-    without converting both images again for every pair (the conversions were 80 % of the ladder's scoring time
-    at 1280×720: 128 pairs per eye-frame). Images with a non-finite value go through ``metrics.rmse`` itself (its
-    checks and messages)."""
+    without converting both images again for every pair (a ladder scores L rungs against each reference prefix,
+    so the conversions would otherwise dominate the scoring time). Images with a non-finite value go through
+    ``metrics.rmse`` itself (its checks and messages)."""
 
     def __init__(self, image: torch.Tensor):
         self.image = image

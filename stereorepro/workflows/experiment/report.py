@@ -261,7 +261,7 @@ def write_frame_exr(root: Path, f: int, eyes: dict, drivers: dict) -> None:
 
     root.mkdir(parents=True, exist_ok=True)
     for e, d in eyes.items():
-        name = "left" if e == LEFT else "right"
+        name = str(e)
         drv = drivers["stereo_temporal"]
         state = drv.left_state if e == LEFT else drv.right_state
         chans = {c: state.color[0, i].numpy() for i, c in enumerate("RGB")}

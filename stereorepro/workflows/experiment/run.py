@@ -208,7 +208,7 @@ def _frame_inputs(run: _Run, f: int, timing: dict) -> _FrameData:
     prefixes = L.prefix_spp[:-1]
     prefix_refs = {e: {p: metric_image(reference(ctx, f, e, p)[0], cfg.metric) for p in prefixes} for e in eyes}
     for e, d in eyes.items():
-        side = "left" if e == LEFT else "right"
+        side = str(e)
         row["ladder_rmse"][side] = d.ladder_rmse[cfg.metric]
         row["no_surface_pct"][side] = 100.0 * float((~surface[e]).float().mean())
     return _FrameData(f, eyes, surface, row, list(range(1, cfg.ladder_spp + 1)), prefixes, prefix_refs)
