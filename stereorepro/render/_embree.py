@@ -7,6 +7,9 @@ Traps of embreex (4.4) handled here:
 * geometry added after the first ``run()`` is ignored: the BVH is built once, from all triangles, in
   ``__init__``; a changed geometry needs a new :class:`TriangleBVH`.
 * ``Ng`` is unnormalised and its sign follows the winding: we ignore it and use our own unit face normals.
+* a hit at exactly ``tfar`` is accepted (``t <= tfar``), and so are occluders at exactly ``tmax``; among hits at the
+  same ``t`` a BVH returns the one its traversal meets last (between leaves) or the leaf's first (within one), an
+  order that depends on the whole tree.
 
 Queries release the GIL inside embreex's ray loop, so callers may run them from several threads.
 """
@@ -17,7 +20,7 @@ import numpy as np
 from embreex import rtcore_scene as _rtcs
 from embreex.mesh_construction import TriangleMesh as _TriangleMesh
 
-__all__ = ["TriangleBVH"]
+__all__ = ["SplitBVH", "TriangleBVH"]
 
 
 class TriangleBVH:
@@ -75,3 +78,42 @@ class TriangleBVH:
     def raw_scene(self):
         """The underlying embreex scene (for benchmarks comparing against raw embreex)."""
         return self._scene
+
+
+class SplitBVH:
+    """The union of two triangle sets, each with its own BVH: ``static`` (built once, shared between frames) and
+    ``moving`` (a small one, built per frame). Every query runs on both: closest hits keep the nearer one, occlusion
+    is either BVH's. Triangle indices are those of the whole scene.
+
+    Results equal one BVH of all the triangles (:class:`TriangleBVH`) but for what depends on a tree's shape: two
+    hits at the same ``t`` (this class keeps the lower scene index, as one BVH does among the triangles of a leaf)
+    and the rare ray that grazes a node's bounding box, where embree's traversal (not watertight) may find or miss a
+    hit depending on the tree.
+
+    Args:
+        static: the BVH of the faces ``static_ids``.
+        static_ids: (Fs,) int32 scene index of each of ``static``'s triangles.
+        vertices: (V, 3) float32 world positions of the moving faces' vertices (this frame).
+        faces: (Fm, 3) int32 the moving faces (indices into ``vertices``).
+        moving_ids: (Fm,) int32 scene index of each moving face.
+    """
+
+    def __init__(self, static: TriangleBVH, static_ids: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
+                 moving_ids: np.ndarray):
+        self.static, self.moving = static, TriangleBVH(vertices, faces)
+        self._static_ids = np.ascontiguousarray(static_ids, np.int32)
+        self._moving_ids = np.ascontiguousarray(moving_ids, np.int32)
+        self.num_triangles = static.num_triangles + self.moving.num_triangles
+
+    def intersect(self, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Closest hits, as :meth:`TriangleBVH.intersect` (``t`` of a miss: that of a miss in both)."""
+        ts, ps = self.static.intersect(origins, directions)
+        tm, pm = self.moving.intersect(origins, directions)
+        prim_s = np.where(ps >= 0, self._static_ids[np.maximum(ps, 0)], -1)
+        prim_m = self._moving_ids[np.maximum(pm, 0)]
+        take = (pm >= 0) & ((ps < 0) | (tm < ts) | ((tm == ts) & (prim_m < prim_s)))
+        return np.where(take, tm, ts), np.where(take, prim_m, prim_s).astype(np.int32)
+
+    def occluded(self, origins: np.ndarray, directions: np.ndarray, tmax: np.ndarray) -> np.ndarray:
+        """Any-hit test, as :meth:`TriangleBVH.occluded`."""
+        return self.static.occluded(origins, directions, tmax) | self.moving.occluded(origins, directions, tmax)

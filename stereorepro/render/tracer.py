@@ -85,7 +85,7 @@ from torch import Tensor
 from .. import _backend
 from ..camera import PinholeCamera
 from . import bsdf as _bsdf
-from ._embree import TriangleBVH
+from ._embree import SplitBVH, TriangleBVH
 from .lights import EmitterTable, LightSet, TriangleDistances, luminance, radiance_bound
 from .rng import DIM, path_keys, stream_key, uniform
 
@@ -265,7 +265,7 @@ class _Geometry:
     frame: int | None  # None: static (valid for every frame)
     vertices: np.ndarray  # (V, 3) float32
     face_normal: np.ndarray  # (F, 3) float32
-    bvh: TriangleBVH
+    bvh: TriangleBVH | SplitBVH
 
 
 def _face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -355,8 +355,7 @@ class PathTracer:
             self.p_spec = np.where(ld + ls > 0, ls / np.maximum(ld + ls, 1e-12), 0).astype(np.float32)
         self.eps = np.float32(ray_epsilon(self.vertices))
 
-        self._bvh = None if self.moving_objects else TriangleBVH(self.vertices, self.faces)  # built per frame if moving
-        self.stats["bvh_builds"] += 0 if self.moving_objects else 1
+        self._static_bvh()
         self._geom_cache: _Geometry | None = None  # the last frame's geometry (moving objects)
         self._emitters = EmitterTable(self.vertices, self.faces, self.emission[self.face_material])
         self._materials = mats
@@ -368,10 +367,25 @@ class PathTracer:
         self._stages = _NativeStages(self) if self.backend == "native" else _NumpyStages(self)
 
     # ------------------------------------------------------------------ geometry
+    def _static_bvh(self) -> None:
+        """The BVH built once, at construction: of every face for static scenes, of the faces that never move with
+        ``moving_objects`` (none when every face moves); sets ``_bvh``, ``_static_ids`` and ``_moving_ids``."""
+        moving = self.face_object >= 0
+        self._static_ids = np.flatnonzero(~moving).astype(np.int32)
+        self._moving_ids = np.flatnonzero(moving).astype(np.int32)
+        #: first vertex of the moving faces (their vertices are the last ones, see __init__)
+        self._moving_v0 = len(self.vertices) - 3 * len(self._moving_ids)
+        self._bvh = None
+        if len(self._static_ids):
+            static = self.faces if not self.moving_objects else self.faces[self._static_ids]
+            self._bvh = TriangleBVH(self.vertices, static)
+            self.stats["bvh_builds"] += 1
+
     def geometry(self, frame: int) -> "_Geometry":
         """The triangles of ``frame``: the tracer's one BVH for static scenes; with ``moving_objects`` the moving
-        faces placed by :meth:`~stereorepro.scenes.Scene.object_transforms` and a BVH built for that frame
-        (embreex has no instancing and no vertex updates; the last frame's geometry is kept)."""
+        faces placed by :meth:`~stereorepro.scenes.Scene.object_transforms`, their own BVH built for that frame and
+        queried together with the static faces' BVH (:class:`~._embree.SplitBVH`; embreex has no instancing and no
+        vertex updates; the last frame's geometry is kept)."""
         if not self.moving_objects:
             return _Geometry(None, self.vertices, self.face_normal, self._bvh)
         frame = int(frame)
@@ -380,7 +394,14 @@ class PathTracer:
             if cached is not None and cached.frame == frame:
                 return cached
         v = self.object_vertices(frame)
-        geom = _Geometry(frame, v, _face_normals(v, self.faces), TriangleBVH(v, self.faces))
+        mv, v0 = self._moving_ids, self._moving_v0
+        fn = self.face_normal.copy()
+        fn[mv] = _face_normals(v, self.faces[mv])
+        if self._bvh is None:
+            bvh = TriangleBVH(v, self.faces)
+        else:
+            bvh = SplitBVH(self._bvh, self._static_ids, v[v0:], self.faces[mv] - v0, mv)
+        geom = _Geometry(frame, v, fn, bvh)
         with self._lock:
             self.stats["bvh_builds"] += 1
             self._geom_cache = geom
@@ -391,13 +412,14 @@ class PathTracer:
         if not self.moving_objects:
             return self.vertices
         T = self.scene.object_transforms(frame)
-        v = self.vertices.astype(np.float64)
-        obj = self._vertex_object
-        out = v.copy()
+        v0 = self._moving_v0
+        v = self.vertices[v0:].astype(np.float64)
+        obj = self._vertex_object[v0:]
+        out = self.vertices.copy()
         for o in range(len(T)):
             sel = obj == o
-            out[sel] = v[sel] @ T[o, :3, :3].T + T[o, :3, 3]
-        return out.astype(np.float32)
+            out[v0:][sel] = (v[sel] @ T[o, :3, :3].T + T[o, :3, 3]).astype(np.float32)
+        return out
 
     # ------------------------------------------------------------------ lights
     def lights(self, frame: int) -> LightSet:

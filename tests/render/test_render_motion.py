@@ -1,5 +1,6 @@
-"""Moving objects in the tracer: per-frame geometry only where declared, and motion vectors against analytic
-motion (a plane translating, a cube rotating) and against finite differences of rendered positions."""
+"""Moving objects in the tracer: per-frame geometry only where declared, the static faces' BVH built once and queried
+with the moving faces' (renders equal to one BVH of every face), and motion vectors against analytic motion (a plane
+translating, a cube rotating) and against finite differences of rendered positions."""
 
 from __future__ import annotations
 
@@ -13,6 +14,9 @@ from conftest_render import camera_looking, write_scene
 from stereorepro import camera_motion, load_scene
 from stereorepro.errors import SceneError
 from stereorepro.render import PathTracer
+from stereorepro.render._embree import SplitBVH, TriangleBVH
+from stereorepro.render.tracer import _face_normals, _Geometry
+from stereorepro.scenes import scenes_dir, shared_scenes_dir
 from stereorepro.scenes.animation import quat_to_matrix, slerp, quat_from_axis_angle
 
 W, H = 48, 32
@@ -106,6 +110,123 @@ class TestMovingGeometry:
         a = PathTracer(scene, workers=1).render(cam, 2, 2)
         b = PathTracer(scene, workers=2, backend="numpy").render(cam, 2, 2)
         assert torch.equal(a.radiance, b.radiance) and torch.equal(a.depth, b.depth)
+
+class OneBVH(PathTracer):
+    """The tracer with the geometry stage it had before the split: every face's normal and one BVH of every face,
+    computed per frame. What the split geometry stage must equal."""
+
+    def geometry(self, frame):
+        frame = int(frame)
+        if self._geom_cache is None or self._geom_cache.frame != frame:
+            v = self.object_vertices(frame)
+            self._geom_cache = _Geometry(frame, v, _face_normals(v, self.faces), TriangleBVH(v, self.faces))
+        return self._geom_cache
+
+
+RESULT_FIELDS = ("radiance", "depth", "normal", "position", "albedo", "material_id", "motion", "motion_world",
+                 "object_id")
+
+
+def assert_same_renders(scene, frames, width, height, spp):
+    """Both eyes of ``frames``, with motion vectors: the tracer and :class:`OneBVH` equal byte for byte."""
+    split, one = PathTracer(scene), OneBVH(scene)
+    for f in frames:
+        prev = scene.stereo_cameras(max(f - 1, 0), width, height)
+        for eye, cam in enumerate(scene.stereo_cameras(f, width, height)):
+            a, b = (tr.render(cam, f, spp, eye=eye, prev_camera=prev[eye]) for tr in (split, one))
+            for k in RESULT_FIELDS:
+                x, y = getattr(a, k), getattr(b, k)
+                assert x.numpy().tobytes() == y.numpy().tobytes(), (f, eye, k)
+            assert a.ray_counts == b.ray_counts, (f, eye)
+        assert isinstance(split.geometry(f).bvh, SplitBVH)
+
+
+def assert_same_hits(geom, one, faces, o, d):
+    """Closest hits of ``geom.bvh`` and the BVH ``one`` of every face: the same ``t``, and the same triangle but at
+    ties (where the other triangle is hit at the same ``t`` too: which one a BVH keeps depends on its tree).
+    Returns both prims."""
+    t, prim = geom.bvh.intersect(o, d)
+    t1, prim1 = one.intersect(o, d)
+    assert np.array_equal(t, t1) and np.array_equal(prim >= 0, prim1 >= 0)
+    for i in np.flatnonzero(prim != prim1):
+        for p in (prim[i], prim1[i]):
+            assert TriangleBVH(geom.vertices, faces[[p]]).intersect(o[i:i + 1], d[i:i + 1])[0][0] == t[i]
+    return prim, prim1
+
+
+SLAB = '{min = [-1.0, -1.0, 1.0], max = [1.0, 1.0, 1.05], material = "%s"}'
+
+
+class TestSplitBVH:
+    def test_static_bvh_built_once(self):
+        scene = load_scene("living_room_moving_objects")
+        tr = PathTracer(scene, workers=1)
+        assert tr.stats["bvh_builds"] == 1
+        g0, g1 = tr.geometry(0), tr.geometry(1)
+        assert g0.bvh.static is g1.bvh.static is tr._bvh and g0.bvh.moving is not g1.bvh.moving
+        assert g0.bvh.moving.num_triangles == int((tr.face_object >= 0).sum()) == 24
+        assert g0.bvh.num_triangles == len(tr.faces) and tr.stats["bvh_builds"] == 3
+        assert np.array_equal(g1.face_normal, _face_normals(tr.object_vertices(1), tr.faces))
+
+    def test_renders_equal_one_bvh(self):
+        """Radiance, G-buffers, motion vectors, object ids and ray counts of the built-in moving scene equal those of
+        one BVH of every face rebuilt per frame, byte for byte."""
+        assert_same_renders(load_scene("living_room_moving_objects"), (0, 17, 30, 46), 64, 36, 2)
+
+    def test_queries_equal_one_bvh(self):
+        """Closest hits and occlusion of rays from all over the room, half of them aimed inside the moving faces,
+        and rays aimed at the moving faces' corners (each hits several triangles at the same ``t``)."""
+        scene = load_scene("living_room_moving_objects")
+        tr = PathTracer(scene, workers=1)
+        g = tr.geometry(23)
+        one = TriangleBVH(g.vertices, tr.faces)
+        rng = np.random.default_rng(0)
+        n = 20000
+        o = rng.uniform([-3.0, 0.05, -3.0], [3.0, 2.5, 3.0], (n, 3)).astype(np.float32)
+        tri = g.vertices[tr.faces[tr.face_object >= 0]].astype(np.float64)[rng.integers(0, 24, n)]  # (n, 3, 3)
+        inside = (rng.dirichlet([2.0, 2.0, 2.0], n)[:, :, None] * tri).sum(1)
+        d = np.where(rng.random((n, 1)) < 0.5, inside - o, rng.normal(size=(n, 3))).astype(np.float32)
+        prim = assert_same_hits(g, one, tr.faces, o, d)
+        assert (prim[0] != prim[1]).sum() <= 2  # ties are rare
+        assert np.isin(prim[0], np.flatnonzero(tr.face_object >= 0)).sum() > 5000  # many hit the moving faces
+        tmax = rng.uniform(0.0, 4.0, n).astype(np.float32)
+        assert np.array_equal(g.bvh.occluded(o, d, tmax), one.occluded(o, d, tmax))
+        o, d = o[:2000], (tri[:2000, 0] - o[:2000]).astype(np.float32)
+        prim = assert_same_hits(g, one, tr.faces, o, d)
+        assert (prim[0] != prim[1]).sum() > 100  # at the corners the trees order their ties differently
+
+    @pytest.mark.parametrize("moving_first", [False, True])
+    def test_tie_keeps_lower_index(self, tmp_path, moving_first):
+        """A moving slab exactly on a static one (frame 0): every hit on them is a tie, kept by the lower index."""
+        slabs = [SLAB % "wall", SLAB % "mover"]
+        boxes = ", ".join([ROOM] + (slabs[::-1] if moving_first else slabs))
+        scene = load_scene(moving_scene(tmp_path, "frames = [0, 10]\ntranslate = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]",
+                                        boxes))
+        tr = PathTracer(scene, workers=1)
+        obj = tr.gbuffer(camera_looking((0.0, 0.0, -3.0), (0.0, 0.0, 0.0), width=W, height=H), 0).object_id
+        assert (int((obj == 0).sum()) > 100) == moving_first  # the slab of the lower index
+        assert int((obj == -1).sum()) > 100  # and the room
+
+    def test_every_face_moving(self, tmp_path):
+        """No static faces: one BVH of the frame, as before the split."""
+        scene = load_scene(moving_scene(tmp_path, "frames = [0, 10]\ntranslate = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]",
+                                        SLAB % "mover"))
+        tr = PathTracer(scene, workers=1)
+        assert tr._bvh is None and tr.stats["bvh_builds"] == 0
+        g = tr.gbuffer(camera_looking((0.0, 0.0, -3.0), (0.0, 0.0, 0.0), width=W, height=H), 4)
+        assert isinstance(tr.geometry(4).bvh, TriangleBVH) and int((g.object_id == 0).sum()) > 100
+
+    @pytest.mark.slow
+    @pytest.mark.skipif(not (shared_scenes_dir() / "living_room" / "living_room.ply").is_file(),
+                        reason="shared scene meshes not available (set STEREOREPRO_SHARED_SCENES)")
+    def test_shared_living_room_equals_one_bvh(self, tmp_path):
+        """shared_living_room (about 400k triangles) with its sofa cushion moving: a few frames, byte for byte."""
+        p = tmp_path / "moving_cushion.toml"
+        p.write_text(f'extends = "{(scenes_dir() / "shared_living_room.toml").resolve()}"\n'
+                     'effects = ["moving_objects"]\n[[animations]]\nmaterials = ["Cushion1"]\nframes = [0, 59]\n'
+                     'translate = [[0.0, 0.0, 0.0], [0.8, 0.1, 0.6]]\n'
+                     'rotate = [[0.0, 1.0, 0.0, 0.0], [0.0, 1.0, 0.0, 45.0]]\n')
+        assert_same_renders(load_scene(p), (5, 40), 64, 36, 1)
 
 
 class TestMotionVectors:
