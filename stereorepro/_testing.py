@@ -11,13 +11,14 @@ World convention for the built-in analytic scene: y up, floor at y = 0, the came
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import torch
 from torch import Tensor, nn
 
-from .camera import PinholeCamera, StereoRig, camera_motion, intrinsics_from_fov, look_at
+from .camera import DEFAULT_BASELINE, PinholeCamera, StereoRig, camera_motion, intrinsics_from_fov, look_at
 
-__all__ = ["Plane", "Sphere", "AnalyticScene", "default_scene", "raycast", "texture", "camera_pair",
+__all__ = ["Plane", "Sphere", "AnalyticScene", "default_scene", "Gbuffer", "raycast", "texture", "camera_pair",
            "example_inputs"]
 
 
@@ -70,13 +71,24 @@ def texture(points_world: Tensor, tint: Tensor, scene: AnalyticScene) -> Tensor:
     return pattern * tint
 
 
-def raycast(camera: PinholeCamera, scene: AnalyticScene, dtype=torch.float64) -> dict[str, Tensor]:
-    """Ray-cast pixel centres of ``camera`` against ``scene``.
+class Gbuffer(NamedTuple):
+    """What :func:`raycast` sees at a camera's pixel centres.
 
-    Returns:
-        dict with depth (B, 1, H, W) (+inf where no surface), normal (B, 3, H, W) world unit normals facing the
-        camera (0 where no surface), position (B, 3, H, W) world (0 where no surface), color (B, 3, H, W).
+    Attributes:
+        depth: (B, 1, H, W) camera z, +inf where there is no surface.
+        normal: (B, 3, H, W) world unit normals facing the camera, 0 where there is no surface.
+        position: (B, 3, H, W) world positions, 0 where there is no surface.
+        color: (B, 3, H, W) the surface's :func:`texture`, 0 where there is no surface.
     """
+
+    depth: Tensor
+    normal: Tensor
+    position: Tensor
+    color: Tensor
+
+
+def raycast(camera: PinholeCamera, scene: AnalyticScene, dtype=torch.float64) -> Gbuffer:
+    """Ray-cast pixel centres of ``camera`` against ``scene`` (see :class:`Gbuffer`)."""
     cam = camera.to(dtype)
     d = cam.ray_directions()  # Bx3xHxW, camera z = 1 → t = depth
     B, _, H, W = d.shape
@@ -112,11 +124,10 @@ def raycast(camera: PinholeCamera, scene: AnalyticScene, dtype=torch.float64) ->
     best_n = torch.where(flip, -best_n, best_n)
     position = torch.where(hit, o + best_t.where(hit, torch.zeros_like(best_t)) * d, torch.zeros_like(d))
     color = torch.where(hit, texture(position, best_tint, scene), torch.zeros_like(position))
-    return {"depth": best_t, "normal": torch.where(hit, best_n, torch.zeros_like(best_n)),
-            "position": position, "color": color}
+    return Gbuffer(best_t, torch.where(hit, best_n, torch.zeros_like(best_n)), position, color)
 
 
-def camera_pair(height: int, width: int, batch: int = 1, baseline: float = 0.065, forward: float = 0.0,
+def camera_pair(height: int, width: int, batch: int = 1, baseline: float = DEFAULT_BASELINE, forward: float = 0.0,
                 yaw_deg: float = 0.0, vfov_deg: float = 60.0, origin_offset=(0.0, 0.0, 0.0),
                 dtype=torch.float64) -> tuple[PinholeCamera, PinholeCamera]:
     """(dst, src) cameras looking into :func:`default_scene`: a stereo pair (``baseline``) plus optional motion.
@@ -152,25 +163,25 @@ def example_inputs(module: nn.Module, batch: int = 1, height: int = 24, width: i
     Returns a tuple in the order of ``module.input_names``.
     """
     motion = dict(forward=0.05, yaw_deg=0.5) if head_motion else {}
-    dst, src = camera_pair(height, width, batch, baseline=0.065, **motion)
+    dst, src = camera_pair(height, width, batch, **motion)
     scene = default_scene()
     gd, gs = raycast(dst, scene), raycast(src, scene)
     g = torch.Generator().manual_seed(seed)
-    noisy = gs["color"] * (0.5 + torch.rand(gs["color"].shape, generator=g, dtype=gs["color"].dtype))  # 1-spp-like
-    f = {k: v.to(dtype) for k, v in gd.items()}
-    s = {k: v.to(dtype) for k, v in gs.items()}
+    noisy = gs.color * (0.5 + torch.rand(gs.color.shape, generator=g, dtype=gs.color.dtype))  # 1-spp-like
+    f = Gbuffer(*(v.to(dtype) for v in gd))
+    s = Gbuffer(*(v.to(dtype) for v in gs))
     by_name = {
-        "src_color": noisy.to(dtype), "src_depth": s["depth"], "src_normal": s["normal"], "src_K": src.K.to(dtype),
+        "src_color": noisy.to(dtype), "src_depth": s.depth, "src_normal": s.normal, "src_K": src.K.to(dtype),
         "src_cam_from_world": src.cam_from_world.to(dtype),
-        "dst_depth": f["depth"], "dst_normal": f["normal"], "dst_K": dst.K.to(dtype),
+        "dst_depth": f.depth, "dst_normal": f.normal, "dst_K": dst.K.to(dtype),
         "dst_cam_from_world": dst.cam_from_world.to(dtype),
-        "current_color": (f["color"] * (0.5 + torch.rand(f["color"].shape, generator=g, dtype=f["color"].dtype))),
-        "depth": f["depth"], "normal": f["normal"], "K": dst.K.to(dtype), "cam_from_world": dst.cam_from_world.to(dtype),
-        "history_color": s["color"], "history_len": torch.full_like(s["depth"], 3.0),
-        "prev_depth": s["depth"], "prev_normal": s["normal"], "prev_K": src.K.to(dtype),
+        "current_color": (f.color * (0.5 + torch.rand(f.color.shape, generator=g, dtype=f.color.dtype))),
+        "depth": f.depth, "normal": f.normal, "K": dst.K.to(dtype), "cam_from_world": dst.cam_from_world.to(dtype),
+        "history_color": s.color, "history_len": torch.full_like(s.depth, 3.0),
+        "prev_depth": s.depth, "prev_normal": s.normal, "prev_K": src.K.to(dtype),
         "prev_cam_from_world": src.cam_from_world.to(dtype),
     }
     if "motion" in module.input_names:  # static geometry: the motion of the cameras, no world motion
-        by_name["motion"] = camera_motion(gd["depth"], dst.K, dst.cam_from_world, src.K, src.cam_from_world).to(dtype)
-        by_name["motion_world"] = torch.zeros_like(f["normal"])
+        by_name["motion"] = camera_motion(gd.depth, dst.K, dst.cam_from_world, src.K, src.cam_from_world).to(dtype)
+        by_name["motion_world"] = torch.zeros_like(f.normal)
     return tuple(by_name[n] for n in module.input_names)

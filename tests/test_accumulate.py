@@ -31,8 +31,8 @@ def _gbuffers(pose, baseline):
     out = {}
     for eye, cam in (("left", _left_of(right, baseline)), ("right", right)):
         gb = raycast(cam, scene)
-        out[eye] = dict(color=gb["color"], clean=gb["color"].float(), depth=gb["depth"].float(),
-                        normal=gb["normal"].float(), K=cam.K, cam_from_world=cam.cam_from_world)
+        out[eye] = dict(color=gb.color, clean=gb.color.float(), depth=gb.depth.float(),
+                        normal=gb.normal.float(), K=cam.K, cam_from_world=cam.cam_from_world)
     return out
 
 

@@ -50,8 +50,8 @@ def frame(i):
     """G-buffer, camera and a noisy colour of frame i of a short head motion (forward and turning)."""
     _, cam = camera_pair(H, W, baseline=0.065, forward=0.03 * i, yaw_deg=0.3 * i)
     g = raycast(cam, default_scene())
-    noise = 2 * torch.rand(g["color"].shape, generator=torch.Generator().manual_seed(i), dtype=torch.float64)
-    return dict(color=(g["color"] * noise).float(), depth=g["depth"].float(), normal=g["normal"].float(),
+    noise = 2 * torch.rand(g.color.shape, generator=torch.Generator().manual_seed(i), dtype=torch.float64)
+    return dict(color=(g.color * noise).float(), depth=g.depth.float(), normal=g.normal.float(),
                 K=cam.K.float(), cam_from_world=cam.cam_from_world.float())
 
 

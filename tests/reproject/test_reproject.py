@@ -66,9 +66,9 @@ def scene_pair(H=36, W=48, dtype=torch.float32, B=1, forward=0.0, yaw=0.0, basel
     scene = default_scene(origin_offset)
     gd, gs = raycast(dst, scene), raycast(src, scene)
     cam_dtype = dtype if cam_dtype is None else cam_dtype
-    inp = dict(src_color=gs["color"].to(dtype), src_depth=gs["depth"].to(dtype), src_normal=gs["normal"].to(dtype),
+    inp = dict(src_color=gs.color.to(dtype), src_depth=gs.depth.to(dtype), src_normal=gs.normal.to(dtype),
                src_K=src.K.to(cam_dtype), src_cam_from_world=src.cam_from_world.to(cam_dtype),
-               dst_depth=gd["depth"].to(dtype), dst_normal=gd["normal"].to(dtype), dst_K=dst.K.to(cam_dtype),
+               dst_depth=gd.depth.to(dtype), dst_normal=gd.normal.to(dtype), dst_K=dst.K.to(cam_dtype),
                dst_cam_from_world=dst.cam_from_world.to(cam_dtype))
     return inp, gd, gs, dst, src
 
@@ -190,8 +190,8 @@ class TestStereoReproject(BaseTester):
         self.skip_unless_runs(backend, dtype, torch.device("cpu"))
         inp, gd, *_ = scene_pair(dtype=dtype, baseline=0.065)
         dst, _ = camera_pair(36, 48)
-        inp.update(src_color=gd["color"].to(dtype), src_depth=gd["depth"].to(dtype),
-                   src_normal=gd["normal"].to(dtype), src_K=dst.K.to(dtype),
+        inp.update(src_color=gd.color.to(dtype), src_depth=gd.depth.to(dtype),
+                   src_normal=gd.normal.to(dtype), src_K=dst.K.to(dtype),
                    src_cam_from_world=dst.cam_from_world.to(dtype))
         for sampling in ("bilinear", "nearest"):
             out, valid, reason = run(inp, 1e-6, 1e-6, sampling=sampling, backend=self.backend_arg(backend))
@@ -327,13 +327,13 @@ class TestStereoReproject(BaseTester):
         moved[:, 0, 3] -= 0.01
         src = PinholeCamera(K, moved, H, W)
         gd, gs = raycast(dst, scene), raycast(src, scene)
-        inp = dict(src_color=gs["color"].float(), src_depth=gs["depth"].float(), src_normal=gs["normal"].float(),
-                   src_K=K, src_cam_from_world=moved, dst_depth=gd["depth"].float(),
-                   dst_normal=gd["normal"].float(), dst_K=K, dst_cam_from_world=head)
+        inp = dict(src_color=gs.color.float(), src_depth=gs.depth.float(), src_normal=gs.normal.float(),
+                   src_K=K, src_cam_from_world=moved, dst_depth=gd.depth.float(),
+                   dst_normal=gd.normal.float(), dst_K=K, dst_cam_from_world=head)
         out, valid, reason = run(inp, pos=0.05, nrm=0.1, backend=self.backend_arg(backend))
         assert torch.isfinite(out).all() and valid.float().mean() > 0.5
         # wherever kept, the warped colour is close to the analytic colour
-        err = (out - gd["color"].float()).abs().amax(1, keepdim=True)[valid]
+        err = (out - gd.color.float()).abs().amax(1, keepdim=True)[valid]
         assert err.median() < 0.02
 
     def test_far_from_origin_mm_threshold(self, backend):
@@ -426,13 +426,13 @@ class TestStereoReproject(BaseTester):
         inp, gd, gs, dst, src = scene_pair(H=36, W=48, forward=0.2, yaw=2.0, dtype=dtype,
                                            cam_dtype=torch.float64)
         out, valid, _ = run(inp, 1e9, 10.0, backend=self.backend_arg(backend))  # accept everything with a surface
-        pts = dst.to(torch.float64).unproject(torch.where(torch.isfinite(gd["depth"]), gd["depth"], 1.0))
+        pts = dst.to(torch.float64).unproject(torch.where(torch.isfinite(gd.depth), gd.depth, 1.0))
         uv, z = src.to(torch.float64).project(pts)
         grid = torch.stack([uv[:, 0] / 48 * 2 - 1, uv[:, 1] / 36 * 2 - 1], -1)
         ref = F.grid_sample(inp["src_color"].double(), grid, mode="bilinear", padding_mode="zeros",
                             align_corners=False)
         inner = (uv[:, 0:1] > 0.5) & (uv[:, 0:1] < 47.5) & (uv[:, 1:2] > 0.5) & (uv[:, 1:2] < 35.5)
-        m = (inner & valid & torch.isfinite(gd["depth"])).expand_as(out)
+        m = (inner & valid & torch.isfinite(gd.depth)).expand_as(out)
         assert m.float().mean() > 0.5
         assert torch.allclose(out[m].double(), ref[m], atol=1e-9 if dtype == torch.float64 else 1e-5)
 
@@ -461,7 +461,7 @@ class TestStereoReproject(BaseTester):
         counts = torch.bincount(reason.flatten().long(), minlength=len(Reason))
         assert 0.9 < valid.float().mean() < 1.0
         assert counts[Reason.OUT_OF_FRAME] > 0 and counts[Reason.POSITION] > 0  # frame edge and silhouettes
-        err = (out - gd["color"].float()).abs().amax(1, keepdim=True)[valid]
+        err = (out - gd.color.float()).abs().amax(1, keepdim=True)[valid]
         assert err.median() < 0.01
 
     @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
@@ -475,9 +475,9 @@ class TestStereoReproject(BaseTester):
         gd, gs = raycast(dst, scene), raycast(src, scene)
         col = torch.rand(1, 3, 12, 16, dtype=dtype)
         eps = 1e-12 if dtype == torch.float64 else 1e-6
-        out, valid, reason, conf = backward_reproject(col, gs["depth"].to(dtype), gs["normal"].to(dtype), src.K,
-                                                      src.cam_from_world, gd["depth"].to(dtype),
-                                                      gd["normal"].to(dtype), dst.K, dst.cam_from_world,
+        out, valid, reason, conf = backward_reproject(col, gs.depth.to(dtype), gs.normal.to(dtype), src.K,
+                                                      src.cam_from_world, gd.depth.to(dtype),
+                                                      gd.normal.to(dtype), dst.K, dst.cam_from_world,
                                                       0.05, 0.3, sampling, backend=self.backend_arg(backend))
         assert torch.equal(valid, reason == 0)
         assert ((conf >= 0) & (conf <= 1 + eps)).all() and torch.equal(conf > 0, valid)
@@ -694,7 +694,7 @@ class TestSoftReprojection(BaseTester):
         assert {n for n, _ in m.named_parameters()} == {"position_threshold", "normal_threshold"}
         inp, gd, *_ = scene_pair(forward=0.2)
         out, *_ = m(*[inp[a] for a in ARGS])
-        ((out - gd["color"].float()) ** 2).mean().backward()
+        ((out - gd.color.float()) ** 2).mean().backward()
         assert m.position_threshold.grad is not None and torch.isfinite(m.position_threshold.grad)
 
 

@@ -170,8 +170,8 @@ def _grazing():
     moved[:, 0, 3] -= 0.01
     scene = default_scene()
     gd, gs = raycast(PinholeCamera(K, head, H, W), scene), raycast(PinholeCamera(K, moved, H, W), scene)
-    inp = dict(src_color=gs["color"].float(), src_depth=gs["depth"].float(), src_normal=gs["normal"].float(),
-               src_K=K, src_cam_from_world=moved, dst_depth=gd["depth"].float(), dst_normal=gd["normal"].float(),
+    inp = dict(src_color=gs.color.float(), src_depth=gs.depth.float(), src_normal=gs.normal.float(),
+               src_K=K, src_cam_from_world=moved, dst_depth=gd.depth.float(), dst_normal=gd.normal.float(),
                dst_K=K, dst_cam_from_world=head)
     return inp, 0.05, 0.1
 
@@ -198,7 +198,7 @@ def _per_item_batch():
 def _identity():
     inp, gd, *_ = scene_pair(baseline=0.065)
     dst, _ = camera_pair(36, 48)
-    inp.update(src_color=gd["color"].float(), src_depth=gd["depth"].float(), src_normal=gd["normal"].float(),
+    inp.update(src_color=gd.color.float(), src_depth=gd.depth.float(), src_normal=gd.normal.float(),
                src_K=dst.K.float(), src_cam_from_world=dst.cam_from_world.float())
     return inp, 1e-6, 1e-6
 
@@ -242,10 +242,10 @@ def random_scene(H, W, seed, B=1):
     dst, src = camera_pair(H, W, B, baseline=0.02 + 0.2 * r[0], forward=0.6 * r[1] - 0.3, yaw_deg=8 * r[2] - 4)
     scene = default_scene()
     gd, gs = raycast(dst, scene), raycast(src, scene)
-    inp = dict(src_color=gs["color"].float() * (0.5 + torch.rand(gs["color"].shape, generator=g)),
-               src_depth=gs["depth"].float(), src_normal=gs["normal"].float(), src_K=src.K,
-               src_cam_from_world=src.cam_from_world, dst_depth=gd["depth"].float(),
-               dst_normal=gd["normal"].float(), dst_K=dst.K, dst_cam_from_world=dst.cam_from_world)
+    inp = dict(src_color=gs.color.float() * (0.5 + torch.rand(gs.color.shape, generator=g)),
+               src_depth=gs.depth.float(), src_normal=gs.normal.float(), src_K=src.K,
+               src_cam_from_world=src.cam_from_world, dst_depth=gd.depth.float(),
+               dst_normal=gd.normal.float(), dst_K=dst.K, dst_cam_from_world=dst.cam_from_world)
     pos, nrm = 0.01 + 0.2 * r[3], 0.05 + 0.5 * float(torch.rand((), generator=g))
     return inp, pos, nrm
 
