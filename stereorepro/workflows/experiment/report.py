@@ -11,7 +11,7 @@ import torch
 
 from ...io.atomic import atomic_path, atomic_write, staged_outputs
 from ...reproject import reason_to_rgb
-from .config import LEFT
+from .config import LEFT, SCHEMES
 
 __all__ = ["tables_markdown", "cost_markdown", "write_outputs", "write_frame_exr"]
 
@@ -135,52 +135,91 @@ def _figure1(plt, results, per_frame, keep, cfg):
 
 
 def _figure3(plt, results, per_frame, keep, cfg):
-    """Figure 3: framewise RMSE of the left eye's schemes against ladder rungs."""
-    fig, ax = plt.subplots(figsize=(7, 4))
+    """Figure 3: framewise RMSE of each paper scheme on its evaluated eye, against that eye's ladder rungs: (a) the
+    left eye (stereo, stereo + temporal), (b) the right eye (temporal). The legend sits below the panels."""
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
     fr = [r["frame"] for r in per_frame]
-    for n in (1, 2, 8, 16):
-        if n <= cfg.ladder_spp:
-            ax.plot(fr, [r["ladder_rmse"]["left"][n - 1] for r in per_frame], "--", lw=1, label=f"{n} spp")
-    for k in ("stereo", "stereo_temporal"):
-        ax.plot(fr, [r["rmse"][k] for r in per_frame], lw=2, label=k.replace("_", " + "))
-    ax.set_xlabel("frame")
-    ax.set_ylabel("RMSE (left eye)")
-    ax.set_yscale("log")
-    ax.legend(fontsize=8)
-    ax.set_title(f"{results['scene']}: framewise RMSE")
+    rungs = [n for n in (1, 2, 8, 16) if n <= cfg.ladder_spp]
+    greys = dict(zip(rungs, ("0.15", "0.35", "0.55", "0.75")))
+    panels = [(axes[0], "left", ("stereo", "stereo_temporal"), "(a) left eye"),
+              (axes[1], "right", ("temporal",), "(b) right eye")]
+    colours = {"stereo": "tab:blue", "stereo_temporal": "tab:red", "temporal": "tab:green"}
+    for ax, eye, names, title in panels:
+        for n in rungs:
+            ax.plot(fr, [r["ladder_rmse"][eye][n - 1] for r in per_frame], "--", lw=1, color=greys[n],
+                    label=f"path tracing, {n} spp")
+        for k in names:
+            ax.plot(fr, [r["rmse"][k] for r in per_frame], lw=2, color=colours[k], label=k.replace("_", " + "))
+        ax.set_xlabel("frame")
+        ax.set_title(title, fontsize=10)
+        ax.set_yscale("log")
+    axes[0].set_ylabel(f"RMSE ({results.get('metric', 'ldr').upper()})")
+    handles = {}
+    for ax in axes:  # one entry per label: the rungs appear in both panels
+        for h, lab in zip(*ax.get_legend_handles_labels()):
+            handles.setdefault(lab, h)
+    fig.legend(handles.values(), handles.keys(), loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=4, fontsize=8,
+               frameon=False)
+    fig.suptitle(f"{results['scene']}: framewise RMSE of the paper's schemes")
+    fig.tight_layout()
     return fig, "fig3_rmse.png"
 
 
 def _figure4(plt, results, per_frame, keep, cfg):
-    """Figure 4: 1 spp, reference, top ladder rung, reprojected."""
+    """Figure 4: 1 spp, reference, top ladder rung and the Figure-4 scheme's output, on that scheme's evaluated eye at
+    the last frame (:attr:`~stereorepro.workflows.experiment.config.Scheme.figure4`)."""
     if "fig4" not in keep:
         return None
     k = keep["fig4"]
-    fig, axes = plt.subplots(1, 4, figsize=(14, 2.6))
+    scheme = next(s for s in SCHEMES if s.figure4)
+    fig, axes = plt.subplots(1, 4, figsize=(14, 2.9))
     panels = [("1 spp", k["one"]), (f"{cfg.reference_spp} spp reference", k["ref"]),
-              (f"{cfg.ladder_spp} spp", k["top"]), (f"reprojected: {k['spp']:.2f} effective spp", k["method"])]
+              (f"{cfg.ladder_spp} spp", k["top"]),
+              (f"{scheme.name.replace('_', ' + ')}: {k['spp']:.2f} effective spp", k["method"])]
     for ax, (t, img) in zip(axes, panels):
         ax.imshow(_tonemap(img))
         ax.set_title(t, fontsize=9)
         ax.axis("off")
+    eye = "left" if scheme.eye == LEFT else "right"
+    fig.suptitle(f"{results['scene']}, frame {per_frame[-1]['frame']} (the last of {len(per_frame)}), {eye} eye",
+                 fontsize=10)
+    fig.tight_layout()
     return fig, "fig4_comparison.png"
 
 
+#: Marker shapes of the cost plot's schemes (colours cycle through tab20 alongside).
+_COST_MARKERS = ("o", "s", "^", "D", "v", "P", "X", "<", ">", "h")
+
+
 def _figure_cost(plt, results, per_frame, keep, cfg):
-    """What accuracy costs in time: effective spp against ms per frame, plain path tracing as the line."""
-    fig, ax = plt.subplots(figsize=(7, 4.5))
+    """What accuracy costs in time: effective spp against ms per frame. Plain path tracing at n spp is the black line
+    (each point labelled with its n); every scheme is one marker with its own legend entry beside the axes."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    fig, ax = plt.subplots(figsize=(8.5, 4.5))
     pt = [r for r in results["cost"] if r["scheme"].startswith("path tracing")]
-    ax.plot([r["ms"] for r in pt], [r["effective_spp"] for r in pt], "k.-", label="plain path tracing (n spp)")
-    for r in results["cost"]:
-        if not r["scheme"].startswith("path tracing") and r["effective_spp"]:
-            ax.plot(r["ms"], r["effective_spp"], "o")
-            ax.annotate(r["scheme"], (r["ms"], r["effective_spp"]), fontsize=7, xytext=(3, 3),
-                        textcoords="offset points")
+    spp = [r["scheme"].split()[-2] for r in pt]  # "path tracing 16 spp" -> "16"
+    ax.plot([r["ms"] for r in pt], [r["effective_spp"] for r in pt], "k.-",
+            label=f"path tracing, {spp[0]}–{spp[-1]} spp" if pt else "path tracing")
+    for r, n in zip(pt, spp):
+        ax.annotate(n, (r["ms"], r["effective_spp"]), fontsize=7, xytext=(4, -9), textcoords="offset points")
+    rest = [r for r in results["cost"] if not r["scheme"].startswith("path tracing") and r["effective_spp"]]
+    colours = plt.get_cmap("tab20").colors
+    for i, r in enumerate(rest):
+        ax.plot(r["ms"], r["effective_spp"], _COST_MARKERS[i % len(_COST_MARKERS)], color=colours[i % len(colours)],
+                ms=6, label=r["scheme"])
     ax.set_xscale("log")
     ax.set_yscale("log")
+    for axis, values in ((ax.xaxis, [r["ms"] for r in results["cost"]]),
+                         (ax.yaxis, [r["effective_spp"] for r in results["cost"] if r["effective_spp"]])):
+        decades = np.log10(max(values) / min(values)) if values and min(values) > 0 else 0.0
+        axis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0) if decades <= 2.5 else (1.0,)))
+        axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+        axis.set_minor_formatter(NullFormatter())
     ax.set_xlabel("ms per frame (evaluated eye)")
     ax.set_ylabel("effective spp")
-    ax.set_title("What accuracy costs in time")
+    ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=7, frameon=False)
+    ax.set_title(f"{results['scene']}: what accuracy costs in time")
     return fig, "fig_cost.png"
 
 
