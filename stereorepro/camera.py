@@ -414,7 +414,7 @@ def world_motion_from_view_z(depth: Tensor, motion: Tensor, view_z_delta: Tensor
         motion_world: (B, 3, H, W) in the dtype of ``motion``; NaN where there is no surface, where ``motion`` or
         ``view_z_delta`` is not finite, or where the previous camera z is not > 0 (the ops read no history there).
 
-    Example:
+    Examples:
         >>> import torch
         >>> from stereorepro import intrinsics_from_fov
         >>> K, T = intrinsics_from_fov(60.0, 7, 5), torch.eye(4)[None]
@@ -473,10 +473,12 @@ def halton(index: int, base: int) -> float:
         float in [0, 1); 0 only for ``index = 0``.
 
     Raises:
-        TypeError: a non-integer index or base (bools and floats included). ValueError: index < 0 or base < 2.
+        TypeError: a non-integer index or base (bools and floats included).
+        ValueError: index < 0 or base < 2.
 
-    >>> [halton(i, 2) for i in range(1, 5)]
-    [0.5, 0.25, 0.75, 0.125]
+    Examples:
+        >>> [halton(i, 2) for i in range(1, 5)]
+        [0.5, 0.25, 0.75, 0.125]
     """
     i, b = _integer(index, "halton: index"), _integer(base, "halton: base")
     if i < 0:

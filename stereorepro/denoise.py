@@ -180,7 +180,7 @@ def reprojection_features(current_color: Tensor, view: View, history, prev_view:
     prev_normal, prev_K, prev_cam_from_world, position_threshold, normal_threshold, ...``, ``other`` as five
     tensors) still works for one release, with a DeprecationWarning.
 
-    Example:
+    Examples:
         >>> import torch
         >>> from stereorepro import History, View, intrinsics_from_fov, reprojection_features
         >>> depth = torch.full((1, 1, 6, 8), 2.0); normal = torch.zeros(1, 3, 6, 8); normal[:, 2] = -1
@@ -272,7 +272,7 @@ def reproject_denoise(current_color: Tensor, view: View, history, prev_view: Vie
     prev_normal, prev_K, prev_cam_from_world, denoiser, position_threshold, normal_threshold, ...``) still works
     for one release, with a DeprecationWarning.
 
-    Example:
+    Examples:
         >>> import torch
         >>> from stereorepro import History, View, intrinsics_from_fov, reproject_denoise
         >>> from stereorepro.denoise import feature_channels

@@ -160,8 +160,9 @@ def read_exr(path: str | os.PathLike) -> dict[str, np.ndarray]:
     hold, is refused without allocating them.
 
     Raises:
-        FileNotFoundError: the file does not exist. ValueError: it is not a readable EXR (the message says why;
-        OpenEXR's own messages are folded into it instead of being printed).
+        FileNotFoundError: the file does not exist.
+        ValueError: it is not a readable EXR (the message says why; OpenEXR's own messages are folded into it
+            instead of being printed).
     """
     import OpenEXR
 

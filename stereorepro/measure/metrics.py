@@ -171,7 +171,7 @@ def mse(image: Tensor, reference: Tensor, mask: Tensor | None = None, nonfinite:
     Returns:
         (B,) float64.
 
-    Example:
+    Examples:
         >>> x = torch.zeros(2, 3, 4, 4); ref = torch.full((1, 3, 4, 4), 0.5)
         >>> mse(x, ref)
         tensor([0.2500, 0.2500], dtype=torch.float64)
@@ -424,7 +424,7 @@ def effective_spp_many(rmse_values, ladder_spp, ladder_rmse, interpolation: str 
     Raises:
         ValueError: NaN/inf/negative RMSE, an invalid ladder, or a ladder whose error does not decrease.
 
-    Example:
+    Examples:
         >>> spp, flags = effective_spp_many([0.5, 0.3], [1, 2, 4], [1.0, 2 ** -0.5, 0.5])
         >>> [round(x, 6) for x in spp.tolist()], flags
         ([4.0, 11.111111], ['exact', 'extrapolated_high'])
@@ -500,7 +500,7 @@ def effective_spp(rmse_value, ladder_spp, ladder_rmse, interpolation: str = "inv
     Returns:
         (spp, flag): spp a Python float (``inf`` for ``"beyond_floor"``), flag from :data:`EFFECTIVE_SPP_FLAGS`.
 
-    Example:
+    Examples:
         >>> effective_spp(0.8, [1, 2, 3], [1.0, 0.7, 0.55])  # doctest: +ELLIPSIS
         (1.540441176..., 'interpolated')
     """
@@ -529,7 +529,7 @@ def suggest_reference_spp(max_ladder_spp: float, ratio: float = 1.0) -> int:
         max_ladder_spp: the ladder's highest spp, > 0.
         ratio: >= 1; 1 by default (8 or more for estimates beyond the ladder).
 
-    Example:
+    Examples:
         >>> suggest_reference_spp(32)
         32
         >>> suggest_reference_spp(16, ratio=16)

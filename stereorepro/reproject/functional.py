@@ -223,7 +223,7 @@ def backward_reproject(
     dst_normal, dst_K, dst_cam_from_world, position_threshold, normal_threshold, ...)`` still works for one
     release, with a DeprecationWarning, and returns a plain 4-tuple.
 
-    Example:
+    Examples:
         >>> import torch
         >>> from stereorepro import View, backward_reproject, intrinsics_from_fov
         >>> depth = torch.full((1, 1, 6, 8), 2.0); normal = torch.zeros(1, 3, 6, 8); normal[:, 2] = -1
@@ -364,7 +364,7 @@ def stereo_reproject(
     dst_normal, dst_K, dst_cam_from_world, position_threshold, normal_threshold, ...)`` still works for one
     release, with a DeprecationWarning, and returns a plain 3-tuple.
 
-    Example:
+    Examples:
         >>> import torch
         >>> from stereorepro import View, stereo_reproject, intrinsics_from_fov
         >>> depth = torch.full((1, 1, 6, 8), 2.0); normal = torch.zeros(1, 3, 6, 8); normal[:, 2] = -1
@@ -437,7 +437,7 @@ def temporal_blend(
         :class:`History` ``(color (B, C, H, W) in the dtype of current_color, length (B, 1, H, W) float)``: the
         new n is 1 where restarted, capped at ``max_history``.
 
-    Example:
+    Examples:
         >>> import torch
         >>> from stereorepro import temporal_blend
         >>> cur, hist = torch.ones(1, 3, 2, 2), torch.zeros(1, 3, 2, 2)
@@ -508,7 +508,7 @@ def temporal_reproject(
     history_len, prev_depth, prev_normal, prev_K, prev_cam_from_world, position_threshold, normal_threshold,
     ...)`` still works for one release, with a DeprecationWarning, and returns a plain 3- or 4-tuple.
 
-    Example:
+    Examples:
         >>> import torch
         >>> from stereorepro import History, View, temporal_reproject, intrinsics_from_fov
         >>> depth = torch.full((1, 1, 6, 8), 2.0); normal = torch.zeros(1, 3, 6, 8); normal[:, 2] = -1

@@ -65,7 +65,7 @@ class View:
 
     Shapes, dtypes (floating), devices and camera values are checked once, here (skipped while tracing).
 
-    Example:
+    Examples:
         >>> import torch
         >>> from stereorepro import View, intrinsics_from_fov
         >>> depth = torch.full((1, 1, 6, 8), 2.0); normal = torch.zeros(1, 3, 6, 8); normal[:, 2] = -1
