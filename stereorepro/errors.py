@@ -1,12 +1,14 @@
 """The package's exceptions: one base class, :class:`StereoreproError`, that users can catch.
 
-Each concrete error also derives from the built-in it refines (``ValueError``), so code written against the
-built-ins keeps working. Messages name what was wrong and where: the argument, the file, the frame or the key.
+Each concrete error also derives from the built-in it refines (``ValueError``, or ``TypeError`` for
+:class:`ParameterTypeError`), so code written against the built-ins keeps working. Messages name what was wrong and
+where: the argument, the file, the frame or the key.
 """
 
 from __future__ import annotations
 
-__all__ = ["StereoreproError", "ShapeError", "SceneError", "SequenceError", "CameraError", "UserError"]
+__all__ = ["StereoreproError", "ShapeError", "ParameterError", "ParameterTypeError", "SceneError", "SequenceError",
+           "CameraError", "UserError"]
 
 
 class StereoreproError(Exception):
@@ -14,7 +16,19 @@ class StereoreproError(Exception):
 
 
 class ShapeError(StereoreproError, ValueError):
-    """A tensor's rank, shape, dtype or device does not fit the operation."""
+    """A tensor's rank, shape or device does not fit the operation, or tensors that go together disagree."""
+
+
+class ParameterError(StereoreproError, ValueError):
+    """A parameter's value is outside what the operation accepts: a threshold that is negative or NaN, ``alpha``
+    NaN or ±inf, ``max_history`` below 1 or NaN, a finite number beyond float32's range, a name that is not one of
+    the choices (sampling, backend, mode), or arguments that go together given alone (``motion_world`` without
+    ``motion``)."""
+
+
+class ParameterTypeError(StereoreproError, TypeError):
+    """An argument of the wrong kind: an integer or bool tensor where a floating one is needed, a string where a
+    number or a tensor is, a missing input the configuration requires."""
 
 
 class SceneError(StereoreproError, ValueError):

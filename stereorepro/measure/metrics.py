@@ -84,6 +84,7 @@ import torch
 from torch import Tensor
 
 from .._checks import ShapeError, check_floating, check_shape
+from ..errors import ParameterError, ParameterTypeError
 
 __all__ = [
     "EFFECTIVE_SPP_FLAGS",
@@ -130,31 +131,39 @@ def _check_pair(image: Tensor, reference: Tensor, mask: Tensor | None, name: str
     if mask is not None:
         check_shape(mask, ["B", "1", "H", "W"], f"{name} mask", bind)
         if mask.dtype != torch.bool:
-            raise TypeError(f"{name} mask: expected a bool tensor, got dtype {mask.dtype}")
+            raise ParameterTypeError(f"{name} mask: expected a bool tensor, got dtype {mask.dtype}")
 
 
 def _pixel_valid(image: Tensor, reference: Tensor, mask: Tensor | None, nonfinite: str, name: str) -> Tensor:
     """(B, 1, H, W) bool: pixels entering the mean, after the non-finite policy. Raises per the policy."""
     if nonfinite not in _NONFINITE_POLICIES:
-        raise ValueError(f"{name}: nonfinite must be one of {_NONFINITE_POLICIES}, got {nonfinite!r}")
+        raise ParameterError(f"{name}: nonfinite must be one of {_NONFINITE_POLICIES}, got {nonfinite!r}")
     B = image.shape[0]
     valid = torch.ones_like(image[:, :1], dtype=torch.bool) if mask is None else mask.clone()
     ref_bad = ~torch.isfinite(reference).all(1, keepdim=True).expand(B, -1, -1, -1) & valid
     if bool(ref_bad.any()):
-        raise ValueError(f"{name}: reference has {int(ref_bad.sum())} non-finite pixel(s) inside the mask; "
-                         "a reference must be finite (mask those pixels out)")
+        raise ParameterError(f"{name}: reference has {int(ref_bad.sum())} non-finite pixel(s) inside the mask; "
+                             "a reference must be finite (mask those pixels out)")
     img_bad = ~torch.isfinite(image).all(1, keepdim=True) & valid
     n_bad = int(img_bad.sum())
     if n_bad:
         if nonfinite == "raise":
             items = torch.nonzero(img_bad.flatten(1).any(1)).flatten().tolist()
-            raise ValueError(f"{name}: image has {n_bad} non-finite pixel(s) (NaN/inf) in batch item(s) {items}; "
-                             "pass nonfinite='ignore' to exclude them from the mean")
+            raise ParameterError(f"{name}: image has {n_bad} non-finite pixel(s) (NaN/inf) in batch item(s) "
+                                 f"{items}; pass nonfinite='ignore' to exclude them from the mean")
         valid = valid & ~img_bad
     empty = valid.flatten(1).sum(1) == 0
     if bool(empty.any()):
-        raise ValueError(f"{name}: no valid pixels in batch item(s) {torch.nonzero(empty).flatten().tolist()}")
+        raise ParameterError(f"{name}: no valid pixels in batch item(s) {torch.nonzero(empty).flatten().tolist()}")
     return valid
+
+
+def _check_finite(name: str, **tensors: Tensor) -> None:
+    """ParameterError naming the first of ``tensors`` (B, C, H, W) with pixels holding a NaN/inf channel."""
+    for nm, t in tensors.items():
+        n_bad = int((~torch.isfinite(t)).any(1).sum())
+        if n_bad:
+            raise ParameterError(f"{name}: {nm} has {n_bad} non-finite pixel(s) (NaN/inf)")
 
 
 def mse(image: Tensor, reference: Tensor, mask: Tensor | None = None, nonfinite: str = "raise") -> Tensor:
@@ -211,7 +220,8 @@ def flip(image: Tensor, reference: Tensor) -> Tensor:
     perceptual, non-additive error) does not have; FLIP is reported beside it.
 
     Args:
-        image, reference: (B, 3, H, W) (reference may be (1, 3, H, W)), finite.
+        image, reference: (B, 3, H, W) (reference may be (1, 3, H, W)), finite (non-finite values raise, as in
+            :func:`mse` and :func:`ssim`: clamping would read NaN as 0).
 
     Returns:
         (B,) float64.
@@ -219,6 +229,7 @@ def flip(image: Tensor, reference: Tensor) -> Tensor:
     _check_pair(image, reference, None, "flip")
     if image.shape[1] != 3:
         raise ShapeError(f"flip: expected 3 colour channels, got shape {tuple(image.shape)}")
+    _check_finite("flip", image=image, reference=reference)
     try:
         import flip_evaluator
     except ImportError:
@@ -256,20 +267,20 @@ def ssim(image: Tensor, reference: Tensor, mask: Tensor | None = None, window_si
         max_val: data range L after tonemapping (1.0 unless ``tonemap="none"``).
 
     Returns:
-        (B,) float64, 1 for identical images.
+        (B,) float64, exactly 1 for identical images (black ones too: the SSIM ratio without an epsilon, its
+        constants keep the denominator > 0).
     """
     _check_pair(image, reference, mask, "ssim")
     if tonemap not in ("clamp", "reinhard", "none"):
-        raise ValueError(f"ssim: tonemap must be 'clamp', 'reinhard' or 'none', got {tonemap!r}")
+        raise ParameterError(f"ssim: tonemap must be 'clamp', 'reinhard' or 'none', got {tonemap!r}")
     if window_size < 1 or window_size % 2 == 0:
-        raise ValueError(f"ssim: window_size must be a positive odd integer, got {window_size}")
+        raise ParameterError(f"ssim: window_size must be a positive odd integer, got {window_size}")
+    if not (isinstance(max_val, (int, float)) and math.isfinite(max_val) and max_val > 0):
+        raise ParameterError(f"ssim: max_val must be a finite number > 0, got {max_val!r}")
     H, W = image.shape[-2:]
     if min(H, W) <= window_size // 2:
         raise ShapeError(f"ssim: image {H}x{W} too small for window_size={window_size}")
-    for t, nm in ((image, "image"), (reference, "reference")):
-        n_bad = int((~torch.isfinite(t)).any(1).sum())
-        if n_bad:
-            raise ValueError(f"ssim: {nm} has {n_bad} non-finite pixel(s) (NaN/inf)")
+    _check_finite("ssim", image=image, reference=reference)
     import kornia  # lazy: importing kornia costs ~2 s; only SSIM needs it
 
     def _map(t: Tensor) -> Tensor:
@@ -282,12 +293,12 @@ def ssim(image: Tensor, reference: Tensor, mask: Tensor | None = None, window_si
         return t
 
     x, y = _map(image), _map(reference).expand_as(image)
-    smap = kornia.metrics.ssim(x, y, window_size, max_val=float(max_val)).mean(1, keepdim=True)  # Bx1xHxW
+    smap = kornia.metrics.ssim(x, y, window_size, max_val=float(max_val), eps=0.0).mean(1, keepdim=True)  # Bx1xHxW
     if mask is None:
         return smap.flatten(1).mean(1)
     count = mask.flatten(1).sum(1)
     if bool((count == 0).any()):
-        raise ValueError(f"ssim: empty mask in batch item(s) {torch.nonzero(count == 0).flatten().tolist()}")
+        raise ParameterError(f"ssim: empty mask in batch item(s) {torch.nonzero(count == 0).flatten().tolist()}")
     return torch.where(mask, smap, torch.zeros_like(smap)).flatten(1).sum(1) / count.to(torch.float64)
 
 
@@ -311,7 +322,7 @@ def ladder_rmse(ladder_images: Tensor | Sequence[Tensor], reference: Tensor, mas
     else:
         rungs = list(ladder_images)
     if len(rungs) == 0:
-        raise ValueError("ladder_rmse: the ladder has no images")
+        raise ParameterError("ladder_rmse: the ladder has no images")
     shapes = {tuple(r.shape) if isinstance(r, Tensor) else None for r in rungs}
     if len(shapes) != 1:
         raise ShapeError(f"ladder_rmse: all rungs must share one (B, C, H, W) shape, got {sorted(map(str, shapes))}")
@@ -326,7 +337,7 @@ def ladder_rmse(ladder_images: Tensor | Sequence[Tensor], reference: Tensor, mas
 def _as_f64(x, name: str) -> Tensor:
     t = x if isinstance(x, Tensor) else torch.as_tensor(x, dtype=torch.float64)  # not float32 by default
     if not (t.is_floating_point() or t.dtype in (torch.int32, torch.int64, torch.int16, torch.int8, torch.uint8)):
-        raise TypeError(f"{name}: expected real numbers, got dtype {t.dtype}")
+        raise ParameterTypeError(f"{name}: expected real numbers, got dtype {t.dtype}")
     return t.detach().to(torch.float64)
 
 
@@ -337,17 +348,39 @@ def _check_ladder(ladder_spp, ladder_rmse_, name: str) -> tuple[Tensor, Tensor]:
     if s.dim() != 1 or s.numel() == 0:
         raise ShapeError(f"{name}: ladder_spp must be a non-empty 1-D sequence (N,), got shape {tuple(s.shape)}")
     if not bool(torch.isfinite(s).all()) or not bool((s > 0).all()):
-        raise ValueError(f"{name}: ladder_spp must be finite and > 0, got {s.tolist()}")
+        raise ParameterError(f"{name}: ladder_spp must be finite and > 0, got {s.tolist()}")
     if s.numel() > 1 and not bool((s[1:] > s[:-1]).all()):
-        raise ValueError(f"{name}: ladder_spp must be strictly increasing, got {s.tolist()}")
+        raise ParameterError(f"{name}: ladder_spp must be strictly increasing, got {s.tolist()}")
     if R.dim() == 1:
         R = R.unsqueeze(0)
     if R.dim() != 2 or R.shape[1] != s.numel():
         raise ShapeError(f"{name}: ladder_rmse must be (N,) or (F, N) with N={s.numel()}, got shape {tuple(R.shape)}")
     bad = ~torch.isfinite(R) | (R <= 0)
     if bool(bad.any()):
-        raise ValueError(f"{name}: ladder_rmse must be finite and > 0; {int(bad.sum())} value(s) are not")
+        raise ParameterError(f"{name}: ladder_rmse must be finite and > 0; {int(bad.sum())} value(s) are not")
     return s, R
+
+
+def _unit_scale(R: Tensor) -> Tensor:
+    """(F, 1) int64 ``k`` per row with ``R[:, 0]·2^k`` in [0.5, 1): RMSEs scaled by ``2^k`` (:func:`_scaled`) square
+    without overflow or underflow wherever float64 holds them, and the scaling is exact (a power of two), so every
+    ratio of MSEs — the fit's shape, the effective spp — is the same bit for bit as unscaled."""
+    return -torch.frexp(R[:, :1])[1].to(torch.int64)
+
+
+def _scaled(x: Tensor, k: Tensor) -> Tensor:
+    """``x·2^k``, in two exact steps (one power of two alone could leave float64's range)."""
+    half = torch.div(k, 2, rounding_mode="floor")
+    return x * torch.pow(2.0, half.to(x.dtype)) * torch.pow(2.0, (k - half).to(x.dtype))
+
+
+def _squares(R: Tensor, name: str) -> Tensor:
+    """``R²`` of scaled RMSEs, or ParameterError when a ladder spans more than float64 can square."""
+    M = R * R
+    if not bool((torch.isfinite(M) & (M >= torch.finfo(M.dtype).tiny)).all()):
+        raise ParameterError(f"{name}: ladder_rmse spans too wide a range within a ladder (its MSEs leave "
+                             f"float64's range), got {R.tolist()} after scaling each row by a power of two")
+    return M
 
 
 def _fit(s: Tensor, M: Tensor, name: str) -> tuple[Tensor, Tensor]:
@@ -376,7 +409,7 @@ def _fit(s: Tensor, M: Tensor, name: str) -> tuple[Tensor, Tensor]:
     zero = torch.zeros_like(a_b0)
     flat = ~interior & (_obj(zero, b_a0) < _obj(a_b0, zero))
     if bool(flat.any()):
-        raise ValueError(f"{name}: ladder error does not decrease with spp (best fit MSE = a/n + b has a = 0) "
+        raise ParameterError(f"{name}: ladder error does not decrease with spp (best fit MSE = a/n + b has a = 0) "
                          f"in frame(s) {torch.nonzero(flat).flatten().tolist()}")
     a = torch.where(interior, a_free, a_b0)
     b = torch.where(interior, b_free, zero)
@@ -400,7 +433,12 @@ def fit_ladder(ladder_spp, ladder_rmse) -> tuple[Tensor, Tensor]:
         (a, b): float64 tensors of shape () for a (N,) ladder, (F,) for (F, N); in MSE units.
     """
     s, R = _check_ladder(ladder_spp, ladder_rmse, "fit_ladder")
-    a, b = _fit(s, R * R, "fit_ladder")
+    k = _unit_scale(R)
+    a, b = _fit(s, _squares(_scaled(R, k), "fit_ladder"), "fit_ladder")
+    a, b = _scaled(a, -2 * k[:, 0]), _scaled(b, -2 * k[:, 0])  # back to the ladder's MSE units
+    if not bool(torch.isfinite(a).all() and torch.isfinite(b).all() and (a > 0).all()):
+        raise ParameterError(f"fit_ladder: the fit's MSE (a = {a.tolist()}, b = {b.tolist()}) is beyond float64's "
+                             "range; effective_spp_many works on such ladders (it uses only ratios)")
     shared = _as_f64(ladder_rmse, "fit_ladder ladder_rmse").dim() == 1
     return (a[0], b[0]) if shared else (a, b)
 
@@ -422,7 +460,8 @@ def effective_spp_many(rmse_values, ladder_spp, ladder_rmse, interpolation: str 
         flags: list of F strings from :data:`EFFECTIVE_SPP_FLAGS`.
 
     Raises:
-        ValueError: NaN/inf/negative RMSE, an invalid ladder, or a ladder whose error does not decrease.
+        ParameterError: NaN/inf/negative RMSE, an invalid ladder, or a ladder whose error does not decrease
+            (a ValueError).
 
     Examples:
         >>> spp, flags = effective_spp_many([0.5, 0.3], [1, 2, 4], [1.0, 2 ** -0.5, 0.5])
@@ -430,14 +469,14 @@ def effective_spp_many(rmse_values, ladder_spp, ladder_rmse, interpolation: str 
         ([4.0, 11.111111], ['exact', 'extrapolated_high'])
     """
     if interpolation not in _INTERPOLATIONS:
-        raise ValueError(f"effective_spp: interpolation must be one of {_INTERPOLATIONS}, got {interpolation!r}")
+        raise ParameterError(f"effective_spp: interpolation must be one of {_INTERPOLATIONS}, got {interpolation!r}")
     r = _as_f64(rmse_values, "effective_spp rmse_values")
     if r.dim() != 1:
         raise ShapeError(f"effective_spp: rmse_values must be 1-D (F,), got shape {tuple(r.shape)}")
     bad = ~torch.isfinite(r) | (r < 0)
     if bool(bad.any()):
-        raise ValueError(f"effective_spp: rmse values must be finite and >= 0; got {r[bad].tolist()} "
-                         f"at frame(s) {torch.nonzero(bad).flatten().tolist()}")
+        raise ParameterError(f"effective_spp: rmse values must be finite and >= 0; got {r[bad].tolist()} "
+                             f"at frame(s) {torch.nonzero(bad).flatten().tolist()}")
     s, R = _check_ladder(ladder_spp, ladder_rmse, "effective_spp")
     F, N = r.numel(), s.numel()
     if R.shape[0] not in (1, F):
@@ -445,7 +484,9 @@ def effective_spp_many(rmse_values, ladder_spp, ladder_rmse, interpolation: str 
                          f"got shape {tuple(R.shape)}")
     r = r.to(s.device)
     R = R.expand(F, N)
-    m, M = r * r, R * R  # F, FxN
+    k = _unit_scale(R)  # every quantity below is a ratio of MSEs: scaled exactly, squared safely
+    r, R = _scaled(r, k[:, 0]), _scaled(R, k)
+    m, M = r * r, _squares(R, "effective_spp")  # F, FxN
     a, b = _fit(s, M, "effective_spp")
     inf = torch.full_like(m, math.inf)
 
@@ -536,9 +577,9 @@ def suggest_reference_spp(max_ladder_spp: float, ratio: float = 1.0) -> int:
         256
     """
     if not (max_ladder_spp > 0 and math.isfinite(max_ladder_spp)):
-        raise ValueError(f"suggest_reference_spp: max_ladder_spp must be finite and > 0, got {max_ladder_spp}")
+        raise ParameterError(f"suggest_reference_spp: max_ladder_spp must be finite and > 0, got {max_ladder_spp}")
     if not (ratio >= 1 and math.isfinite(ratio)):
-        raise ValueError(f"suggest_reference_spp: ratio must be finite and >= 1, got {ratio}")
+        raise ParameterError(f"suggest_reference_spp: ratio must be finite and >= 1, got {ratio}")
     return 1 << max(0, math.ceil(math.log2(ratio * max_ladder_spp) - 1e-12))
 
 
@@ -562,9 +603,9 @@ class EffectiveSppLadder:
             raise ShapeError(f"EffectiveSppLadder: ladder_rmse must be 1-D (N,), got shape "
                              f"{tuple(torch.as_tensor(self.ladder_rmse).shape)}")
         if self.interpolation not in _INTERPOLATIONS:
-            raise ValueError(f"EffectiveSppLadder: interpolation must be one of {_INTERPOLATIONS}, "
-                             f"got {self.interpolation!r}")
-        _fit(s, R * R, "EffectiveSppLadder")  # fail early on a flat ladder
+            raise ParameterError(f"EffectiveSppLadder: interpolation must be one of {_INTERPOLATIONS}, "
+                                 f"got {self.interpolation!r}")
+        _fit(s, _squares(_scaled(R, _unit_scale(R)), "EffectiveSppLadder"), "EffectiveSppLadder")  # a flat ladder
         object.__setattr__(self, "ladder_spp", s)
         object.__setattr__(self, "ladder_rmse", R[0])
 

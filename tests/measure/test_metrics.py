@@ -18,7 +18,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from stereorepro.errors import ShapeError
+from stereorepro.errors import ParameterError, ShapeError
 from stereorepro.measure.metrics import (
     EFFECTIVE_SPP_FLAGS,
     EffectiveSppLadder,
@@ -213,6 +213,15 @@ class TestSsim:
             ssim(y, x)
         with pytest.raises(ValueError, match="empty mask"):
             ssim(x, x, mask=torch.zeros(1, 1, 16, 16, dtype=torch.bool))
+        with pytest.raises(ParameterError, match="max_val"):
+            ssim(x, x, tonemap="none", max_val=0.0)
+
+    def test_identical_images_are_exactly_one(self):
+        """Identical images give 1 exactly, black ones too (with an epsilon in the ratio: 0.99998889)."""
+        black = torch.zeros(2, 3, 16, 16)
+        noise = torch.rand(1, 3, 16, 16, generator=torch.Generator().manual_seed(3))
+        assert ssim(black, black).tolist() == [1.0, 1.0]
+        assert ssim(noise, noise).tolist() == [1.0]
 
 
 class TestFlip:
@@ -246,6 +255,18 @@ class TestFlip:
             flip(torch.rand(1, 1, 8, 8), torch.rand(1, 1, 8, 8))
         with pytest.raises(ShapeError):
             flip(torch.rand(1, 3, 8, 8), torch.rand(1, 3, 8, 9))
+
+    def test_nonfinite_raises(self):
+        """A non-finite image or reference raises as in mse and ssim (clamping read NaN as 0: 0.97 for all-NaN)."""
+        from stereorepro.measure.metrics import flip
+
+        x = torch.rand(1, 3, 16, 16)
+        with pytest.raises(ParameterError, match="flip: image has 256 non-finite"):
+            flip(torch.full_like(x, float("nan")), x)
+        bad = x.clone()
+        bad[0, 2, 3, 4] = float("inf")
+        with pytest.raises(ParameterError, match="flip: reference has 1 non-finite"):
+            flip(x, bad)
 
 
 class TestLadderRmse:
@@ -448,6 +469,40 @@ class TestEffectiveSpp:
         spp, flag = effective_spp(torch.tensor(0.45, dtype=torch.float32), torch.arange(1, 17),
                                   torch.tensor(R, dtype=torch.float32))
         assert flag == "interpolated" and spp == pytest.approx(1 / 0.45 ** 2, rel=1e-6)
+
+
+    @pytest.mark.parametrize("scale", [1e-300, 1e-160, 1e-155, 1e155, 1e160, 1e300])
+    def test_ladders_near_the_float64_range(self, scale, capfd):
+        """Effective spp is a ratio of MSEs: a ladder and values scaled by any factor float64 holds give the same
+        result (their squares under- or overflowed: NaN at 1e-160, an MKL message on stdout and torch's INTERNAL
+        ASSERT at 1e155). Inside the range the scaling is bit-exact."""
+        R = _ideal_rmse(SPP16)
+        want, flags = effective_spp_many([0.6, 0.2, 0.05], SPP16, R)
+        got, got_flags = effective_spp_many([0.6 * scale, 0.2 * scale, 0.05 * scale], SPP16,
+                                            [r * scale for r in R])
+        assert got_flags == flags and torch.allclose(got, want, rtol=1e-12), (got, want)
+        spp, flag = effective_spp(0.6 * scale, SPP16, [r * scale for r in R])
+        assert flag == "interpolated" and spp == pytest.approx(1 / 0.36, rel=1e-12)
+        a, b = fit_ladder(SPP16, [r * scale for r in R]) if 1e-150 < scale < 1e150 else (None, None)
+        assert capfd.readouterr().out == ""
+        if scale > 1e150:  # the fit's MSE itself is beyond float64: a clear error, not inf
+            with pytest.raises(ParameterError, match="beyond float64's range"):
+                fit_ladder(SPP16, [r * scale for r in R])
+
+    def test_power_of_two_scaling_is_bit_exact(self):
+        """Scaling a ladder and its values by 2^k changes nothing, bit for bit (the estimator's unit scaling)."""
+        g = torch.Generator().manual_seed(5)
+        R = torch.tensor(_ideal_rmse(SPP16), dtype=torch.float64) * (1 + 0.03 * torch.randn(16, generator=g,
+                                                                                           dtype=torch.float64))
+        r = torch.rand(8, generator=g, dtype=torch.float64) * 1.2
+        want = effective_spp_many(r, SPP16, R)
+        for k in (-900, -40, 40, 900):
+            got = effective_spp_many(r * 2.0 ** k, SPP16, R * 2.0 ** k)
+            assert torch.equal(got[0], want[0]) and got[1] == want[1], k
+
+    def test_ladder_wider_than_float64_squares(self):
+        with pytest.raises(ParameterError, match="too wide a range"):
+            effective_spp_many([1e-100], [1, 2], [1e160, 1e-160])
 
 
 class TestEffectiveSppMany:
