@@ -8,7 +8,7 @@ where: the argument, the file, the frame or the key.
 from __future__ import annotations
 
 __all__ = ["StereoreproError", "ShapeError", "ParameterError", "ParameterTypeError", "SceneError", "SequenceError",
-           "CameraError", "UserError"]
+           "CameraError", "UserError", "MissingDependencyError"]
 
 
 class StereoreproError(Exception):
@@ -45,3 +45,16 @@ class CameraError(StereoreproError, ValueError):
 
 class UserError(StereoreproError):
     """A command-line mistake (bad file, bad option): printed as one line without a traceback, exit code 2."""
+
+
+class MissingDependencyError(StereoreproError, ImportError):
+    """An optional dependency is not installed; the message names the package and the extra that brings it
+    (``pip install 'stereorepro[render]'``). Raised at first use, by :func:`stereorepro._extras.require`.
+
+    Attributes:
+        name: the module that could not be imported (as :class:`ImportError`); ``extra``: the extra to install.
+    """
+
+    def __init__(self, message: str, *, name: str, extra: str):
+        super().__init__(message, name=name)
+        self.extra = extra

@@ -22,7 +22,7 @@ PACKAGE = Path(stereorepro.__file__).resolve().parent
 #: under ``stereorepro``; ``""`` is the package's ``__init__`` (the public names, which re-exports from every
 #: layer). README's Development section shows the same order.
 LAYERS = (
-    ("foundation", ("errors", "_checks", "_backend", "_version", "_tensors", "camera", "_core")),
+    ("foundation", ("errors", "_checks", "_backend", "_version", "_extras", "_tensors", "camera", "_core")),
     ("io", ("io",)),  # file formats
     ("scenes", ("scenes",)),
     ("render", ("render",)),
@@ -205,9 +205,15 @@ class TestImportGraph:
         assert deps <= {"stereorepro._core"}, deps
 
     def test_only_one_file_imports_embreex(self):
-        users = [n for n, p in _modules().items() if "embreex" in p.read_text() and "import" in p.read_text()
-                 and any(isinstance(x, (ast.Import, ast.ImportFrom)) and "embreex" in ast.dump(x)
-                         for x in ast.walk(ast.parse(p.read_text())))]
+        """(An import statement or the optional-dependency helper, ``require("embreex...")``.)"""
+        def imports_embreex(x) -> bool:
+            if isinstance(x, (ast.Import, ast.ImportFrom)):
+                return "embreex" in ast.dump(x)
+            return (isinstance(x, ast.Call) and getattr(x.func, "id", None) == "require" and bool(x.args)
+                    and isinstance(x.args[0], ast.Constant) and str(x.args[0].value).startswith("embreex"))
+
+        users = [n for n, p in _modules().items() if "embreex" in p.read_text()
+                 and any(imports_embreex(x) for x in ast.walk(ast.parse(p.read_text())))]
         assert users == ["stereorepro.render._embree"]
 
 
@@ -279,7 +285,13 @@ class TestPublicSurface:
             getattr(stereorepro, n)
 
     def test_one_error_base(self):
-        from stereorepro.errors import SceneError, SequenceError, ShapeError, StereoreproError, UserError
+        from stereorepro.errors import (
+            SceneError,
+            SequenceError,
+            ShapeError,
+            StereoreproError,
+            UserError,
+        )
 
         for e in (SceneError, SequenceError, ShapeError, UserError):
             assert issubclass(e, StereoreproError)
@@ -321,3 +333,155 @@ def test_test_module_basenames_are_unique():
 
     names = Counter(p.name for p in Path(__file__).resolve().parent.rglob("test_*.py"))
     assert not [n for n, c in names.items() if c > 1]
+
+
+#: Runs in a subprocess with the optional packages in ``BLOCK`` made unimportable (as if not installed).
+_BLOCKED = """
+import sys
+for name in {block!r}:
+    sys.modules[name] = None  # import raises ModuleNotFoundError, as for a package that is not installed
+{code}
+"""
+
+
+def _run_blocked(block, code: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-c", _BLOCKED.format(block=list(block), code=code)],
+                          capture_output=True, text=True, check=False)
+
+
+class TestExtras:
+    """Optional dependencies: the core needs torch and numpy only; a missing extra is one error naming it."""
+
+    def test_core_without_optional_packages(self):
+        """``import stereorepro``, the ops on torch and the CLI's help and scene list, with every package of
+        every extra unimportable; the demo then exits 2 with one line naming ``[experiment]``."""
+        from stereorepro._extras import EXTRAS
+
+        code = """
+import torch, stereorepro as sr
+from stereorepro.cli import main
+d = torch.full((1, 1, 6, 8), 2.0); n = torch.zeros(1, 3, 6, 8); n[:, 2] = -1
+K = sr.intrinsics_from_fov(60.0, 8, 6); right = torch.eye(4)[None].clone(); right[:, 0, 3] = -0.065
+values, valid, reason = sr.StereoReprojection(0.5, 0.1)(torch.rand(1, 3, 6, 8), d, n, K, torch.eye(4)[None],
+                                                        d, n, K, right)
+assert valid.all(), reason
+assert main(["--help"]) == 0 and main(["scenes"]) == 0
+sys.exit(10 + main(["demo", "--frames", "1", "--out", "/nonexistent/demo"]))
+"""
+        res = _run_blocked(EXTRAS, code)
+        assert res.returncode == 12, res.stderr
+        err = res.stderr.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("stereorepro demo: error"), err
+        assert "pip install 'stereorepro[experiment]'" in err[0], err
+
+    #: A scene file with a mesh: loading its geometry needs trimesh.
+    MESH_SCENE = ("import tempfile, os; from stereorepro import load_scene\n"
+                  "p = os.path.join(tempfile.mkdtemp(), 's.toml')\n"
+                  "open(p, 'w').write(open(load_scene('living_room').source).read()"
+                  ".replace('generator = \"living_room\"', 'mesh = \"x.ply\"'))\n"
+                  "load_scene(p).geometry()")
+
+    @pytest.mark.parametrize("block, code, extra", [
+        ("embreex", "from stereorepro import PathTracer", "render"),
+        ("trimesh", MESH_SCENE, "render"),
+        ("OpenEXR", ("import stereorepro, numpy as np\n"
+                     "stereorepro.write_exr('/nonexistent/a.exr', {'R': np.zeros((2, 2), np.float32)})"), "exr"),
+        ("kornia", "import torch, stereorepro\nstereorepro.ssim(torch.rand(1, 3, 16, 16), torch.rand(1, 3, 16, 16))",
+         "experiment"),
+        ("flip_evaluator", ("import torch\nfrom stereorepro.measure.metrics import flip\n"
+                            "flip(torch.rand(1, 3, 16, 16), torch.rand(1, 3, 16, 16))"), "experiment"),
+    ])
+    def test_missing_extra_is_named(self, block, code, extra):
+        res = _run_blocked([block], code)
+        last = res.stderr.strip().splitlines()[-1]
+        assert last.startswith("stereorepro.errors.MissingDependencyError:"), res.stderr
+        assert f"pip install 'stereorepro[{extra}]'" in last, last
+
+    def test_require(self, monkeypatch):
+        """The error is an ImportError and a StereoreproError naming the extra; an ImportError from inside an
+        installed package (here: its own dependency missing) is not mistaken for the package's absence."""
+        from stereorepro import _extras
+        from stereorepro.errors import MissingDependencyError, StereoreproError
+
+        monkeypatch.setitem(sys.modules, "kornia", None)
+        with pytest.raises(MissingDependencyError) as info:
+            _extras.require("kornia", "ssim")
+        assert isinstance(info.value, ImportError) and isinstance(info.value, StereoreproError)
+        assert info.value.extra == "experiment" and info.value.name == "kornia"
+        assert str(info.value).startswith("ssim needs kornia, which is not installed: pip install "
+                                          "'stereorepro[experiment]'")
+
+        def broken(name):
+            raise ImportError("libfoo.so: cannot open shared object file", name="libfoo")
+
+        monkeypatch.setattr(_extras.importlib, "import_module", broken)
+        with pytest.raises(ImportError) as info:
+            _extras.require("embreex", "the path tracer")
+        assert not isinstance(info.value, MissingDependencyError)
+
+    def test_extras_match_pyproject(self):
+        """Every package of :data:`~stereorepro._extras.EXTRAS` is in the extra it names (directly or through the
+        extras that extra includes); the core dependencies are torch and numpy."""
+        import re
+
+        import tomllib
+
+        from stereorepro._extras import EXTRAS
+
+        pyproject = PACKAGE.parent / "pyproject.toml"
+        if not pyproject.is_file():
+            pytest.skip("an installed package without its pyproject.toml")
+        project = tomllib.loads(pyproject.read_text())["project"]
+        extras = project["optional-dependencies"]
+
+        def names(extra: str) -> set[str]:
+            out = set()
+            for req in extras[extra]:
+                name = re.match(r"[A-Za-z0-9_.-]+(\[[^]]*\])?", req).group(0)
+                if name.startswith("stereorepro["):
+                    for sub in name[len("stereorepro["):-1].split(","):
+                        out |= names(sub)
+                else:
+                    out.add(name.lower())
+            return out
+
+        wrong = {m: (dist, extra) for m, (dist, extra) in EXTRAS.items() if dist.lower() not in names(extra)}
+        assert wrong == {}
+        assert sorted(re.match(r"[a-z]+", d).group(0) for d in project["dependencies"]) == ["numpy", "torch"]
+        for extra in ("render", "exr", "experiment", "onnx", "mitsuba", "oidn", "distributed", "all", "test", "dev"):
+            assert extra in extras, extra
+        assert names("experiment") >= names("render") | names("exr")
+
+
+class TestSceneFiles:
+    """The built-in scene files are package data; ``STEREOREPRO_SCENES_DIR`` replaces their folder."""
+
+    def test_builtin_scenes_ship_in_the_package(self, monkeypatch):
+        from stereorepro.scenes import list_scenes, scenes_dir
+
+        monkeypatch.delenv("STEREOREPRO_SCENES_DIR", raising=False)
+        folder = scenes_dir()
+        assert folder == PACKAGE / "scenes" / "builtin"
+        assert sorted(p.stem for p in folder.glob("*.toml")) == sorted(list_scenes(True, True))
+
+    def test_scenes_dir_from_the_environment(self, tmp_path, monkeypatch):
+        from stereorepro.scenes import SceneError, load_scene, scenes_dir
+
+        monkeypatch.delenv("STEREOREPRO_SCENES_DIR", raising=False)
+        (tmp_path / "living_room.toml").write_bytes((scenes_dir() / "living_room.toml").read_bytes())
+        monkeypatch.setenv("STEREOREPRO_SCENES_DIR", str(tmp_path))
+        assert load_scene("living_room").source == tmp_path.resolve() / "living_room.toml"
+        with pytest.raises(SceneError, match="scene file not found"):
+            load_scene("atrium")
+        monkeypatch.setenv("STEREOREPRO_SCENES_DIR", str(tmp_path / "missing"))
+        with pytest.raises(SceneError, match=r"\$STEREOREPRO_SCENES_DIR is .*which is not a folder"):
+            load_scene("living_room")
+
+    def test_did_you_mean(self):
+        from stereorepro.scenes import SceneError, load_scene
+
+        with pytest.raises(SceneError, match="unknown scene 'livingroom': did you mean 'living_room'\\?"):
+            load_scene("livingroom")
+        with pytest.raises(SceneError) as info:
+            load_scene("qqq")
+        assert "did you mean" not in str(info.value)

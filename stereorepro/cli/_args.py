@@ -14,11 +14,11 @@ def parse_resolution(s: str) -> tuple[int, int]:
     try:
         w, h = s.lower().split("x")
         w, h = int(w), int(h)
-        if w < 1 or h < 1:
-            raise ValueError
-        return w, h
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT (e.g. 320x180), got {s!r}") from None
+    if w < 1 or h < 1:
+        raise argparse.ArgumentTypeError(f"width and height must be positive, got {s!r}")
+    return w, h
 
 
 def _int(s: str, lo: int, what: str) -> int:

@@ -9,23 +9,40 @@ from ..errors import UserError
 from ._args import nonnegative_int, parse_resolution, positive_int
 
 
-def _cmd_scenes(args) -> int:
-    from ..scenes import SceneError, list_scenes, load_scene
+def _missing_mesh(scene):
+    """The mesh file a scene reads that is not there (the shared scenes' meshes), or None."""
+    from ..scenes import expand_path
 
-    for name in list_scenes(include_external=args.all, beyond_paper=True):
+    mesh = scene.spec.get("geometry", {}).get("mesh")
+    path = expand_path(mesh, scene.source.parent) if mesh else None
+    return path if path is not None and not path.is_file() else None
+
+
+def _cmd_scenes(args) -> int:
+    from ..scenes import SHARED_ENV, SceneError, list_scenes, load_scene
+
+    if args.shared_scenes:
+        os.environ[SHARED_ENV] = args.shared_scenes
+    for name in list_scenes(include_external=True, beyond_paper=True):
         try:
             s = load_scene(name)
-            effects = ",".join(sorted(s.effects)) or "diffuse"
-            print(f"{name:28s} {effects:14s} frames={s.num_frames:<4d} {s.description}")
         except SceneError as e:
             print(f"{name:28s} unavailable: {e}")
+            continue
+        missing = _missing_mesh(s)
+        if missing is not None:
+            print(f"{name:28s} unavailable: mesh not found: {missing} (set ${SHARED_ENV} to the folder of the shared "
+                  "meshes, or pass --shared-scenes)")
+            continue
+        effects = ",".join(sorted(s.effects)) or "diffuse"
+        print(f"{name:28s} {effects:14s} frames={s.num_frames:<4d} {s.description}")
     return 0
 
 
 def _cmd_render(args) -> int:
-    from ..scenes import SceneError, load_scene
     from ..io.exr import write_exr
     from ..render import PathTracer
+    from ..scenes import SceneError, load_scene
 
     if args.shared_scenes:
         os.environ["STEREOREPRO_SHARED_SCENES"] = args.shared_scenes
@@ -53,8 +70,11 @@ def _cmd_render(args) -> int:
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("scenes", help="list the built-in scenes")
-    p.add_argument("--all", action="store_true", help="also list the scenes that need the shared meshes")
+    p = subparsers.add_parser("scenes", help="list the built-in scenes and the shared-mesh scenes, with their "
+                              "availability")
+    p.add_argument("--all", action="store_true", help="accepted for compatibility: every scene is listed")
+    p.add_argument("--shared-scenes", default=None,
+                   help="folder of the shared meshes (overrides $STEREOREPRO_SHARED_SCENES)")
     p.set_defaults(func=_cmd_scenes)
 
     p = subparsers.add_parser("render", help="path trace one frame of a scene to an EXR")

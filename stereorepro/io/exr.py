@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .._extras import require
 from .atomic import atomic_write
 
 __all__ = ["write_exr", "read_exr", "exr_to_tensors", "result_channels", "CHANNELS", "MAX_SAMPLES", "exr_header"]
@@ -56,7 +57,7 @@ def write_exr(path: str | os.PathLike, data) -> None:
     chans = result_channels(data) if not isinstance(data, dict) else data
     if not chans:
         raise ValueError("write_exr: no channels to write")
-    import OpenEXR
+    OpenEXR = require("OpenEXR", "EXR files")
 
     shapes = {np.shape(v) for v in chans.values()}
     if len(shapes) != 1 or len(next(iter(shapes))) != 2:
@@ -139,7 +140,7 @@ def exr_header(path: str | os.PathLike) -> tuple[list[str], list[tuple[int, int]
     Raises:
         ValueError: not a readable EXR, or a header :func:`read_exr` would refuse.
     """
-    import OpenEXR
+    OpenEXR = require("OpenEXR", "EXR files")
 
     path = Path(path)
     with _captured_output():
@@ -164,7 +165,7 @@ def read_exr(path: str | os.PathLike) -> dict[str, np.ndarray]:
         ValueError: it is not a readable EXR (the message says why; OpenEXR's own messages are folded into it
             instead of being printed).
     """
-    import OpenEXR
+    OpenEXR = require("OpenEXR", "EXR files")
 
     path = Path(path)
     if not path.is_file():

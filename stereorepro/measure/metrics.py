@@ -85,6 +85,7 @@ from torch import Tensor
 
 from .._checks import ShapeError, check_floating, check_shape
 from ..errors import ParameterError, ParameterTypeError
+from .._extras import available, require
 
 __all__ = [
     "EFFECTIVE_SPP_FLAGS",
@@ -203,12 +204,9 @@ def rmse(image: Tensor, reference: Tensor, mask: Tensor | None = None, nonfinite
 
 
 def flip_available() -> bool:
-    """True when NVIDIA's FLIP (``pip install flip-evaluator``, extra ``[flip]``) is importable."""
-    try:
-        import flip_evaluator  # noqa: F401
-    except ImportError:
-        return False
-    return True
+    """True when NVIDIA's FLIP (``pip install flip-evaluator``; extras ``[flip]`` and ``[experiment]``) is
+    installed."""
+    return available("flip_evaluator")
 
 
 def flip(image: Tensor, reference: Tensor) -> Tensor:
@@ -230,10 +228,7 @@ def flip(image: Tensor, reference: Tensor) -> Tensor:
     if image.shape[1] != 3:
         raise ShapeError(f"flip: expected 3 colour channels, got shape {tuple(image.shape)}")
     _check_finite("flip", image=image, reference=reference)
-    try:
-        import flip_evaluator
-    except ImportError:
-        raise ImportError("flip: needs NVIDIA FLIP: pip install flip-evaluator (extra [flip])") from None
+    flip_evaluator = require("flip_evaluator", "flip (NVIDIA's FLIP)")
     ref = reference.expand_as(image)
     out = []
     for b in range(image.shape[0]):
@@ -281,7 +276,7 @@ def ssim(image: Tensor, reference: Tensor, mask: Tensor | None = None, window_si
     if min(H, W) <= window_size // 2:
         raise ShapeError(f"ssim: image {H}x{W} too small for window_size={window_size}")
     _check_finite("ssim", image=image, reference=reference)
-    import kornia  # lazy: importing kornia costs ~2 s; only SSIM needs it
+    kornia = require("kornia", "ssim")  # lazy: importing kornia costs ~2 s; only SSIM needs it
 
     def _map(t: Tensor) -> Tensor:
         t = t.to(torch.float64)

@@ -17,8 +17,11 @@ Queries release the GIL inside embreex's ray loop, so callers may run them from 
 from __future__ import annotations
 
 import numpy as np
-from embreex import rtcore_scene as _rtcs
-from embreex.mesh_construction import TriangleMesh as _TriangleMesh
+
+from .._extras import require
+
+_rtcs = require("embreex.rtcore_scene", "the path tracer")
+_TriangleMesh = require("embreex.mesh_construction", "the path tracer").TriangleMesh
 
 __all__ = ["SplitBVH", "TriangleBVH"]
 

@@ -83,6 +83,7 @@ import torch
 from torch import Tensor
 
 from .. import _backend
+from .._extras import require
 from ..camera import PinholeCamera
 from . import bsdf as _bsdf
 from ._embree import SplitBVH, TriangleBVH
@@ -524,7 +525,7 @@ class PathTracer:
         sums = _PixelSums(pixels, H, W, int(spp), full=pixel_mask is None)
         bar = None
         if progress:
-            from tqdm import tqdm
+            tqdm = require("tqdm", "the renderer's progress bar").tqdm
             bar = tqdm(total=int(spp) * len(pixels), unit="path", unit_scale=True, desc="render")
 
         def work(lo_hi):

@@ -1,4 +1,12 @@
-"""Declarative scenes: ``scenes/*.toml`` files and their loader.
+"""Declarative scenes: scene files (TOML) and their loader.
+
+The built-in scenes (:func:`list_scenes`) are files of the package, ``stereorepro/scenes/builtin/*.toml``, installed
+with it; :func:`load_scene` takes their names or the path of any scene file. Two environment variables:
+
+* ``STEREOREPRO_SCENES_DIR``: a folder that replaces the built-in one (:func:`scenes_dir`); a built-in name then
+  loads ``$STEREOREPRO_SCENES_DIR/NAME.toml``. Unset: the package's own folder.
+* ``STEREOREPRO_SHARED_SCENES``: the folder of the external meshes the ``shared_*`` scenes read
+  (:func:`shared_scenes_dir`; the CLI's ``--shared-scenes`` sets it).
 
 A scene file (TOML) declares geometry, materials, lights, a camera path over ``num_frames`` frames, the stereo
 rig, the scene's reprojection thresholds and the ``effects`` it needs. Only declared effects are simulated (see
@@ -40,23 +48,25 @@ beside the repository when it is unset.
 
 from __future__ import annotations
 
+import difflib
 import json
 import math
 import os
 import threading
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import tomllib
 import torch
 
+from .._extras import require
 from ..camera import PinholeCamera, StereoRig, intrinsics_from_fov, look_at
-from .animation import parse_animations
 from ..errors import SceneError
+from .animation import parse_animations
 
 __all__ = ["Scene", "SceneError", "SceneGeometry", "list_scenes", "load_scene", "scenes_dir",
-           "shared_scenes_dir", "KNOWN_EFFECTS", "THRESHOLD_ROWS", "threshold_scale"]
+           "shared_scenes_dir", "SCENES_ENV", "KNOWN_EFFECTS", "THRESHOLD_ROWS", "threshold_scale"]
 
 KNOWN_EFFECTS = frozenset({"glossy", "moving_light", "moving_objects"})
 BUILTIN_SCENES = ("atrium", "atrium_glossy", "atrium_moving_light", "living_room", "living_room_glossy",
@@ -83,19 +93,25 @@ def threshold_scale(height: int) -> float:
     return max(1.0, THRESHOLD_ROWS / float(height))
 
 
+SCENES_ENV = "STEREOREPRO_SCENES_DIR"
+#: The built-in scene files, shipped inside the package.
+BUILTIN_DIR = Path(__file__).resolve().parent / "builtin"
+
+
 def scenes_dir() -> Path:
-    """Folder of the built-in scene files: ``$STEREOREPRO_SCENES_DIR``, else ``scenes/`` of the repository
-    (found relative to this package: repository layout and editable installs), else ``./scenes``."""
-    cands = []
-    if os.environ.get("STEREOREPRO_SCENES_DIR"):
-        cands.append(Path(os.environ["STEREOREPRO_SCENES_DIR"]))
-    package = Path(__file__).resolve().parent.parent
-    cands += [package.parent / "scenes", package / "scenes", Path.cwd() / "scenes"]
-    for c in cands:
-        if (c / "atrium.toml").is_file():
-            return c
-    raise SceneError("cannot find the built-in scene files (scenes/*.toml); looked in "
-                     + ", ".join(str(c) for c in cands) + "; set STEREOREPRO_SCENES_DIR")
+    """Folder of the built-in scene files: ``$STEREOREPRO_SCENES_DIR`` when set, else the package's
+    ``stereorepro/scenes/builtin``.
+
+    Raises:
+        SceneError: the folder does not exist.
+    """
+    env = os.environ.get(SCENES_ENV)
+    folder = Path(env).expanduser() if env else BUILTIN_DIR
+    if not folder.is_dir():
+        if env:
+            raise SceneError(f"${SCENES_ENV} is {env!r}, which is not a folder (unset it to use the built-in scenes)")
+        raise SceneError(f"the built-in scene folder {folder} is missing: reinstall stereorepro")
+    return folder
 
 
 def shared_scenes_dir() -> Path:
@@ -500,7 +516,7 @@ def _build_geometry(scene: Scene) -> SceneGeometry:
 
 
 def _load_mesh(scene: Scene, geo: dict, file: str):
-    import trimesh
+    trimesh = require("trimesh", "a scene's geometry.mesh")
 
     path = expand_path(geo["mesh"], scene.source.parent)
     if not path.is_file():
@@ -581,8 +597,10 @@ def _scene_path(name_or_path: str | os.PathLike) -> Path:
     elif s in BUILTIN_SCENES or s in BEYOND_PAPER_SCENES or s in EXTERNAL_SCENES:
         path = scenes_dir() / f"{s}.toml"
     else:
-        raise SceneError(f"unknown scene {s!r}: expected one of {', '.join(list_scenes(True, True))} or a .toml "
-                         "path")
+        names = list_scenes(True, True)
+        close = difflib.get_close_matches(s, names, n=1)
+        hint = f"did you mean {close[0]!r}? " if close else ""
+        raise SceneError(f"unknown scene {s!r}: {hint}expected one of {', '.join(names)} or a .toml path")
     return path.resolve()
 
 

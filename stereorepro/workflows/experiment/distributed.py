@@ -26,6 +26,7 @@ import socket
 import time
 from dataclasses import replace
 
+from ..._extras import require
 from .cache import RenderCache, code_version
 from .inputs import (RenderSpec, eye_tasks, gbuffer_task, jitter_gbuffer_task, jitter_sample_task, ladder_task,
                      reference_chunk_task, worker_context)
@@ -74,10 +75,8 @@ def task_key(cache: RenderCache, name: str, key: dict) -> str:
 def connect(scheduler: str):
     """A Dask client for ``"local:N"`` (a LocalCluster of N single-threaded worker processes, this machine) or
     ``"tcp://HOST:PORT"`` (a running scheduler); returns (client, cluster or None)."""
-    try:
-        from distributed import Client, LocalCluster
-    except ImportError as e:  # pragma: no cover - the extra is installed in CI
-        raise ImportError("--scheduler needs Dask: pip install 'stereorepro[distributed]'") from e
+    distributed = require("distributed", "--scheduler (Dask)")
+    Client, LocalCluster = distributed.Client, distributed.LocalCluster
     if scheduler.startswith("local:"):
         cluster = LocalCluster(n_workers=int(scheduler.split(":", 1)[1]), threads_per_worker=1, processes=True,
                                dashboard_address=":0")
@@ -95,8 +94,8 @@ def render_all(spec: RenderSpec, frames, scheduler: str, force: bool = False, pr
     Returns what the run's ``results.json`` records under ``"distributed"``: the scheduler, the number of workers
     and of tasks, how many were already cached, and the wall time.
     """
-    from distributed import as_completed
-    from tqdm.auto import tqdm
+    as_completed = require("distributed", "--scheduler (Dask)").as_completed
+    tqdm = require("tqdm.auto", "the experiment's progress bar", extra="experiment").tqdm
 
     t0 = time.perf_counter()
     client, cluster = connect(scheduler)

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..._extras import require
 from ...io.atomic import atomic_path, atomic_write, staged_outputs
 from ...reproject import reason_to_rgb
 from .config import LEFT, SCHEMES
@@ -94,10 +95,9 @@ def write_outputs(out: Path, results: dict, per_frame, keep, cfg) -> None:
 
 
 def _write_outputs(out: Path, results: dict, per_frame, keep, cfg) -> None:
-    import matplotlib
-
+    matplotlib = require("matplotlib", "the experiment's figures")
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = require("matplotlib.pyplot", "the experiment's figures")
 
     def save(fig, name):
         try:

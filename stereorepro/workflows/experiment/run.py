@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..._extras import require, require_all
 from ..._version import __version__
 from ...accumulate import SpatiotemporalReprojection
 from ...camera import has_surface
@@ -96,6 +97,8 @@ class ExperimentResults:
 def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
     """Run the experiment and write its outputs into ``cfg.out``. Returns the ``results.json`` content
     (:meth:`ExperimentResults.to_dict`)."""
+    needs = ["embreex", "tqdm", "matplotlib"] + ["kornia"] * cfg.ssim + ["OpenEXR"] * cfg.exr
+    require_all(needs, "the experiment", "experiment")
     run = _start(cfg, log)
     schemes = [_SchemeRun.make(s, run) for s in all_schemes(cfg, run.moving)]
     per_frame, keep, timing = _run_frames(run, schemes)
@@ -217,7 +220,7 @@ def _frame_inputs(run: _Run, f: int, timing: dict) -> _FrameData:
 def _run_frames(run: _Run, schemes: list[_SchemeRun]) -> tuple[list[dict], dict, dict]:
     """Every frame: its inputs, then every scheme run and scored on them. Returns the rows, the frames kept for the
     figures and the timings (lists of ms per timed step)."""
-    from tqdm.auto import tqdm
+    tqdm = require("tqdm.auto", "the experiment's progress bar", extra="experiment").tqdm
 
     cfg = run.cfg
     timing = {k: [] for k in ("trace_1spp_ms", "gbuffer_ms", "trace_left_discards_ms", "reference_ms")}
