@@ -196,8 +196,9 @@ def backward_reproject(
         dst: the destination :class:`View` (H, W). Its ``motion`` (B, 2, H, W), when given, places the taps:
             ``src_pixel = dst_pixel + motion`` instead of where the cameras put the destination point (non-finite
             motion: ``OUT_OF_FRAME``), and the position test compares the source tap with ``P + motion_world``
-            (a moving object is kept, a disocclusion still rejected). Torch only: ``backend="auto"`` then runs
-            torch's general path.
+            (a moving object is kept, a disocclusion still rejected). Every implementation reads them (native:
+            float32 or float16 motion); 2.5D motion (screen motion + view-z delta) converts to ``motion_world``
+            with :func:`stereorepro.camera.world_motion_from_view_z`.
         thresholds: :class:`Thresholds` or ``(position, normal)``: max |P_src − P_dst| in scene units and max
             |N_src − N_dst| between unit normals, each a number or one-element tensor >= 0.
         sampling: ``"bilinear"`` (2×2 taps, the paper's choice) or ``"nearest"`` (one tap).
@@ -216,8 +217,9 @@ def backward_reproject(
         :class:`ReprojectionResult` ``(values (B, C, H, W), valid, reason, confidence (B, 1, H, W))``.
 
     On the torch backend, hard tests without autograd or tracing take a faster path with identical outputs
-    (:mod:`stereorepro.reproject._fast`); gradients, tracing, ONNX export, soft tests and motion vectors take the
-    general one (:mod:`stereorepro.reproject._general`).
+    (:mod:`stereorepro.reproject._fast`), motion vectors or not; gradients, tracing, soft tests and infinite
+    thresholds take the general one (:mod:`stereorepro.reproject._general`), and ONNX export with hard tests writes
+    the export formulation (:mod:`stereorepro.reproject._lean`).
 
     The flat form ``backward_reproject(src_values, src_depth, src_normal, src_K, src_cam_from_world, dst_depth,
     dst_normal, dst_K, dst_cam_from_world, position_threshold, normal_threshold, ...)`` still works for one
@@ -491,7 +493,7 @@ def temporal_reproject(
             motion to the previous frame (``prev_pixel = pixel + motion``, e.g. a renderer's motion vectors) and
             ``motion_world`` the surface's world motion (``P_prev = P + motion_world``): the history is read
             there, so objects that move independently of the camera keep their history (see
-            :func:`backward_reproject`; torch's general path).
+            :func:`backward_reproject`; every backend).
         history: :class:`History` ``(color (B, 3, Hp, Wp), length (B, 1, Hp, Wp))`` of the previous frame (the
             previous call's :attr:`TemporalResult.history`; first frame: :meth:`History.empty`).
         prev_view: the previous frame's :class:`View` (Hp, Wp).
