@@ -1,9 +1,10 @@
 # Entry points on a fresh machine:
 #   make demo          what the demo needs (.[experiment]: the tracer, EXR, figures, SSIM/FLIP), then `stereorepro demo`
-#   make test          the test suite (every extra), then the install checks in fresh environments (.ci/test-install):
-#                      what CI runs (.ci/run)
-#   make               everything a contributor needs (.[dev]: every extra, pytest, ruff) in .venv
-#   make test-suite    the test suite alone; make test-install: the install checks alone
+#   make test          the test suite (every extra), the docs site (warnings as errors), then the install checks in
+#                      fresh environments (.ci/test-install): what CI runs (.ci/run)
+#   make               everything a contributor needs (.[dev]: every extra, pytest, mkdocs, ruff) in .venv
+#   make test-suite    the test suite alone; make docs: the docs site alone (build/site); make test-install: the
+#                      install checks alone
 # Each creates .venv, installs torch $(TORCH_VERSION) first (pinned; pip finds the build its configuration points to:
 # here the CPU wheel of its --find-links folder) and builds the native extension (editable install).
 PYTHON ?= python3
@@ -21,7 +22,7 @@ PYTEST_ARGS ?=
 SOURCES := pyproject.toml cpp_ext/CMakeLists.txt $(wildcard cpp_ext/src/*.cpp cpp_ext/src/*.h)
 
 .DEFAULT_GOAL := venv
-.PHONY: venv demo test test-suite test-install test-all bench clean
+.PHONY: venv demo test test-suite test-install test-all docs bench clean
 
 $(BASE_STAMP):
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -51,7 +52,7 @@ $(BLENDER_STAMP): | $(STAMP)
 demo: $(DEMO_STAMP)
 	$(PY) -m stereorepro demo
 
-test: test-suite test-install
+test: test-suite docs test-install
 
 test-suite: $(STAMP) $(BLENDER_STAMP)
 	$(PY) -m pytest -q -m "not slow" $(PYTEST_ARGS)
@@ -59,6 +60,9 @@ test-suite: $(STAMP) $(BLENDER_STAMP)
 # fresh throwaway environments: `pip install .` without a compiler (core only), `pip install '.[experiment]'` + demo
 test-install:
 	PYTHON=$(PYTHON) TORCH_VERSION=$(TORCH_VERSION) .ci/test-install
+
+docs: $(STAMP)
+	$(VENV)/bin/mkdocs build --strict
 
 test-all: $(STAMP) $(BLENDER_STAMP)
 	$(PY) -m pytest -q $(PYTEST_ARGS)
