@@ -13,11 +13,17 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .errors import CameraError, ShapeError
+from .errors import CameraError, ParameterError, ParameterTypeError, ShapeError
 
-__all__ = ["check_shape", "check_floating", "check_device", "check_camera", "check_same_hw", "check_sampling",
-           "check_reprojection_inputs", "check_camera_values", "check_motion", "check_scalar", "check_thresholds", "check_blend", "intrinsics_problem", "rigid_problem",
-           "tracing", "ShapeError", "CameraError", "SAMPLINGS", "STEREO_NAMES", "TEMPORAL_NAMES"]
+__all__ = ["check_shape", "check_floating", "check_device", "check_camera", "check_named_camera", "check_same_hw",
+           "check_sampling", "check_reprojection_inputs", "check_camera_values", "check_motion", "check_scalar",
+           "check_thresholds", "check_blend", "check_blend_inputs", "intrinsics_problem", "rigid_problem", "tracing",
+           "ShapeError", "CameraError", "ParameterError", "ParameterTypeError", "SAMPLINGS", "STEREO_NAMES",
+           "TEMPORAL_NAMES", "FLOAT32_MAX"]
+
+#: The largest finite float32: finite scalar parameters beyond it are refused (the ops compute in float32 unless an
+#: input is float64, the native kernels always; ``inf`` is the way to say "no limit").
+FLOAT32_MAX = float(torch.finfo(torch.float32).max)
 
 #: Tap sampling of the reprojection: 2×2 bilinear taps (the paper's) or the one nearest tap.
 SAMPLINGS = ("bilinear", "nearest")
@@ -45,9 +51,9 @@ def _skip(is_tracing: bool | None) -> bool:
 
 
 def check_sampling(sampling: str) -> str:
-    """``sampling`` if it is one of :data:`SAMPLINGS`, else ValueError naming the choices."""
+    """``sampling`` if it is one of :data:`SAMPLINGS`, else ParameterError naming the choices."""
     if sampling not in SAMPLINGS:
-        raise ValueError(f"sampling must be one of {SAMPLINGS}, got {sampling!r}")
+        raise ParameterError(f"sampling must be one of {SAMPLINGS}, got {sampling!r}")
     return sampling
 
 
@@ -61,7 +67,8 @@ def check_shape(x, shape: Sequence[str], name: str, bind: dict | None = None, tr
     if _skip(tracing):
         return bind
     if not isinstance(x, Tensor):
-        raise TypeError(f"{name}: expected a torch.Tensor of shape ({', '.join(shape)}), got {type(x).__name__}")
+        raise ParameterTypeError(f"{name}: expected a torch.Tensor of shape ({', '.join(shape)}), "
+                                 f"got {type(x).__name__}")
     if x.dim() != len(shape):
         raise ShapeError(f"{name}: expected {len(shape)}-D tensor of shape ({', '.join(shape)}), "
                          f"got {x.dim()}-D with shape {tuple(x.shape)}")
@@ -82,7 +89,7 @@ def check_floating(x: Tensor, name: str, tracing: bool | None = None) -> None:
     if _skip(tracing):
         return
     if not x.is_floating_point():
-        raise TypeError(f"{name}: expected a floating-point tensor, got dtype {x.dtype}")
+        raise ParameterTypeError(f"{name}: expected a floating-point tensor, got dtype {x.dtype}")
 
 
 def check_device(tensors: dict, name: str, tracing: bool | None = None) -> None:
@@ -161,10 +168,29 @@ def check_camera(K: Tensor, cam_from_world: Tensor, name: str, bind: dict | None
     return bind
 
 
+def check_named_camera(K: Tensor, cam_from_world: Tensor, op: str, prefix: str = "", bind: dict | None = None,
+                       tracing: bool | None = None) -> dict:
+    """:func:`check_camera` for a function whose arguments are called ``{prefix}K`` and ``{prefix}cam_from_world``
+    (e.g. ``prev_``): every error reads ``op: prev_K[0]: ...`` / ``op: prev_cam_from_world: expected shape ...``."""
+    if _skip(tracing):
+        return {} if bind is None else bind
+    bind = check_shape(K, ["B", "3", "3"], f"{op}: {prefix}K", bind, False)
+    bind = check_shape(cam_from_world, ["B", "4", "4"], f"{op}: {prefix}cam_from_world", bind, False)
+    check_floating(K, f"{op}: {prefix}K", False)
+    check_floating(cam_from_world, f"{op}: {prefix}cam_from_world", False)
+    try:
+        check_camera_values(K, cam_from_world, prefix.rstrip("_"), False)
+    except CameraError as e:
+        raise CameraError(f"{op}: {e}") from None
+    return bind
+
+
 def check_scalar(value, name: str, lo: float = -math.inf, hi: float = math.inf, lo_open: bool = False,
                  allow_inf: bool = False, tracing: bool | None = None) -> None:
-    """ValueError unless ``value`` (a number or a one-element tensor) is a number in [lo, hi] ((lo, hi] with
-    ``lo_open``); NaN is never accepted, ±inf only with ``allow_inf``. Tensor values are read (a GPU syncs)."""
+    """ParameterError unless ``value`` (a number or a one-element tensor) is a number in [lo, hi] ((lo, hi] with
+    ``lo_open``); NaN is never accepted, ±inf only with ``allow_inf``, finite values only within float32's range
+    (:data:`FLOAT32_MAX`: the value becomes a float32 scalar in the ops). ParameterTypeError for what is not a
+    real number. Tensor values are read (a GPU syncs)."""
     if _skip(tracing):
         return
     if isinstance(value, Tensor):
@@ -172,17 +198,20 @@ def check_scalar(value, name: str, lo: float = -math.inf, hi: float = math.inf, 
             raise ShapeError(f"{name}: expected a number or a one-element tensor, got shape {tuple(value.shape)}")
         if not (value.is_floating_point() or value.dtype in (torch.int32, torch.int64, torch.int16, torch.int8,
                                                              torch.uint8)):
-            raise TypeError(f"{name}: expected a real number, got a tensor of dtype {value.dtype}")
+            raise ParameterTypeError(f"{name}: expected a real number, got a tensor of dtype {value.dtype}")
         v = float(value.detach().reshape(()))
     elif isinstance(value, (int, float)) and not isinstance(value, bool):
         v = float(value)
     else:
-        raise TypeError(f"{name}: expected a number or a one-element tensor, got {type(value).__name__}")
+        raise ParameterTypeError(f"{name}: expected a number or a one-element tensor, got {type(value).__name__}")
     ok = (v > lo if lo_open else v >= lo) and v <= hi and not math.isnan(v) and (allow_inf or math.isfinite(v))
     if not ok:
         kind = "a number" if allow_inf else "a finite number"
         span = "" if (lo, hi) == (-math.inf, math.inf) else f" in {'(' if lo_open else '['}{lo:g}, {hi:g}]"
-        raise ValueError(f"{name}: expected {kind}{span}, got {v!r}")
+        raise ParameterError(f"{name}: expected {kind}{span}, got {v!r}")
+    if math.isfinite(v) and abs(v) > FLOAT32_MAX:
+        raise ParameterError(f"{name}: {v!r} is beyond float32's range (|x| <= {FLOAT32_MAX:.7g})"
+                             + ("; pass inf for no limit" if allow_inf else ""))
 
 
 def check_motion(motion, motion_world, dst_depth: Tensor, name: str = "motion", name_world: str = "motion_world",
@@ -193,7 +222,7 @@ def check_motion(motion, motion_world, dst_depth: Tensor, name: str = "motion", 
         return
     if motion is None:
         if motion_world is not None:
-            raise ValueError(f"{name_world} needs {name} (the screen-space motion) as well")
+            raise ParameterError(f"{name_world} needs {name} (the screen-space motion) as well")
         return
     B, _, H, W = dst_depth.shape
     check_shape(motion, ["B", "2", "H", "W"], name, {"B": B, "H": H, "W": W}, False)
@@ -206,7 +235,8 @@ def check_motion(motion, motion_world, dst_depth: Tensor, name: str = "motion", 
 
 
 def check_thresholds(position_threshold, normal_threshold, tracing: bool | None = None) -> None:
-    """The accept thresholds: each a number or one-element tensor, >= 0 (+inf accepts everything)."""
+    """The accept thresholds: each a number or one-element tensor, >= 0 (+inf accepts everything; a finite value
+    beyond float32's range is refused, see :func:`check_scalar`)."""
     if _skip(tracing):
         return
     check_scalar(position_threshold, "position_threshold", 0.0, allow_inf=True, tracing=False)
@@ -215,11 +245,31 @@ def check_thresholds(position_threshold, normal_threshold, tracing: bool | None 
 
 def check_blend(alpha, max_history, tracing: bool | None = None) -> None:
     """The temporal blend's scalars: ``alpha`` a finite number (clamped to [0, 1] where used), ``max_history`` a
-    number >= 1 (``inf``: no cap)."""
+    number >= 1 (``inf``: no cap); finite values within float32's range (:func:`check_scalar`)."""
     if _skip(tracing):
         return
     check_scalar(alpha, "alpha", tracing=False)
     check_scalar(max_history, "max_history", 1.0, allow_inf=True, tracing=False)
+
+
+def check_blend_inputs(current_color: Tensor, history_color: Tensor, history_len: Tensor, confidence: Tensor,
+                       op: str = "temporal_blend", tracing: bool | None = None) -> None:
+    """The tensors of a temporal blend: ``current_color`` and ``history_color`` (B, C, H, W) floating,
+    ``history_len`` (B, 1, H, W) floating, ``confidence`` (B, 1, H, W) bool or floating, all on one device;
+    errors name ``op`` and the argument."""
+    if _skip(tracing):
+        return
+    bind = check_shape(current_color, ["B", "C", "H", "W"], f"{op}: current_color", None, False)
+    check_shape(history_color, ["B", "C", "H", "W"], f"{op}: history_color", bind, False)
+    check_shape(history_len, ["B", "1", "H", "W"], f"{op}: history_len", bind, False)
+    check_shape(confidence, ["B", "1", "H", "W"], f"{op}: confidence", bind, False)
+    for name, t in (("current_color", current_color), ("history_color", history_color), ("history_len", history_len)):
+        check_floating(t, f"{op}: {name}", False)
+    if not (confidence.dtype == torch.bool or confidence.is_floating_point()):
+        raise ParameterTypeError(f"{op}: confidence: expected a bool mask or floating weights, got dtype "
+                                 f"{confidence.dtype}")
+    check_device({"current_color": current_color, "history_color": history_color, "history_len": history_len,
+                  "confidence": confidence}, op, False)
 
 
 def check_same_hw(a: Tensor, b: Tensor, name_a: str, name_b: str, tracing: bool | None = None) -> None:

@@ -62,6 +62,7 @@ from ._checks import (STEREO_NAMES, TEMPORAL_NAMES, check_camera, check_floating
                       check_reprojection_inputs, check_scalar, check_shape, tracing)
 from ._tensors import as_scalar, compute_dtype
 from .camera import Eye
+from .errors import ParameterError, ParameterTypeError
 from .reproject import History, Reason, StereoReprojection, TemporalReprojection, Thresholds, View, temporal_reproject
 from .reproject.functional import temporal_blend, temporal_views, warp_values
 
@@ -244,7 +245,7 @@ def blend_histories(traced_color: Tensor, stereo_color: Tensor, stereo_len: Tens
             check_floating(t, name)
         for name, t in (("stereo_valid", stereo_valid), ("history_valid", history_valid)):
             if t.dtype != torch.bool:
-                raise TypeError(f"{name}: expected a bool mask, got dtype {t.dtype}")
+                raise ParameterTypeError(f"{name}: expected a bool mask, got dtype {t.dtype}")
         check_scalar(alpha, "alpha")
         check_scalar(max_history, "max_history", 1.0, allow_inf=True)
         check_scalar(stereo_weight, "stereo_weight", 0.0)
@@ -322,10 +323,11 @@ class SpatiotemporalReprojection:
                  stereo: bool = True, temporal: bool = True, backend: str = "auto", left_mode: str = "fill",
                  stereo_weight: float = STEREO_WEIGHT, alternate: bool = False):
         if left_mode not in LEFT_MODES:
-            raise ValueError(f"left_mode must be one of {LEFT_MODES}, got {left_mode!r}")
+            raise ParameterError(f"left_mode must be one of {LEFT_MODES}, got {left_mode!r}")
         check_scalar(stereo_weight, "stereo_weight", 0.0)
         if alternate and not stereo:
-            raise ValueError("alternate=True reprojects the fully traced eye into the other: it needs stereo=True")
+            raise ParameterError("alternate=True reprojects the fully traced eye into the other: it needs "
+                                 "stereo=True")
         self.stereo_module = StereoReprojection(position_threshold, normal_threshold, sampling, backend=backend)
         self.temporal_module = TemporalReprojection(position_threshold, normal_threshold, alpha, warmup,
                                                     max_history, sampling, backend=backend)
@@ -402,6 +404,7 @@ class SpatiotemporalReprojection:
         check_shape(normal, ["B", "3", "H", "W"], "normal", bind)
         eye = self.fully_traced_eye()
         check_camera(K, cam_from_world, eye, {"B": bind.get("B")} if "B" in bind else None)
+        check_motion(motion, motion_world, depth)  # on every frame: the first one does not read it
         out, n, valid, reason = self._accumulate(getattr(self, f"{eye}_state"), color, depth, normal, K,
                                                  cam_from_world, motion, motion_world)
         self.full_valid, self.full_reason = valid, reason
@@ -449,6 +452,9 @@ class SpatiotemporalReprojection:
             raise RuntimeError(f"the trace mask of the reprojected eye (left_trace_mask() / other_trace_mask()) "
                                f"needs the fully traced eye ({'right()' if src_eye == 'right' else 'full()'}) "
                                "to be called first for this frame")
+        if not tracing():
+            check_shape(depth, ["B", "1", "H", "W"], "depth")
+            check_motion(motion, motion_world, depth)  # before other() reads it (it does not on the first frame)
         self._left_gbuffer = (depth, normal, K, cam_from_world, motion, motion_world)
         if not self.stereo:
             self.stereo_valid = torch.zeros_like(depth, dtype=torch.bool)

@@ -48,7 +48,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ._checks import check_camera, check_scalar, check_shape, tracing
+from ._checks import check_camera, check_floating, check_named_camera, check_scalar, check_shape, tracing
 
 __all__ = [
     "DEFAULT_BASELINE",
@@ -378,8 +378,18 @@ def camera_motion(depth: Tensor, K: Tensor, cam_from_world: Tensor, prev_K: Tens
     Returns:
         motion: (B, 2, H, W) in the dtype of ``depth``; NaN where there is no surface or where the point is not in
         front of the previous camera.
+
+    Raises:
+        ShapeError: shapes or batch sizes that do not fit, naming the argument.
+        ParameterTypeError: a tensor that is not floating point.
+        CameraError: camera values the ops refuse (``K`` must be finite pinhole, ``cam_from_world`` rigid), e.g.
+            ``K * 0`` or a scaled ``cam_from_world``.
     """
-    check_shape(depth, ["B", "1", "H", "W"], "depth")
+    if not tracing():
+        bind = check_shape(depth, ["B", "1", "H", "W"], "camera_motion: depth", None, False)
+        check_floating(depth, "camera_motion: depth", False)
+        check_named_camera(K, cam_from_world, "camera_motion", "", {"B": bind["B"]}, False)
+        check_named_camera(prev_K, prev_cam_from_world, "camera_motion", "prev_", {"B": bind["B"]}, False)
     d = depth.double()
     ok = has_surface(d)
     p_cam = unproject(torch.where(ok, d, torch.ones((), dtype=d.dtype, device=d.device)), K.double())

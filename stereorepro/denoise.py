@@ -56,10 +56,10 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
-from ._checks import check_shape, tracing
+from ._checks import check_floating, check_scalar, check_shape, tracing
 from ._tensors import finite_or_zero
 from .camera import has_surface
-from .errors import ShapeError
+from .errors import ParameterError, ParameterTypeError, ShapeError
 from .reproject import (Blend, History, StereoReprojection, TemporalReprojection, Thresholds, View, stereo_reproject,
                         temporal_reproject)
 from .reproject.functional import as_thresholds, stereo_views, temporal_views
@@ -110,9 +110,9 @@ def denoise_features(color: Tensor, history_len: Tensor, valid: Tensor, depth: T
     check_shape(depth, ["B", "1", "H", "W"], "depth", bind)
     check_shape(normal, ["B", "3", "H", "W"], "normal", bind)
     if (stereo_color is None) != (stereo_valid is None):
-        raise ValueError("stereo_color and stereo_valid go together: pass both or neither")
-    if not tracing() and not float(max_history) >= 1:
-        raise ValueError(f"max_history must be >= 1, got {max_history}")
+        raise ParameterError("stereo_color and stereo_valid go together: pass both or neither")
+    if not tracing():
+        check_scalar(max_history, "max_history", 1.0, allow_inf=True, tracing=False)
     dt = color.dtype
     surface = has_surface(depth)
     inv_depth = torch.where(surface, 1.0 / torch.where(surface, depth, torch.ones((), dtype=depth.dtype,
@@ -199,19 +199,35 @@ def reprojection_features(current_color: Tensor, view: View, history, prev_view:
             kw["other"] = other
         return _features_flat(*args, **kw)
     if legacy_args or legacy_kwargs:
-        raise TypeError("reprojection_features: unexpected arguments with View inputs: "
-                        f"{len(legacy_args)} positional, {sorted(legacy_kwargs)}")
+        raise ParameterTypeError("reprojection_features: unexpected arguments with View inputs: "
+                                 f"{len(legacy_args)} positional, {sorted(legacy_kwargs)}")
     thr = as_thresholds(thresholds)
     color, n, valid, _ = temporal_reproject(current_color, view, history, prev_view, thr, blend=blend,
                                             sampling=sampling, backend=backend)
     s_color = s_valid = None
     if other is not None:
-        o_color, o_view = other
+        o_color, o_view = _check_other(other, view)
         s_color, s_valid, _, _ = stereo_reproject(o_color, o_view, view, Thresholds(thr.position, thr.normal),
                                                   sampling=sampling, backend=backend)
     max_history = Blend(*blend).max_history
     return DenoiserFeatures(denoise_features(color, n, valid, view.depth, view.normal, max_history, s_color,
                                              s_valid), color, n)
+
+
+def _check_other(other, view: View) -> tuple[Tensor, View]:
+    """``other`` as ``(other_color, other_view)``, checked against this eye's ``view``: errors name
+    ``other_color`` / ``other_view`` (the stereo op would call them its ``color`` and ``src``)."""
+    if not (isinstance(other, (tuple, list)) and len(other) == 2 and isinstance(other[1], View)):
+        raise ParameterTypeError(f"other: expected (other_color, other_view: View), got {type(other).__name__}")
+    o_color, o_view = other
+    if not tracing():
+        check_shape(o_color, ["B", "3", "H", "W"], "other_color (the other eye's colour)",
+                    {"B": o_view.batch_size, "H": o_view.height, "W": o_view.width}, False)
+        check_floating(o_color, "other_color", False)
+        if o_view.batch_size != view.batch_size:
+            raise ShapeError(f"other_view: batch size {o_view.batch_size}, this eye's view has "
+                             f"{view.batch_size}")
+    return o_color, o_view
 
 
 #: Flat names of the other eye's inputs, for the checks of the flat forms.
@@ -226,7 +242,7 @@ def _flat_views(current_color: Tensor, current: tuple, history: tuple, previous:
     if other is None:
         return view, history, prev_view, None
     if len(other) != len(OTHER_NAMES):
-        raise ValueError(f"other: expected ({', '.join(OTHER_NAMES)}), got {len(other)} tensors")
+        raise ParameterError(f"other: expected ({', '.join(OTHER_NAMES)}), got {len(other)} tensors")
     depth = current[0]
     check_shape(other[0], ["B", "3", "H", "W"], "other_color",
                 {"B": depth.shape[0], "H": depth.shape[-2], "W": depth.shape[-1]})
@@ -293,11 +309,11 @@ def reproject_denoise(current_color: Tensor, view: View, history, prev_view: Vie
             kw["other"] = other
         return tuple(_denoise_flat(*args, **kw))
     if legacy_args or legacy_kwargs:
-        raise TypeError("reproject_denoise: unexpected arguments with View inputs: "
-                        f"{len(legacy_args)} positional, {sorted(legacy_kwargs)}")
+        raise ParameterTypeError("reproject_denoise: unexpected arguments with View inputs: "
+                                 f"{len(legacy_args)} positional, {sorted(legacy_kwargs)}")
     if not callable(denoiser):
-        raise TypeError(f"denoiser: expected a module mapping (B, C_in, H, W) to (B, 3, H, W), "
-                        f"got {type(denoiser).__name__}")
+        raise ParameterTypeError(f"denoiser: expected a module mapping (B, C_in, H, W) to (B, 3, H, W), "
+                                 f"got {type(denoiser).__name__}")
     x, color, n = reprojection_features(current_color, view, history, prev_view, thresholds, blend=blend,
                                         sampling=sampling, backend=backend, other=other)
     return DenoiseResult(_run_denoiser(denoiser, x, current_color, other is not None), color, n)
@@ -315,8 +331,8 @@ def _run_denoiser(denoiser, x: Tensor, current_color: Tensor, stereo: bool) -> T
         raise ShapeError(f"denoiser: failed on the features, shape {tuple(x.shape)} (C_in = {x.shape[1]}: "
                          f"{', '.join(FEATURES + (STEREO_FEATURES if stereo else ()))}): {e}") from e
     if not isinstance(denoised, Tensor):
-        raise TypeError(f"denoiser: expected it to return a tensor of shape (B, 3, H, W), "
-                        f"got {type(denoised).__name__}")
+        raise ParameterTypeError(f"denoiser: expected it to return a tensor of shape (B, 3, H, W), "
+                                 f"got {type(denoised).__name__}")
     B, _, H, W = current_color.shape
     if tuple(denoised.shape) != (B, 3, H, W):
         raise ShapeError(f"denoiser: expected an output of shape (B, 3, H, W) = {(B, 3, H, W)} for input "
@@ -383,8 +399,8 @@ class ReprojectionDenoiser(nn.Module):
                  backend: str = "auto", stereo: bool = False):
         super().__init__()
         if not isinstance(denoiser, nn.Module):
-            raise TypeError(f"denoiser: expected an nn.Module mapping (B, C_in, H, W) to (B, 3, H, W), "
-                            f"got {type(denoiser).__name__}")
+            raise ParameterTypeError(f"denoiser: expected an nn.Module mapping (B, C_in, H, W) to "
+                                     f"(B, 3, H, W), got {type(denoiser).__name__}")
         # the settings (validated there): hard tests, no learnable thresholds
         self.temporal = TemporalReprojection(position_threshold, normal_threshold, alpha, warmup, max_history,
                                              sampling, backend=backend)
@@ -406,10 +422,10 @@ class ReprojectionDenoiser(nn.Module):
         given = [n for n, o in zip(OTHER_NAMES, others) if o is not None]
         if self.stereo and len(given) != len(OTHER_NAMES):
             missing = [n for n in OTHER_NAMES if n not in given]
-            raise TypeError(f"ReprojectionDenoiser(stereo=True).{method} needs {', '.join(missing)}")
+            raise ParameterTypeError(f"ReprojectionDenoiser(stereo=True).{method} needs {', '.join(missing)}")
         if not self.stereo and given:
-            raise TypeError(f"ReprojectionDenoiser(stereo=False).{method} got {', '.join(given)}: construct it "
-                            f"with stereo=True for stereo features")
+            raise ParameterTypeError(f"ReprojectionDenoiser(stereo=False).{method} got {', '.join(given)}: "
+                                     "construct it with stereo=True for stereo features")
         return others if self.stereo else None
 
     def _views(self, current_color: Tensor, current: tuple, history: tuple, previous: tuple, others: tuple,

@@ -11,6 +11,8 @@ from stereorepro import (PinholeCamera, SpatiotemporalReprojection, stereo_repro
                          temporal_reproject)
 from stereorepro.accumulate import EyeState, blend_histories, temporal_step, warp_history
 from stereorepro._testing import camera_pair, default_scene, raycast
+from stereorepro.camera import Eye
+from stereorepro.errors import ParameterError, ShapeError
 
 H, W = 36, 48
 THR = (0.2, 0.3)  # ~1.5 pixel footprints at these sizes
@@ -126,6 +128,33 @@ class TestSpatiotemporalReprojection(BaseTester):
             st.left(torch.cat([lf["color"], lf["color"]]))  # batch of 2 against a batch of 1
         with pytest.raises(ValueError, match="depth"):
             st.right(r["color"], r["depth"][..., :-1], r["normal"], r["K"], r["cam_from_world"])
+
+    @pytest.mark.parametrize("case", ["shape", "dtype", "world_alone"])
+    def test_motion_checked_on_the_first_frame(self, case):
+        """right() and left_trace_mask() check their motion on the first frame too (the frame that reads no
+        history, and so never reached the temporal op's checks)."""
+        f = frame(0)
+        r, lf = f["right"], f["left"]
+        motion, world, err, match = {
+            "shape": (torch.zeros(1, 2, H - 1, W), None, ShapeError, "motion: expected shape"),
+            "dtype": (torch.zeros(1, 2, H, W, dtype=torch.int32), None, TypeError, "motion: expected a floating"),
+            "world_alone": (None, torch.zeros(1, 3, H, W), ParameterError, "motion_world needs motion"),
+        }[case]
+        st = SpatiotemporalReprojection(*THR)
+        with pytest.raises(err, match=match):
+            st.right(r["color"], r["depth"], r["normal"], r["K"], r["cam_from_world"], motion, world)
+        st.right(r["color"], r["depth"], r["normal"], r["K"], r["cam_from_world"])
+        with pytest.raises(err, match=match):
+            st.left_trace_mask(lf["depth"], lf["normal"], lf["K"], lf["cam_from_world"], motion, world)
+        alt = SpatiotemporalReprojection(*THR, alternate=True)
+        with pytest.raises(err, match=match):
+            alt.full(r["color"], r["depth"], r["normal"], r["K"], r["cam_from_world"], motion, world)
+
+    def test_fully_traced_eye_is_an_eye(self):
+        st = SpatiotemporalReprojection(*THR, alternate=True)
+        assert st.fully_traced_eye() is Eye.RIGHT and st.fully_traced_eye() == "right"
+        run_eyes(st, [frame(0)])
+        assert st.fully_traced_eye() is Eye.LEFT and st.fully_traced_eye().other is Eye.RIGHT
 
     def test_reset(self):
         st = SpatiotemporalReprojection(*THR)

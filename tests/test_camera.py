@@ -236,3 +236,47 @@ class TestJitter:
             jitter_offset(0, 0)
         with pytest.raises(TypeError, match="jitter_offset: length"):
             jitter_offset(0, 16.0)
+
+
+class TestCameraMotion:
+    """stereorepro.camera.camera_motion: the motion of static geometry from two cameras, and its checks."""
+
+    @staticmethod
+    def _inputs(batch=1):
+        depth = torch.full((batch, 1, 6, 8), 2.0)
+        K = intrinsics_from_fov(60.0, 8, 6).repeat(batch, 1, 1)
+        T = torch.eye(4)[None].repeat(batch, 1, 1)
+        return depth, K, T
+
+    def test_smoke(self):
+        from stereorepro import camera_motion
+
+        depth, K, T = self._inputs()
+        prev = T.clone()
+        prev[:, 0, 3] = 0.1  # the previous camera 0.1 to the left: the points were further right in its image
+        mv = camera_motion(depth, K, T, K, prev)
+        assert mv.shape == (1, 2, 6, 8) and bool((mv[:, 0] > 0).all()) and float(mv[:, 1].abs().max()) < 1e-6
+
+    def test_exceptions(self):
+        """Singular intrinsics, a scaled extrinsic and a batch mismatch raise naming the argument (K*0 returned
+        all-NaN motion, the scaled camera a wrong one, the batch mismatch torch's broadcasting error)."""
+        from stereorepro import CameraError, ShapeError, camera_motion
+
+        depth, K, T = self._inputs()
+        with pytest.raises(CameraError, match=r"camera_motion: K\[0\]: focal lengths must be > 0"):
+            camera_motion(depth, K * 0, T, K, T)
+        with pytest.raises(CameraError, match=r"camera_motion: prev_K\[0\]"):
+            camera_motion(depth, K, T, K * 0, T)
+        scaled = T.clone()
+        scaled[:, :3, :3] *= 2.0
+        with pytest.raises(CameraError, match=r"camera_motion: cam_from_world\[0\]: .*scaled"):
+            camera_motion(depth, K, scaled, K, T)
+        with pytest.raises(CameraError, match=r"camera_motion: prev_cam_from_world\[0\]"):
+            camera_motion(depth, K, T, K, scaled)
+        _, K2, T2 = self._inputs(2)
+        with pytest.raises(ShapeError, match=r"camera_motion: K: expected shape \(B, 3, 3\) with B=1"):
+            camera_motion(depth, K2, T, K, T)
+        with pytest.raises(ShapeError, match="camera_motion: prev_cam_from_world"):
+            camera_motion(depth, K, T, K, T2)
+        with pytest.raises(TypeError, match="camera_motion: depth: expected a floating"):
+            camera_motion(depth.int(), K, T, K, T)

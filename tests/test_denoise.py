@@ -17,6 +17,8 @@ from stereorepro import (CameraError, ReprojectionDenoiser, ShapeError, Temporal
                          empty_history, export_onnx, reproject_denoise, reprojection_features, stereo_reproject,
                          temporal_step)
 from stereorepro.denoise import FEATURES, OTHER_NAMES, STEREO_FEATURES, denoiser_example_inputs, feature_channels
+from stereorepro.errors import StereoreproError
+from stereorepro.reproject import History, View
 from stereorepro.io.onnx import onnx_input_dims
 from stereorepro._testing import camera_pair, default_scene, raycast
 
@@ -211,6 +213,39 @@ class TestReprojectionDenoiser(BaseTester):
             denoise_features(sx[0], d, d > 0, d, sx[2], 0.5)
         with pytest.raises(ShapeError, match="depth"):
             empty_history(d[:, 0], sx[2], sx[3], sx[4])
+
+    @pytest.mark.parametrize("index", range(11, 16))
+    @pytest.mark.parametrize("bad", ["size", "batch", "dtype"])
+    def test_stereo_errors_name_the_other_eye(self, index, bad):
+        """A wrongly shaped, batched or typed other-eye input is named as the user passed it (other_depth, other K,
+        ...), never as the stereo op's internal source (src_depth, src_K), in the flat forward and in the View form
+        (other=(other_color, other_view)), where the stereo op would call the colour ``color``."""
+        stereo = make(True)
+        sx = list(inputs(stereo))
+        t = sx[index]
+        sx[index] = {"size": (t[..., :-1] if t.dim() == 4 else t[:, :2]), "batch": torch.cat([t, t]),
+                     "dtype": t.int()}[bad]
+        name = stereo.input_names[index]
+        with pytest.raises((ShapeError, TypeError)) as info:
+            stereo(*sx)
+        msg = str(info.value)
+        assert isinstance(info.value, StereoreproError) and "src" not in msg, msg
+        assert msg.startswith((name, name.replace("other_", "other "))), msg
+
+    def test_stereo_errors_name_the_other_eye_views(self):
+        """The View form (other=(other_color, other_view)): the colour and the view's batch are named as the user
+        passed them, not as the stereo op's ``color`` / ``src``."""
+        sx = inputs(make(True))
+        view, history, prev = View(*sx[1:5]), History(sx[5], sx[6]), View(*sx[7:11])
+        o_view = View(*sx[12:16])
+        two = View(*(torch.cat([t, t]) for t in sx[12:16]))
+        for other, match in (((sx[11][..., :-1], o_view), r"other_color \(the other eye's colour\): .* W=32"),
+                             ((sx[11][:, :2], o_view), r"other_color \(the other eye's colour\)"),
+                             ((sx[11].int(), o_view), "other_color: expected a floating"),
+                             ((torch.cat([sx[11], sx[11]]), two), "other_view: batch size 2"),
+                             ((sx[11], sx[12]), r"other: expected \(other_color, other_view: View\)")):
+            with pytest.raises(StereoreproError, match=match):
+                reprojection_features(sx[0], view, history, prev, THR, other=other)
 
     # ------------------------------------------------------------------------------------------------ ONNX
     @pytest.mark.onnx

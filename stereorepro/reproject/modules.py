@@ -8,7 +8,8 @@ import torch
 from torch import Tensor, nn
 
 from .. import _backend
-from .._checks import check_sampling, check_thresholds
+from .._checks import check_blend, check_sampling, check_scalar, check_thresholds
+from ..errors import ParameterTypeError
 from . import _flat
 from .functional import BACKENDS, stereo_reproject, temporal_reproject
 from .view import Blend, Field, History, Thresholds, view_fields
@@ -32,8 +33,8 @@ class _ReprojectionBase(nn.Module):
         self.backend = _backend.check(backend, BACKENDS)
         check_sampling(sampling)
         check_thresholds(position_threshold, normal_threshold, tracing=False)
-        if soft and not temperature > 0:
-            raise ValueError(f"temperature must be > 0, got {temperature}")
+        if soft:
+            check_scalar(temperature, "temperature", 0.0, lo_open=True, tracing=False)
         self.sampling = sampling
         self.soft = bool(soft)
         self.temperature = float(temperature)
@@ -135,10 +136,8 @@ class TemporalReprojection(_ReprojectionBase):
         if self.motion_vectors:
             self.input_fields = type(self).input_fields + view_fields(motion=True)[-2:]
             self.input_names = [f.name for f in self.input_fields]
-        if not (0.0 < float(alpha) <= 1.0):
-            raise ValueError(f"alpha must be in (0, 1], got {alpha}")
-        if not max_history >= 1:
-            raise ValueError(f"max_history must be >= 1, got {max_history}")
+        check_scalar(alpha, "alpha", 0.0, 1.0, lo_open=True, tracing=False)
+        check_blend(alpha, max_history, tracing=False)
         self.warmup = bool(warmup)
         self.max_history = float(max_history)
         if soft:
@@ -155,7 +154,8 @@ class TemporalReprojection(_ReprojectionBase):
                 prev_K: Tensor, prev_cam_from_world: Tensor, motion: Tensor | None = None,
                 motion_world: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
         if self.motion_vectors and motion is None and not torch.jit.is_tracing():
-            raise TypeError("TemporalReprojection(motion_vectors=True).forward needs `motion` (and motion_world)")
+            raise ParameterTypeError("TemporalReprojection(motion_vectors=True).forward needs `motion` (and "
+                                     "motion_world)")
         history = History(history_color, history_len)
         view, prev_view = _flat.temporal_views(current_color, (depth, normal, K, cam_from_world), history,
                                                (prev_depth, prev_normal, prev_K, prev_cam_from_world),
