@@ -99,6 +99,8 @@ def run_onnxruntime(seq_dir, model_dir, out_npz) -> dict:
 # ------------------------------------------------------------------------------------ torch side
 def run_torch(seq_dir, pos: float, nrm: float, alpha: float) -> tuple[dict, list]:
     """The same per-frame computation with the torch modules (float32 cameras, as fed to onnxruntime)."""
+    from dataclasses import replace
+
     import numpy as np
     import torch
 
@@ -112,19 +114,18 @@ def run_torch(seq_dir, pos: float, nrm: float, alpha: float) -> tuple[dict, list
     with torch.no_grad():
         for i in range(len(seq)):
             t0 = time.perf_counter()
-            R, L = read_frame(seq, i, "right"), read_frame(seq, i, "left")
-            for d in (R, L):
-                d["K"], d["cam_from_world"] = d["K"].float(), d["cam_from_world"].float()
-            h = hist.get("right") or (R["color"], torch.zeros_like(R["depth"]), R)
-            acc_r, n_r, valid_r = temporal(R["color"], R["depth"], R["normal"], R["K"], R["cam_from_world"], h[0],
-                                           h[1], h[2]["depth"], h[2]["normal"], h[2]["K"], h[2]["cam_from_world"])
+            R, L = (replace(f, K=f.K.float(), cam_from_world=f.cam_from_world.float())
+                    for f in (read_frame(seq, i, "right"), read_frame(seq, i, "left")))
+            h = hist.get("right") or (R.color, torch.zeros_like(R.depth), R)
+            acc_r, n_r, valid_r = temporal(R.color, R.depth, R.normal, R.K, R.cam_from_world, h[0],
+                                           h[1], h[2].depth, h[2].normal, h[2].K, h[2].cam_from_world)
             hist["right"] = (acc_r, n_r, R)
-            s_color, s_valid, s_reason = stereo(acc_r, R["depth"], R["normal"], R["K"], R["cam_from_world"],
-                                                L["depth"], L["normal"], L["K"], L["cam_from_world"])
-            traced = torch.where(s_valid, torch.zeros(()), L["color"])
-            h = hist.get("left") or (traced, torch.zeros_like(L["depth"]), L)
-            fill, n_l, _ = temporal(traced, L["depth"], L["normal"], L["K"], L["cam_from_world"], h[0], h[1],
-                                    h[2]["depth"], h[2]["normal"], h[2]["K"], h[2]["cam_from_world"])
+            s_color, s_valid, s_reason = stereo(acc_r, R.depth, R.normal, R.K, R.cam_from_world,
+                                                L.depth, L.normal, L.K, L.cam_from_world)
+            traced = torch.where(s_valid, torch.zeros(()), L.color)
+            h = hist.get("left") or (traced, torch.zeros_like(L.depth), L)
+            fill, n_l, _ = temporal(traced, L.depth, L.normal, L.K, L.cam_from_world, h[0], h[1],
+                                    h[2].depth, h[2].normal, h[2].K, h[2].cam_from_world)
             left = torch.where(s_valid, s_color, fill)
             hist["left"] = (left, n_l, L)
             ms.append((time.perf_counter() - t0) * 1e3)

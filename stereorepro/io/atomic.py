@@ -6,9 +6,10 @@ any failure the temporary file is removed and the destination is untouched. Temp
 0666 minus the umask, as ``open()`` would create the destination itself.
 
 A set of files that belong together (a command's outputs) is written into a staging folder beside them
-(``.staging-PID-XXXXXXXX``) and renamed into place only once every file is complete (:func:`staged_outputs`), the
-marker file last. A process killed mid-write leaves only such temporaries; :func:`sweep` removes those of
-processes that are no longer running (the commands sweep their output folders and the cache on start).
+(``.staging-PID-XXXXXXXX``, one per run) and renamed into place only once every file is complete
+(:func:`staged_outputs`), the marker file last; runs sharing a folder move their sets in one at a time. A process
+killed mid-write leaves only such temporaries; :func:`sweep` removes those of processes that are no longer running
+(the commands sweep their output folders and the cache on start).
 """
 
 from __future__ import annotations
@@ -20,6 +21,11 @@ import secrets
 import shutil
 from pathlib import Path
 from typing import Iterable, Iterator
+
+try:
+    import fcntl
+except ImportError:  # pragma: no cover - not POSIX
+    fcntl = None
 
 __all__ = ["atomic_path", "atomic_write", "staged_outputs", "sweep", "TMP_SUFFIX", "STAGING_PREFIX"]
 
@@ -123,23 +129,62 @@ def sweep(folder: str | os.PathLike) -> list[Path]:
 
 
 @contextlib.contextmanager
-def staged_outputs(out: str | os.PathLike, last: Iterable[str] = ()) -> Iterator[Path]:
-    """Yield a staging folder inside ``out`` to write a set of files into (flat, by their final names); on
-    leaving the block without an exception every file is synced and renamed into ``out`` (the names in ``last``
-    after the others, in that order: a marker such as ``results.json`` appears only once the set is complete);
-    with an exception the staging folder is removed and ``out`` keeps what it had (a folder this call created is
-    removed). The temporaries that dead processes left in ``out`` are swept first (:func:`sweep`)."""
-    out = Path(out)
-    created = not out.exists()
-    out.mkdir(parents=True, exist_ok=True)
-    sweep(out)
+def _publish_lock(out: Path) -> Iterator[None]:
+    """Hold an exclusive lock on the folder ``out`` (``flock`` on its descriptor; released when the descriptor
+    closes, a killed process included), so that runs move their sets into one folder one after the other. Where
+    the filesystem or the platform has no such locks, the block runs unlocked."""
+    if fcntl is None:  # pragma: no cover - not POSIX
+        yield
+        return
+    try:
+        fd = os.open(out, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    except OSError:
+        yield
+        return
+    try:
+        with contextlib.suppress(OSError):  # no locks on this filesystem
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)
+
+
+def _own_staging(out: Path) -> tuple[bool, Path]:
+    """Create ``out`` if needed and a staging folder of this run in it; whether this call created ``out``."""
     while True:
+        try:
+            out.mkdir(parents=True)
+            created = True
+        except FileExistsError:
+            created = False
+        sweep(out)
         staging = out / f"{STAGING_PREFIX}{os.getpid()}-{secrets.token_hex(4)}"
         try:
             staging.mkdir()
-            break
+            return created, staging
         except FileExistsError:  # pragma: no cover - 2^-32 per attempt
             continue
+        except FileNotFoundError:  # another run removed the empty folder it had created, just now: again
+            continue
+
+
+@contextlib.contextmanager
+def staged_outputs(out: str | os.PathLike, last: Iterable[str] = (),
+                   replaces: re.Pattern | None = None) -> Iterator[Path]:
+    """Yield a staging folder of this run inside ``out`` to write a set of files into (flat, by their final
+    names); on leaving the block without an exception every file is synced and renamed into ``out`` (the names
+    in ``last`` after the others, in that order: a marker such as ``results.json`` appears only once the set is
+    complete), then the files of ``out`` whose names match ``replaces`` and are not in the set are removed (a set
+    that replaces an earlier one as a whole). The temporaries that dead processes left in ``out`` are swept first
+    (:func:`sweep`).
+
+    Concurrent runs on one ``out``: each stages in its own folder, and they move their sets in one at a time
+    (a lock on ``out``), so ``out`` ends with the complete set of the run that finished last. A failing run
+    removes only what it created: its staging folder, and ``out`` itself if it created it and nothing else is in
+    it (another run's staging folder or files keep it); ``out`` keeps what it had.
+    """
+    out = Path(out)
+    created, staging = _own_staging(out)
     try:
         yield staging
         last = list(last)
@@ -147,12 +192,20 @@ def staged_outputs(out: str | os.PathLike, last: Iterable[str] = ()) -> Iterator
         names += [n for n in last if (staging / n).exists()]
         for n in names:
             _fsync_path(staging / n)
-        for n in names:
-            os.replace(staging / n, out / n)
-        with contextlib.suppress(OSError):
-            _fsync_path(out, directory=True)
+        with _publish_lock(out):
+            for n in names:
+                os.replace(staging / n, out / n)
+            if replaces is not None:
+                for p in out.iterdir():
+                    if p.name not in names and replaces.match(p.name) and not p.is_dir():
+                        p.unlink()
+            with contextlib.suppress(OSError):
+                _fsync_path(out, directory=True)
     except BaseException:
-        shutil.rmtree(out if created else staging, ignore_errors=True)
+        shutil.rmtree(staging, ignore_errors=True)
+        if created:
+            with contextlib.suppress(OSError):  # only if empty
+                out.rmdir()
         raise
     finally:
         shutil.rmtree(staging, ignore_errors=True)

@@ -38,12 +38,13 @@ from __future__ import annotations
 import importlib.util
 import json
 import math
+import re
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["FLIP", "BLENDER_CHANNELS", "BACKGROUND_DEPTH", "eye_camera", "write_cameras", "frame_from_channels",
-           "file_name"]
+__all__ = ["FLIP", "BLENDER_CHANNELS", "BACKGROUND_DEPTH", "FILE_RE", "eye_camera", "write_cameras",
+           "frame_from_channels", "layer_prefix", "file_name"]
 
 #: Blender's camera axes (y up, z backward) to OpenCV's (y down, z forward).
 FLIP = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -51,6 +52,8 @@ FLIP = np.diag([1.0, -1.0, -1.0, 1.0])
 BLENDER_CHANNELS = ("Combined.R", "Combined.G", "Combined.B", "Depth.Z", "Normal.X", "Normal.Y", "Normal.Z")
 #: Depths at or beyond this are Blender's background (it writes 1e10).
 BACKGROUND_DEPTH = 1e9
+#: Blender's stereo frame file names (:func:`file_name`): frame number and eye letter.
+FILE_RE = re.compile(r"^(\d{4,})_([LR])\.exr$")
 
 
 def _atomic_write(path, text: str) -> None:
@@ -144,14 +147,30 @@ def write_cameras(path, scene=None, frames=None, position_threshold: float | Non
     return Path(path)
 
 
-def _layer_prefix(channels: dict, where: str) -> str:
+def layer_prefix(names, where: str = "") -> str:
+    """The view-layer prefix (``"ViewLayer."``) of a Blender multilayer EXR's channel names, checked: one view
+    layer with a Depth pass and every channel of :data:`BLENDER_CHANNELS`.
+
+    Raises:
+        SequenceError: no view-layer prefix (not a multilayer EXR), none or several view layers, or a missing pass.
+    """
     from ..errors import SequenceError
 
-    prefixes = {k[: -len("Depth.Z")] for k in channels if k.endswith("Depth.Z")}
+    names = set(names)
+    prefixes = sorted({k[: -len("Depth.Z")] for k in names if k.endswith(".Depth.Z")})
+    if not prefixes and any(c in names for c in BLENDER_CHANNELS):
+        raise SequenceError(f"{where}: channels without a view-layer prefix (found: {', '.join(sorted(names))}); "
+                            "Blender's multilayer EXRs name them <view layer>.<pass>.<channel>, e.g. "
+                            "ViewLayer.Combined.R: save as OpenEXR MultiLayer")
     if len(prefixes) != 1:
-        raise SequenceError(f"{where}: expected one view layer with a Depth pass, found {sorted(prefixes) or 'none'} "
+        raise SequenceError(f"{where}: expected one view layer with a Depth pass, found {prefixes or 'none'} "
                             "(enable the Z, Normal (and Vector) passes)")
-    return prefixes.pop()
+    pre = prefixes[0]
+    missing = [pre + c for c in BLENDER_CHANNELS if pre + c not in names]
+    if missing:
+        raise SequenceError(f"{where}: missing Blender pass channel(s) {', '.join(missing)} (enable the Combined, Z "
+                            f"and Normal passes of the view layer; found: {', '.join(sorted(names))})")
+    return pre
 
 
 def frame_from_channels(channels: dict, where: str = "") -> dict:
@@ -160,17 +179,17 @@ def frame_from_channels(channels: dict, where: str = "") -> dict:
     the background), and ``motion`` (1, 2, H, W) when the Vector pass is present.
 
     Raises:
-        SequenceError: no single view layer with the needed passes.
+        SequenceError: no single view layer with the needed passes (:func:`layer_prefix`), or channels of
+        different sizes (naming the channel).
     """
     import torch
 
-    from ..errors import SequenceError
+    from .exr import channel_size
 
-    pre = _layer_prefix(channels, where)
-    missing = [pre + c for c in BLENDER_CHANNELS if pre + c not in channels]
-    if missing:
-        raise SequenceError(f"{where}: missing Blender pass channel(s) {', '.join(missing)} (enable the Combined, Z "
-                            "and Normal passes of the view layer)")
+    pre = layer_prefix(channels, where)
+    vector = [pre + c for c in ("Vector.X", "Vector.Y")]
+    used = [pre + c for c in BLENDER_CHANNELS] + [c for c in vector if c in channels]
+    channel_size(channels, used, where)
 
     def stack(names):
         return torch.from_numpy(np.stack([np.asarray(channels[pre + c], np.float32) for c in names])[None].copy())
@@ -180,7 +199,7 @@ def frame_from_channels(channels: dict, where: str = "") -> dict:
     background = ~(depth < BACKGROUND_DEPTH) | (normal.abs().sum(1, keepdim=True) == 0)
     out = {"color": stack(("Combined.R", "Combined.G", "Combined.B")),
            "depth": torch.where(background, torch.full((), math.inf), depth), "normal": normal}
-    if all(pre + c in channels for c in ("Vector.X", "Vector.Y")):
+    if all(c in channels for c in vector):
         v = stack(("Vector.X", "Vector.Y"))
         motion = torch.cat([v[:, :1], -v[:, 1:2]], 1)  # y up -> our y down
         out["motion"] = torch.where(background, torch.full((), math.nan), motion)

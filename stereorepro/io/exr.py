@@ -15,15 +15,19 @@ import io
 import os
 import sys
 import tempfile
+import threading
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
 
 from .._extras import require
+from ..errors import SequenceError, ShapeError
 from .atomic import atomic_write
 
-__all__ = ["write_exr", "read_exr", "exr_to_tensors", "result_channels", "CHANNELS", "MAX_SAMPLES", "exr_header"]
+__all__ = ["write_exr", "read_exr", "exr_to_tensors", "result_channels", "CHANNELS", "MAX_SAMPLES", "exr_header",
+           "exr_info", "ExrInfo", "channel_size"]
 
 #: Channel names of each group of the frame format (a RenderResult's field name → its EXR channels).
 CHANNELS = {"radiance": ("R", "G", "B"), "depth": ("Z",), "normal": ("N.X", "N.Y", "N.Z"),
@@ -53,6 +57,9 @@ def write_exr(path: str | os.PathLike, data) -> None:
     Args:
         path: output file.
         data: a :class:`~stereorepro.render.RenderResult` or a dict of channel name → (H, W) array.
+
+    Raises:
+        ShapeError: channels that are not (H, W) arrays of one size with H, W >= 1.
     """
     chans = result_channels(data) if not isinstance(data, dict) else data
     if not chans:
@@ -61,7 +68,10 @@ def write_exr(path: str | os.PathLike, data) -> None:
 
     shapes = {np.shape(v) for v in chans.values()}
     if len(shapes) != 1 or len(next(iter(shapes))) != 2:
-        raise ValueError(f"write_exr: all channels must be (H, W) arrays of one size, got {shapes}")
+        raise ShapeError(f"write_exr: all channels must be (H, W) arrays of one size, got {shapes}")
+    if min(next(iter(shapes))) < 1:
+        raise ShapeError(f"write_exr: {path}: channels of shape {next(iter(shapes))} are empty (an EXR needs "
+                         "H, W >= 1)")
     # OpenEXR ignores numpy strides and rewrites the dict it is given: pass fresh, contiguous copies.
     fresh = {str(k): np.ascontiguousarray(np.asarray(v, dtype=np.float32)).copy() for k, v in chans.items()}
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
@@ -80,62 +90,134 @@ _BOUNDED_COMPRESSION = ("NO_COMPRESSION", "RLE_COMPRESSION", "ZIPS_COMPRESSION",
 _MAX_RATIO = 1100
 
 
+class _Capture:
+    """The process's descriptors 1 and 2 (and ``sys.stdout`` / ``sys.stderr``) swapped to one temporary file while
+    any thread reads an EXR. The swap is process-wide, so it is shared: the first reader swaps, later readers join,
+    the last one out restores (under :data:`_CAPTURE_LOCK`); overlapping reads never restore each other's streams."""
+
+    def __init__(self):
+        self.depth = 0
+        self.saved: list[int] | None = None  # dups of the real descriptors 1 and 2 while swapped
+        self.tmp = None
+        self.py: io.StringIO | None = None  # the bindings may also print through Python's sys.stdout
+        self.streams = None
+
+    def start(self) -> None:
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(OSError, ValueError, AttributeError):
+                stream.flush()
+        try:
+            self.saved = [os.dup(1), os.dup(2)]
+        except OSError:  # no standard streams to capture
+            self.saved = None
+            return
+        self.tmp = tempfile.TemporaryFile(mode="w+b")  # noqa: SIM115 - closed by stop()
+        os.dup2(self.tmp.fileno(), 1)
+        os.dup2(self.tmp.fileno(), 2)
+        self.py, self.streams = io.StringIO(), (sys.stdout, sys.stderr)
+        sys.stdout = sys.stderr = self.py
+
+    def mark(self) -> tuple[int, int]:
+        if self.saved is None:
+            return 0, 0
+        return os.lseek(self.tmp.fileno(), 0, os.SEEK_END), len(self.py.getvalue())
+
+    def since(self, mark: tuple[int, int]) -> str:
+        """What was written since ``mark`` (4 KiB of each kind at most; other threads' output included)."""
+        if self.saved is None:
+            return ""
+        return (os.pread(self.tmp.fileno(), 4096, mark[0]).decode(errors="replace")
+                + self.py.getvalue()[mark[1]:mark[1] + 4096])
+
+    def stop(self) -> None:
+        if self.saved is None:
+            return
+        os.dup2(self.saved[0], 1)
+        os.dup2(self.saved[1], 2)
+        for fd in self.saved:
+            os.close(fd)
+        sys.stdout, sys.stderr = self.streams
+        self.tmp.close()
+        self.saved = self.tmp = self.py = self.streams = None
+
+
+_CAPTURE_LOCK = threading.Lock()
+_CAPTURE = _Capture()
+
+
 @contextlib.contextmanager
 def _captured_output():
     """Capture what C code writes to file descriptors 1 and 2 (OpenEXR prints its own errors and warnings there)
-    into a list of one string, instead of the user's terminal."""
+    into a list of one string, instead of the user's terminal. Thread-safe (see :class:`_Capture`)."""
     text = [""]
-    for stream in (sys.stdout, sys.stderr):
-        with contextlib.suppress(OSError, ValueError, AttributeError):
-            stream.flush()
+    with _CAPTURE_LOCK:
+        if _CAPTURE.depth == 0:
+            _CAPTURE.start()
+        _CAPTURE.depth += 1
+        mark = _CAPTURE.mark()
     try:
-        saved = [os.dup(1), os.dup(2)]
-    except OSError:  # no standard streams to capture
         yield text
-        return
-    py_text = io.StringIO()  # the bindings may also print through Python's sys.stdout
-    with tempfile.TemporaryFile(mode="w+b") as tmp:
-        os.dup2(tmp.fileno(), 1)
-        os.dup2(tmp.fileno(), 2)
-        try:
-            with contextlib.redirect_stdout(py_text), contextlib.redirect_stderr(py_text):
-                yield text
-        finally:
-            os.dup2(saved[0], 1)
-            os.dup2(saved[1], 2)
-            for fd in saved:
-                os.close(fd)
-            tmp.seek(0)
-            text[0] = tmp.read(4096).decode(errors="replace") + py_text.getvalue()[:4096]
+    finally:
+        with _CAPTURE_LOCK:
+            text[0] = _CAPTURE.since(mark)
+            _CAPTURE.depth -= 1
+            if _CAPTURE.depth == 0:
+                _CAPTURE.stop()
 
 
-def _check_header(path: Path, parts) -> tuple[list[str], list[tuple[int, int]]]:
-    """Channel names and (H, W) of each part, after the size checks of :func:`read_exr`."""
+class ExrInfo(NamedTuple):
+    """An EXR's header, as :func:`exr_info` reads it.
+
+    Attributes:
+        channels: channel names of all parts. sizes: each part's (H, W).
+        data_window, display_window: ``((x_min, y_min), (x_max, y_max))`` (inclusive), one for all parts.
+    """
+
+    channels: list
+    sizes: list
+    data_window: tuple
+    display_window: tuple
+
+
+def _window(header, key: str) -> tuple:
+    lo, hi = (np.asarray(v, dtype=np.int64) for v in header[key])
+    return (int(lo[0]), int(lo[1])), (int(hi[0]), int(hi[1]))
+
+
+def _check_header(path: Path, parts) -> ExrInfo:
+    """The header after the checks of :func:`read_exr`: sizes against :data:`MAX_SAMPLES` and the file's size,
+    and one data window for all parts (their channels are pixels of one image)."""
     size = path.stat().st_size
     samples = 0
     bounded = True
-    names, sizes = [], []
-    for part in parts:
+    names, sizes, windows = [], [], []
+    for i, part in enumerate(parts):
         h = part.header
-        lo, hi = (np.asarray(v, dtype=np.int64) for v in h["dataWindow"])
-        w, hgt = int(hi[0] - lo[0] + 1), int(hi[1] - lo[1] + 1)
+        (x0, y0), (x1, y1) = window = _window(h, "dataWindow")
+        w, hgt = x1 - x0 + 1, y1 - y0 + 1
         if w < 1 or hgt < 1:
             raise ValueError(f"data window {w}x{hgt} is empty")
         samples += w * hgt * len(h["channels"])
         bounded &= any(name in str(h.get("compression", "")) for name in _BOUNDED_COMPRESSION)
         names += [c.name for c in h["channels"]]
         sizes.append((hgt, w))
+        windows.append((str(h.get("name", i)), window))
     if samples > MAX_SAMPLES:
         raise ValueError(f"its header claims {samples} samples (more than MAX_SAMPLES = {MAX_SAMPLES}); "
                          f"refusing to allocate {samples * 4 / 2 ** 30:.1f} GiB")
     if bounded and samples * 2 > _MAX_RATIO * size + (1 << 20):  # at least 2 bytes (half) per sample
         raise ValueError(f"truncated or corrupt: its header claims {samples} samples, more than a file of {size} "
                          f"bytes can hold with its compression")
-    return names, sizes
+    odd = next(((n, w) for n, w in windows if w != windows[0][1]), None)
+    if odd is not None:
+        raise ValueError(f"part {odd[0]!r} has data window {odd[1]}, part {windows[0][0]!r} {windows[0][1]} "
+                         "(all parts of a file must share one data window: their pixels would not line up)")
+    display = _window(parts[0].header, "displayWindow") if "displayWindow" in parts[0].header else windows[0][1]
+    return ExrInfo(names, sizes, windows[0][1], display)
 
 
-def exr_header(path: str | os.PathLike) -> tuple[list[str], list[tuple[int, int]]]:
-    """Channel names (all parts) and each part's (H, W), from the header alone (no pixels are read).
+def exr_info(path: str | os.PathLike) -> ExrInfo:
+    """An EXR's channel names, part sizes and windows, from the header alone (no pixels are read).
 
     Raises:
         ValueError: not a readable EXR, or a header :func:`read_exr` would refuse.
@@ -152,13 +234,19 @@ def exr_header(path: str | os.PathLike) -> tuple[list[str], list[tuple[int, int]
             raise ValueError(str(e).strip() or type(e).__name__) from None
 
 
+def exr_header(path: str | os.PathLike) -> tuple[list[str], list[tuple[int, int]]]:
+    """Channel names (all parts) and each part's (H, W), from the header alone (:func:`exr_info`)."""
+    info = exr_info(path)
+    return info.channels, info.sizes
+
+
 def read_exr(path: str | os.PathLike) -> dict[str, np.ndarray]:
     """Read all channels of all parts of an EXR: name → (H, W) float32 array (half and float channels alike).
 
     Channel names are returned as written, grouped or dotted (``R``, ``N.X``, ``ViewLayer.Combined.R``); a
     multi-part file (one part per pass, as Blender writes) gives the union of its parts' channels. The header is
     checked before pixels are read: more than :data:`MAX_SAMPLES` samples, or more than the file's size can
-    hold, is refused without allocating them.
+    hold, is refused without allocating them; so are parts with different data windows.
 
     Raises:
         FileNotFoundError: the file does not exist.
@@ -173,7 +261,7 @@ def read_exr(path: str | os.PathLike) -> dict[str, np.ndarray]:
     out: dict[str, np.ndarray] = {}
     with _captured_output() as noise:
         try:
-            names, _ = _check_header(path, OpenEXR.File(str(path), header_only=True).parts)
+            names = _check_header(path, OpenEXR.File(str(path), header_only=True).parts).channels
             f = OpenEXR.File(str(path), separate_channels=True)
             for part in f.parts:
                 for name, ch in part.channels.items():
@@ -196,6 +284,26 @@ def read_exr(path: str | os.PathLike) -> dict[str, np.ndarray]:
             detail += f" ({c_line})"
         raise ValueError(f"read_exr: cannot read {path} as EXR: {detail}") from None
     return out
+
+
+def channel_size(channels: dict, names, where: str, size: tuple[int, int] | None = None) -> tuple[int, int]:
+    """The common (H, W) of ``channels[name]`` for ``names`` (all present): every one must be a 2-D array of that
+    size (``size`` when given, else the first one's).
+
+    Raises:
+        SequenceError: naming ``where``, the channel and both sizes.
+    """
+    reference = "the camera"
+    for name in names:
+        shape = np.shape(channels[name])
+        if len(shape) != 2:
+            raise SequenceError(f"{where}: channel {name} has shape {shape}, expected (H, W)")
+        if size is None:
+            size, reference = shape, f"channel {name}"
+        elif shape != tuple(size):
+            raise SequenceError(f"{where}: channel {name} is {shape[1]}x{shape[0]}, {reference} {size[1]}x{size[0]} "
+                                "(all channels of a frame must have one size)")
+    return tuple(size)
 
 
 def exr_to_tensors(channels: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:

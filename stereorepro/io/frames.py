@@ -27,7 +27,8 @@ from __future__ import annotations
 import json
 import math
 import re
-from dataclasses import dataclass
+import warnings
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -35,16 +36,19 @@ import torch
 from torch import Tensor
 
 from .._checks import intrinsics_problem, rigid_problem
+from ..camera import Eye
 from ..errors import SequenceError
-from .exr import CHANNELS, exr_header
+from .exr import CHANNELS, exr_info
 
-__all__ = ["REQUIRED_CHANNELS", "SequenceError", "EyeCamera", "FrameSequence", "load_sequence", "read_frame",
-           "EYES"]
+__all__ = ["REQUIRED_CHANNELS", "SequenceError", "EyeCamera", "FrameSequence", "Frame", "load_sequence",
+           "read_frame", "EYES", "FRAME_FILE_RE"]
 
 #: Channels every input EXR must have (others are ignored): the radiance, depth and normal groups.
 REQUIRED_CHANNELS = CHANNELS["radiance"] + CHANNELS["depth"] + CHANNELS["normal"]
-EYES = ("left", "right")
-_FILE_RE = re.compile(r"^(\d{4,})_(left|right)\.exr$")
+#: The eyes of a frame, in file-name form (``left``, ``right``).
+EYES = tuple(Eye)
+#: Our frame files' names (``{frame:04d}_{eye}.exr``): frame number and eye.
+FRAME_FILE_RE = re.compile(r"^(\d{4,})_(left|right)\.exr$")
 
 
 @dataclass(frozen=True)
@@ -90,6 +94,64 @@ class FrameSequence:
             return self.root / file_name(self.frame_numbers[frame], eye)
         return self.root / f"{frame:04d}_{eye}.exr"
 
+
+
+@dataclass(frozen=True, eq=False)
+class Frame:
+    """One eye of one frame, as :func:`read_frame` returns it (on one device).
+
+    Attributes:
+        color: (1, 3, H, W) float32 linear radiance.
+        depth: (1, 1, H, W) float32 camera z (no surface: NaN, ±inf or <= 0, as the file has it).
+        normal: (1, 3, H, W) float32 world-space unit normals (non-unit ones renormalised, see ``normal_stats``).
+        K: (1, 3, 3) float64 intrinsics. cam_from_world: (1, 4, 4) float64 rigid extrinsics.
+        motion: (1, 2, H, W) float32 pixels to the previous frame, or ``None`` (the file has no ``M.*``).
+        motion_world: (1, 3, H, W) float32 world motion to the previous frame, or ``None`` (no ``MW.*``).
+        normal_stats: the normal policy's counts over the surface pixels: ``surface``, ``renormalised``,
+            ``invalid`` (zero or non-finite normals, which fail the normal test).
+
+    Dict-style access (``frame["color"]``, ``"motion" in frame``, ``frame.get("motion")``), the former return
+    type's, still works for one release with a DeprecationWarning; a ``None`` motion reads as an absent key.
+    """
+
+    color: Tensor
+    depth: Tensor
+    normal: Tensor
+    K: Tensor
+    cam_from_world: Tensor
+    motion: Tensor | None = None
+    motion_world: Tensor | None = None
+    normal_stats: dict = field(default_factory=dict)
+
+    def _keys(self) -> list[str]:
+        return [f.name for f in fields(self) if getattr(self, f.name) is not None]
+
+    @staticmethod
+    def _deprecated(how: str) -> None:
+        warnings.warn(f"Frame {how} (dict-style access) is deprecated: use attribute access (frame.color, "
+                      "frame.motion is None)", DeprecationWarning, stacklevel=3)
+
+    def __getitem__(self, key: str):
+        self._deprecated(f"[{key!r}]")
+        if key not in self._keys():
+            raise KeyError(key)
+        return getattr(self, key)
+
+    def __contains__(self, key) -> bool:
+        self._deprecated("'in'")
+        return key in self._keys()
+
+    def get(self, key: str, default=None):
+        self._deprecated(f".get({key!r})")
+        return getattr(self, key) if key in self._keys() else default
+
+    def keys(self) -> list[str]:
+        self._deprecated(".keys()")
+        return self._keys()
+
+    def __iter__(self):
+        self._deprecated("iteration")
+        return iter(self._keys())
 
 
 def _matrix(value, rows: int, where: str) -> np.ndarray:
@@ -189,15 +251,17 @@ def _parse_cameras(path: Path, eyes: tuple[str, ...]) -> tuple[list[dict], dict,
 
 
 def _exr_header(path: Path) -> tuple[list[str], int, int]:
-    """Channel names (all parts) and the common size (H, W) from the headers alone; every part must have that
-    size, and the header must pass :func:`stereorepro.io.exr.read_exr`'s size checks."""
+    """Channel names (all parts) and the common size (H, W) from the headers alone; the header must pass
+    :func:`stereorepro.io.exr.read_exr`'s checks (one data window for all parts), and the data window must be the
+    display window (the cameras' pixel grid: a shifted or cropped image would not line up with them)."""
     try:
-        names, sizes = exr_header(path)
+        info = exr_info(path)
     except ValueError as e:
         raise SequenceError(f"{path}: not a readable EXR: {e}") from None
-    if len(set(sizes)) != 1:
-        raise SequenceError(f"{path}: its parts differ in size ({sorted(set(sizes))}); all must be one size")
-    return names, sizes[0][0], sizes[0][1]
+    if info.data_window != info.display_window:
+        raise SequenceError(f"{path}: data window {info.data_window} differs from the display window "
+                            f"{info.display_window} (a shifted or cropped image; frames must cover the whole image)")
+    return info.channels, info.sizes[0][0], info.sizes[0][1]
 
 
 #: Renderers whose frame files the reader converts: ours (this module's format), Mitsuba 3's films written with
@@ -228,9 +292,25 @@ def _frame_numbers(meta: dict, path: Path, n: int) -> tuple:
     nums = meta.get("frame_numbers")
     if nums is None:
         return tuple(range(1, n + 1))
-    if not (isinstance(nums, list) and len(nums) == n and all(isinstance(x, int) and x >= 0 for x in nums)):
+    if not (isinstance(nums, list) and len(nums) == n
+            and all(isinstance(x, int) and not isinstance(x, bool) and x >= 0 for x in nums)):
         raise SequenceError(f"{path}: meta.frame_numbers must list {n} frame numbers >= 0, got {json.dumps(nums)[:80]}")
+    twice = sorted({x for x in nums if nums.count(x) > 1})
+    if twice:
+        raise SequenceError(f"{path}: meta.frame_numbers lists frame(s) {twice} more than once (each frame number "
+                            "names one pair of files)")
     return tuple(nums)
+
+
+def _unlisted_files(root: Path, n: int, source: str, numbers: tuple | None) -> list[str]:
+    """Frame files in ``root`` that ``cameras.json`` does not list: ours beyond its ``n`` frames, Blender's whose
+    number is not in ``meta.frame_numbers``."""
+    if source == "blender":
+        from .blender import FILE_RE
+
+        listed = set(numbers)
+        return sorted(p.name for p in root.iterdir() if (m := FILE_RE.match(p.name)) and int(m.group(1)) not in listed)
+    return sorted(p.name for p in root.iterdir() if (m := FRAME_FILE_RE.match(p.name)) and int(m.group(1)) >= n)
 
 
 def load_sequence(input_dir, eyes: tuple[str, ...] = EYES, source: str = "stereorepro") -> FrameSequence:
@@ -255,9 +335,10 @@ def load_sequence(input_dir, eyes: tuple[str, ...] = EYES, source: str = "stereo
     n = len(cams)
     numbers = _frame_numbers(meta, root / "cameras.json", n) if source == "blender" else None
     probe = FrameSequence(root, tuple(cams), 0, 0, source=source, frame_numbers=numbers)
-    beyond = [] if source == "blender" else sorted(p.name for p in root.iterdir() if (m := _FILE_RE.match(p.name)) and int(m.group(1)) >= n)
+    beyond = _unlisted_files(root, n, source, numbers)
     if beyond:
-        raise SequenceError(f"{root / 'cameras.json'}: lists {n} frame(s) but {root} has frame files beyond them: "
+        which = "not in its meta.frame_numbers" if source == "blender" else "beyond them"
+        raise SequenceError(f"{root / 'cameras.json'}: lists {n} frame(s) but {root} has frame files {which}: "
                             f"{', '.join(beyond[:4])}{' ...' if len(beyond) > 4 else ''}")
     size = None
     first = None
@@ -267,6 +348,10 @@ def load_sequence(input_dir, eyes: tuple[str, ...] = EYES, source: str = "stereo
             if not p.is_file():
                 raise SequenceError(f"{p}: missing (cameras.json lists {n} frame(s); frame {i} needs {eye} eye)")
             names, H, W = _exr_header(p)
+            if source == "blender":
+                from .blender import layer_prefix
+
+                layer_prefix(names, str(p))
             missing = [c for c in required if not _has(names, c, source)]
             if missing:
                 raise SequenceError(f"{p}: missing channel(s) {', '.join(missing)} (required for --from {source}: "
@@ -299,15 +384,12 @@ def _unit_normals(normal: Tensor, depth: Tensor) -> tuple[Tensor, dict]:
                     "invalid": int((~ok & surf).sum())}
 
 
-def read_frame(seq: FrameSequence, frame: int, eye: str, device=None) -> dict[str, Tensor]:
-    """Read one eye of one frame.
+def read_frame(seq: FrameSequence, frame: int, eye: str, device=None) -> Frame:
+    """Read one eye of one frame, on ``device``.
 
     Returns:
-        dict with ``color`` (1, 3, H, W), ``depth`` (1, 1, H, W), ``normal`` (1, 3, H, W) float32 and ``K``
-        (1, 3, 3), ``cam_from_world`` (1, 4, 4) float64, on ``device``; ``motion`` (1, 2, H, W) and
-        ``motion_world`` (1, 3, H, W) when the file has those channels (``M.*``, ``MW.*``; else absent);
-        ``normal_stats``: the normal policy's counts (see :func:`_unit_normals`: non-unit normals are
-        renormalised).
+        a :class:`Frame`: colour, depth, normal (non-unit normals renormalised, see :func:`_unit_normals`), the
+        eye's camera, and ``motion`` / ``motion_world`` when the file has those channels (``M.*``, ``MW.*``).
     """
     from .exr import read_exr
 
@@ -339,14 +421,14 @@ def read_frame(seq: FrameSequence, frame: int, eye: str, device=None) -> dict[st
     else:
         color, depth, normal = stack(CHANNELS["radiance"]), stack(CHANNELS["depth"]), stack(CHANNELS["normal"])
     normal, normal_stats = _unit_normals(normal, depth)
-    out = {"color": color, "depth": depth, "normal": normal, "normal_stats": normal_stats,
-           "K": cam.K.to(device), "cam_from_world": cam.cam_from_world.to(device)}
+    motion = {}
     if seq.source == "blender":
         if "motion" in conv:  # Blender's Vector pass; it has no world-space motion
-            out["motion"] = conv["motion"].to(device)
+            motion["motion"] = conv["motion"].to(device)
     else:
         for key in ("motion", "motion_world"):
             names = CHANNELS[key]
             if all(c in ch and ch[c].shape == (seq.height, seq.width) for c in names):
-                out[key] = stack(names)
-    return out
+                motion[key] = stack(names)
+    return Frame(color, depth, normal, cam.K.to(device), cam.cam_from_world.to(device), normal_stats=normal_stats,
+                 **motion)

@@ -28,6 +28,7 @@ import torch
 
 from ..camera import PinholeCamera
 from ..errors import SequenceError
+from .exr import channel_size
 
 __all__ = ["AOVS", "MITSUBA_CHANNELS", "FLIP", "sensor_to_camera", "render_gbuffer", "frame_from_channels"]
 
@@ -71,12 +72,13 @@ def frame_from_channels(channels: dict, camera: PinholeCamera, where: str = "") 
     them), seen by ``camera`` (ours).
 
     Raises:
-        SequenceError: a channel is missing.
+        SequenceError: a channel is missing, or one is not of the camera's size (naming it).
     """
     missing = [c for c in MITSUBA_CHANNELS if c not in channels]
     if missing:
         raise SequenceError(f"{where}: missing Mitsuba channel(s) {', '.join(missing)} (render with the aov "
                             f"integrator, aovs = \"{AOVS}\"; found: {', '.join(sorted(channels))})")
+    channel_size(channels, MITSUBA_CHANNELS, where, (camera.height, camera.width))
 
     def stack(names):
         return torch.from_numpy(np.stack([np.asarray(channels[c], np.float32) for c in names])[None].copy())

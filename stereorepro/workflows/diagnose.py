@@ -24,11 +24,13 @@ improves on them; the mistakes above give 4–9.5 % (stereo) and 7.5–28 % (tem
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import torch
 
 from ..camera import has_surface
-from ..io.frames import FrameSequence, read_frame
+from ..io.frames import Frame, FrameSequence, read_frame
 from ..reproject import Reason, Thresholds, View
 from ..reproject.functional import warp_values
 
@@ -49,29 +51,28 @@ HYPOTHESES = {
 }
 
 
-def _variant(frame: dict, hypothesis: str | None) -> dict:
-    f = dict(frame)
+def _variant(frame: Frame, hypothesis: str | None) -> Frame:
     if hypothesis == "inverted":
-        f["cam_from_world"] = torch.linalg.inv(frame["cam_from_world"].double())
-    elif hypothesis == "axes":
+        return replace(frame, cam_from_world=torch.linalg.inv(frame.cam_from_world.double()))
+    if hypothesis == "axes":
         flip = torch.diag(torch.tensor([-1.0, -1.0, 1.0, 1.0], dtype=torch.float64))
-        f["cam_from_world"] = flip @ frame["cam_from_world"].double()
-    elif hypothesis == "ray_length":
-        K = frame["K"][0].double()
-        H, W = frame["depth"].shape[-2:]
+        return replace(frame, cam_from_world=flip @ frame.cam_from_world.double())
+    if hypothesis == "ray_length":
+        K = frame.K[0].double()
+        H, W = frame.depth.shape[-2:]
         v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64) + 0.5, torch.arange(W, dtype=torch.float64) + 0.5,
                               indexing="ij")
         x, y = (u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1]
-        f["depth"] = (frame["depth"].double() / torch.sqrt(1 + x * x + y * y)).to(frame["depth"].dtype)
-    return f
+        return replace(frame, depth=(frame.depth.double() / torch.sqrt(1 + x * x + y * y)).to(frame.depth.dtype))
+    return frame
 
 
-def _position_share(src: dict, dst: dict, pos: float, nrm: float, sampling: str) -> float:
-    def view(f: dict) -> View:
-        return View.unchecked(f["depth"], f["normal"], f["K"], f["cam_from_world"])
+def _position_share(src: Frame, dst: Frame, pos: float, nrm: float, sampling: str) -> float:
+    def view(f: Frame) -> View:
+        return View.unchecked(f.depth, f.normal, f.K, f.cam_from_world)
 
-    reason = warp_values(src["color"], view(src), view(dst), Thresholds(pos, nrm), sampling, confidence=False).reason
-    surf = has_surface(dst["depth"])
+    reason = warp_values(src.color, view(src), view(dst), Thresholds(pos, nrm), sampling, confidence=False).reason
+    surf = has_surface(dst.depth)
     n = int(surf.sum())
     return float(((reason == int(Reason.POSITION)) & surf).sum()) / n if n else 0.0
 
@@ -95,7 +96,7 @@ def diagnose_conventions(seq: FrameSequence, mode: str, eyes: tuple[str, ...], p
         tests.append(("temporal", pairs, ("inverted", "axes", "ray_length")))
     cache: dict = {}
 
-    def load(eye: str, i: int) -> dict:
+    def load(eye: str, i: int) -> Frame:
         if (eye, i) not in cache:
             cache[(eye, i)] = read_frame(seq, i, eye, device)
         return cache[(eye, i)]
@@ -108,8 +109,8 @@ def diagnose_conventions(seq: FrameSequence, mode: str, eyes: tuple[str, ...], p
                 for (se, si), (de, di) in pairs:
                     src, dst = load(se, si), load(de, di)
                     if h == "swapped":  # exchange the images, keep each eye's camera
-                        src = dict(load(de, di), K=src["K"], cam_from_world=src["cam_from_world"])
-                        dst = dict(load(se, si), K=dst["K"], cam_from_world=dst["cam_from_world"])
+                        src = replace(load(de, di), K=src.K, cam_from_world=src.cam_from_world)
+                        dst = replace(load(se, si), K=dst.K, cam_from_world=dst.cam_from_world)
                     vals.append(_position_share(_variant(src, h), _variant(dst, h), pos, nrm, sampling))
                 return float(np.mean(vals))
 

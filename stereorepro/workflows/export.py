@@ -10,6 +10,7 @@ from pathlib import Path
 from torch import Tensor
 
 from ..io.atomic import atomic_write, staged_outputs
+from ..io.frames import FRAME_FILE_RE
 
 __all__ = ["export_sequence"]
 
@@ -24,11 +25,12 @@ def export_sequence(scene, frames, width: int, height: int, out_dir, spp: int = 
 
     Frame ``i`` of the directory is scene frame ``frames[i]``; both eyes are traced at ``spp`` (RNG eye keys 0 =
     left, 1 = right) and written with all the tracer's channels (``R,G,B, Z, N.*, P.*``; for scenes with moving
-    objects, from the second frame on, also the motion to the previous exported frame, ``M.*`` and ``MW.*``). ``cameras.json`` gets
-    the scene's thresholds at that height (:meth:`~stereorepro.scenes.Scene.thresholds`: the position threshold
-    scaled by ``max(1, 180 / height)``; scene files are tuned for ~180 rows) and a ``meta`` record. The files appear
-    together once all are written (:func:`~stereorepro.io.atomic.staged_outputs`), ``cameras.json`` last; on any
-    failure none do.
+    objects, from the second frame on, also the motion to the previous exported frame, ``M.*`` and ``MW.*``).
+    ``cameras.json`` gets the scene's thresholds at that height (:meth:`~stereorepro.scenes.Scene.thresholds`: the
+    position threshold scaled by ``max(1, 180 / height)``; scene files are tuned for ~180 rows) and a ``meta``
+    record. The files appear together once all are written (:func:`~stereorepro.io.atomic.staged_outputs`),
+    ``cameras.json`` last, and replace an earlier sequence in ``out`` as a whole (its other frame files are
+    removed); on any failure none do and ``out`` keeps what it had.
 
     Args:
         scene: a scene name or a :class:`~stereorepro.scenes.Scene`.
@@ -52,7 +54,8 @@ def export_sequence(scene, frames, width: int, height: int, out_dir, spp: int = 
     if out.exists() and not out.is_dir():
         raise ValueError(f"export_sequence: {out} exists and is not a directory")
     tracer = PathTracer(scene, seed=seed, workers=workers)
-    with staged_outputs(out, last=["cameras.json"]) as stage:  # all frames or none; cameras.json last
+    # all frames or none, cameras.json last; the frame files of an earlier export into ``out`` are removed
+    with staged_outputs(out, last=["cameras.json"], replaces=FRAME_FILE_RE) as stage:
         records = []
         moving = "moving_objects" in scene.effects  # static scenes: the cameras give the motion exactly
         for i, f in enumerate(frame_ids):

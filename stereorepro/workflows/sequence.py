@@ -38,8 +38,8 @@ from ..accumulate import SpatiotemporalReprojection, temporal_step
 from ..errors import SequenceError
 from ..io.atomic import atomic_write, staged_outputs
 from ..io.exr import write_exr
-from ..io.frames import EYES, FrameSequence, load_sequence, read_frame
-from ..reproject import Reason, StereoReprojection, TemporalReprojection
+from ..io.frames import EYES, Frame, FrameSequence, load_sequence, read_frame
+from ..reproject import Reason, StereoReprojection, TemporalReprojection, View
 from .diagnose import diagnose_conventions
 
 __all__ = ["MODES", "NO_HISTORY", "reproject_sequence"]
@@ -49,7 +49,7 @@ MODES = ("stereo", "temporal", "both")
 NO_HISTORY = int(Reason.NO_HISTORY)
 
 
-def _stats(valid: Tensor, reason: Tensor, frame: dict | None = None) -> dict:
+def _stats(valid: Tensor, reason: Tensor, frame: Frame | None = None) -> dict:
     codes = reason.flatten().to(torch.int64).bincount(minlength=256).tolist()
     names = {int(r): r.name for r in Reason}
     names[NO_HISTORY] = "NO_HISTORY"
@@ -57,7 +57,7 @@ def _stats(valid: Tensor, reason: Tensor, frame: dict | None = None) -> dict:
            "reasons": {names.get(c, str(c)): n for c, n in enumerate(codes) if n and c != 0},
            "no_history": bool((reason == NO_HISTORY).all())}
     if frame is not None:
-        out["normals"] = frame["normal_stats"]
+        out["normals"] = frame.normal_stats
     return out
 
 
@@ -70,9 +70,9 @@ def _channels(color: Tensor, valid: Tensor, reason: Tensor, history_len: Tensor 
     return out
 
 
-def _motion(frame: dict) -> tuple:
-    """(motion, motion_world) of a frame read by read_frame, (None, None) without motion channels."""
-    return frame.get("motion"), frame.get("motion_world")
+def _view(frame: Frame) -> View:
+    """The G-buffer view of a frame read by read_frame (with its motion when the file has motion channels)."""
+    return View(frame.depth, frame.normal, frame.K, frame.cam_from_world, frame.motion, frame.motion_world)
 
 
 def _process(seq: FrameSequence, mode: str, eyes: tuple[str, ...], pos: float, nrm: float, alpha: float,
@@ -83,8 +83,7 @@ def _process(seq: FrameSequence, mode: str, eyes: tuple[str, ...], pos: float, n
         module = StereoReprojection(pos, nrm, sampling).to(device)
         for i in range(len(seq)):
             L, R = read_frame(seq, i, "left", device), read_frame(seq, i, "right", device)
-            color, valid, reason = module(R["color"], R["depth"], R["normal"], R["K"], R["cam_from_world"],
-                                          L["depth"], L["normal"], L["K"], L["cam_from_world"])
+            color, valid, reason = module(R.color, *_view(R).flat(), *_view(L).flat())
             emit(i, "left", _channels(color, valid, reason, None))
             per_frame.append({"frame": i, "left": _stats(valid, reason, L)})
             log(f"frame {i:4d}: left {per_frame[-1]['left']['discard_pct']:5.1f} % discarded")
@@ -95,31 +94,30 @@ def _process(seq: FrameSequence, mode: str, eyes: tuple[str, ...], pos: float, n
             rec = {"frame": i}
             for eye in eyes:
                 cur = read_frame(seq, i, eye, device)
-                states[eye], valid, reason = temporal_step(module, states[eye], cur["color"], cur["depth"],
-                                                           cur["normal"], cur["K"], cur["cam_from_world"],
-                                                           *_motion(cur))
+                states[eye], valid, reason = temporal_step(module, states[eye], cur.color,
+                                                           *_view(cur).flat(motion=True))
                 emit(i, eye, _channels(states[eye].color, valid, reason, states[eye].history_len))
-                rec[eye] = dict(_stats(valid, reason, cur), motion="motion" in cur)
+                rec[eye] = dict(_stats(valid, reason, cur), motion=cur.motion is not None)
             per_frame.append(rec)
             log(f"frame {i:4d}: " + ", ".join(f"{e} {rec[e]['discard_pct']:5.1f} %" for e in eyes) + " discarded")
     else:
         driver = SpatiotemporalReprojection(pos, nrm, alpha, sampling=sampling)
         for i in range(len(seq)):
             L, R = read_frame(seq, i, "left", device), read_frame(seq, i, "right", device)
-            out_r = driver.right(R["color"], R["depth"], R["normal"], R["K"], R["cam_from_world"], *_motion(R))
+            out_r = driver.right(R.color, *_view(R).flat(motion=True))
             if driver.right_valid is None:  # first frame: no history
-                valid_r = torch.zeros_like(R["depth"], dtype=torch.bool)
-                reason_r = torch.full_like(R["depth"], NO_HISTORY, dtype=torch.uint8)
+                valid_r = torch.zeros_like(R.depth, dtype=torch.bool)
+                reason_r = torch.full_like(R.depth, NO_HISTORY, dtype=torch.uint8)
             else:
                 valid_r, reason_r = driver.right_valid, driver.right_reason
-            driver.left_trace_mask(L["depth"], L["normal"], L["K"], L["cam_from_world"], *_motion(L))
-            out_l = driver.left(L["color"])  # the left EXR's own colour stands in for the traced discards
+            driver.left_trace_mask(*_view(L).flat(motion=True))
+            out_l = driver.left(L.color)  # the left EXR's own colour stands in for the traced discards
             emit(i, "right", _channels(out_r, valid_r, reason_r, driver.right_state.history_len))
             emit(i, "left", _channels(out_l, driver.stereo_valid, driver.stereo_reason,
                                       driver.left_state.history_len))
-            per_frame.append({"frame": i, "right": dict(_stats(valid_r, reason_r, R), motion="motion" in R),
+            per_frame.append({"frame": i, "right": dict(_stats(valid_r, reason_r, R), motion=R.motion is not None),
                               "left": dict(_stats(driver.stereo_valid, driver.stereo_reason, L),
-                                           motion="motion" in L)})
+                                           motion=L.motion is not None)})
             log(f"frame {i:4d}: right {per_frame[-1]['right']['discard_pct']:5.1f} %, "
                 f"left (stereo) {per_frame[-1]['left']['discard_pct']:5.1f} % discarded")
     return per_frame

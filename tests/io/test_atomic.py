@@ -94,3 +94,65 @@ class TestStagedOutputs:
                 (stage / name).write_text(name)
         assert order == ["a.png", "z.md", "results.json"]
         assert sorted(os.listdir(tmp_path)) == ["a.png", "results.json", "z.md"]
+
+    def test_failing_run_removes_only_its_own(self, tmp_path):
+        """A failing run that created the folder leaves it when another run stages there (it removed the folder
+        it had created, the other run's staging with it); an empty folder it created goes."""
+        out = tmp_path / "o"
+        other = out / f".staging-{os.getpid()}-0123abcd"
+        with pytest.raises(RuntimeError):
+            with staged_outputs(out) as stage:
+                (stage / "mine.txt").write_text("x")
+                other.mkdir()
+                (other / "theirs.txt").write_text("x")
+                raise RuntimeError("killed")
+        assert os.listdir(out) == [other.name] and os.listdir(other) == ["theirs.txt"]
+        with pytest.raises(RuntimeError):
+            with staged_outputs(tmp_path / "p"):
+                raise RuntimeError("killed")
+        assert not (tmp_path / "p").exists()
+
+    def test_runs_publish_one_at_a_time(self, tmp_path, monkeypatch):
+        """Two runs on one folder: the second moves its set in only once the first has moved all of its own, so
+        the folder ends with one complete set (the last one's)."""
+        import threading
+
+        order, first, release = [], threading.Event(), threading.Event()
+        real = os.replace
+
+        def replace(a, b):
+            order.append(threading.current_thread().name)
+            if not first.is_set():
+                first.set()
+                release.wait(10)
+            real(a, b)
+
+        monkeypatch.setattr(atomic.os, "replace", replace)
+
+        def run():
+            with staged_outputs(tmp_path, last=["done.json"]) as stage:
+                for n in ("a.txt", "b.txt", "done.json"):
+                    (stage / n).write_text(threading.current_thread().name)
+
+        a, b = threading.Thread(target=run, name="A"), threading.Thread(target=run, name="B")
+        a.start()
+        assert first.wait(10)
+        b.start()
+        b.join(0.5)
+        assert b.is_alive() and order == ["A"]  # B has staged its set and waits to move it in
+        release.set()
+        a.join(10)
+        b.join(10)
+        assert order == ["A"] * 3 + ["B"] * 3
+        assert {(tmp_path / n).read_text() for n in ("a.txt", "b.txt", "done.json")} == {"B"}
+
+    def test_replaces(self, tmp_path):
+        import re
+
+        for n in ("0000_left.exr", "0002_left.exr", "cameras.json", "notes.txt"):
+            (tmp_path / n).write_text("old")
+        with staged_outputs(tmp_path, last=["cameras.json"], replaces=re.compile(r"^\d{4}_left\.exr$")) as stage:
+            for n in ("0000_left.exr", "cameras.json"):
+                (stage / n).write_text("new")
+        assert sorted(os.listdir(tmp_path)) == ["0000_left.exr", "cameras.json", "notes.txt"]
+        assert (tmp_path / "notes.txt").read_text() == "old" and (tmp_path / "0000_left.exr").read_text() == "new"

@@ -22,8 +22,9 @@ import torch
 
 from stereorepro import camera_motion
 from stereorepro.cli import main
-from stereorepro.io.frames import load_sequence, read_frame
+from stereorepro.errors import SequenceError
 from stereorepro.io.exr import read_exr
+from stereorepro.io.frames import load_sequence, read_frame
 
 ROOT = Path(__file__).resolve().parents[2]
 W, H = 64, 36
@@ -95,23 +96,23 @@ class TestBlenderCameras:
             for eye in ("left", "right"):
                 ch, f = read_exr(seq.path(i, eye)), read_frame(seq, i, eye)
                 P = np.stack([ch[f"ViewLayer.Position.{c}"] for c in "XYZ"]).reshape(3, -1).astype(np.float64)
-                hit = np.isfinite(f["depth"][0, 0].numpy()).reshape(-1)
+                hit = np.isfinite(f.depth[0, 0].numpy()).reshape(-1)
                 assert 0.5 < hit.mean() < 1.0
-                T, K = f["cam_from_world"][0].numpy(), f["K"][0].numpy()
+                T, K = f.cam_from_world[0].numpy(), f.K[0].numpy()
                 q = T[:3, :3] @ P + T[:3, 3:]
                 uv = (K @ q)[:2] / q[2]
                 ys, xs = np.mgrid[0:H, 0:W]
                 assert np.abs(uv[0] - (xs.reshape(-1) + 0.5))[hit].max() < 0.05
                 assert np.abs(uv[1] - (ys.reshape(-1) + 0.5))[hit].max() < 0.05
-                np.testing.assert_allclose(q[2][hit], f["depth"][0, 0].numpy().reshape(-1)[hit], rtol=1e-4)
-                n = f["normal"][0].norm(dim=0).numpy().reshape(-1)[hit]
+                np.testing.assert_allclose(q[2][hit], f.depth[0, 0].numpy().reshape(-1)[hit], rtol=1e-4)
+                n = f.normal[0].norm(dim=0).numpy().reshape(-1)[hit]
                 assert np.abs(n - 1).max() < 1e-3  # renormalised where Blender averaged
                 if i == 1:  # the Vector pass, read as our motion, equals the cameras' motion of this static scene
                     prev = read_frame(seq, 0, eye)
-                    cm = camera_motion(f["depth"], f["K"], f["cam_from_world"], prev["K"], prev["cam_from_world"])
+                    cm = camera_motion(f.depth, f.K, f.cam_from_world, prev.K, prev.cam_from_world)
                     ok = torch.isfinite(cm).all(1, keepdim=True).expand_as(cm)
                     assert float(cm[ok].abs().max()) > 1.0  # it did move
-                    assert float((f["motion"][ok] - cm[ok].float()).abs().max()) < 0.05
+                    assert float((f.motion[ok] - cm[ok].float()).abs().max()) < 0.05
 
 
 class TestReprojectFromBlender:
@@ -160,3 +161,104 @@ class TestReprojectFromBlender:
 
         assert err(good) < 0.5 * err(bad), (err(good), err(bad))
 
+
+
+def blender_file(path, shift=(0, 0), prefix="ViewLayer.", normal_size=(H, W)):
+    """A Blender-like multilayer EXR (one part per pass) of a plane at depth 2; the Normal part's data window
+    shifted by ``shift`` (x, y) and of ``normal_size``."""
+    import OpenEXR
+
+    full = np.ones((H, W), np.float32)
+    nh, nw = normal_size
+    window = (np.array(shift, np.int32), np.array([shift[0] + nw - 1, shift[1] + nh - 1], np.int32))
+    display = (np.array([0, 0], np.int32), np.array([W - 1, H - 1], np.int32))
+    parts = [OpenEXR.Part({"name": prefix + "Combined"}, {f"{prefix}Combined.{c}": full * 0.5 for c in "RGBA"}),
+             OpenEXR.Part({"name": prefix + "Depth"}, {f"{prefix}Depth.Z": full * 2}),
+             OpenEXR.Part({"name": prefix + "Normal", "dataWindow": window, "displayWindow": display},
+                          {f"{prefix}Normal.{c}": np.full((nh, nw), v, np.float32) for c, v in zip("XYZ", (0, 0, 1))})]
+    OpenEXR.File(parts).write(str(path))
+
+
+def blender_dir(d, numbers=(1, 2), **kw):
+    d.mkdir()
+    cam = {"K": [[50.0, 0, W / 2], [0, 50.0, H / 2], [0, 0, 1]], "cam_from_world": np.eye(4).tolist()}
+    for n in numbers:
+        for e in "LR":
+            blender_file(d / f"{n:04d}_{e}.exr", **kw)
+    (d / "cameras.json").write_text(json.dumps({"frames": [{"left": cam, "right": cam}] * len(numbers),
+                                                "meta": {"frame_numbers": list(numbers)}}))
+    return d
+
+
+class TestBlenderFilesRefused:
+    """Malformed Blender files and sequences, each refused with one error naming the file (no Blender needed)."""
+
+    def test_smoke(self, tmp_path):
+        seq = load_sequence(blender_dir(tmp_path / "in"), source="blender")
+        f = read_frame(seq, 1, "right")
+        assert f.color.shape == (1, 3, H, W) and float(f.depth.max()) == 2.0 and f.motion is None
+
+    def test_shifted_normal_part(self, tmp_path):
+        """A Normal part of the right size whose data window is shifted by (5, 3): its normals would not line up
+        with colour and depth (it was accepted)."""
+        d = blender_dir(tmp_path / "in", shift=(5, 3))
+        with pytest.raises(SequenceError, match=r"0001_L\.exr.*part 'ViewLayer\.Normal' has data window"):
+            load_sequence(d, source="blender")
+        with pytest.raises(ValueError, match="share one data window"):
+            read_exr(d / "0001_L.exr")
+
+    def test_shifted_single_part(self, tmp_path):
+        """A whole image shifted against the display window (all parts alike) does not line up with the camera."""
+        import OpenEXR
+
+        d = blender_dir(tmp_path / "in")
+
+        ch = read_exr(d / "0001_L.exr")
+        OpenEXR.File({"dataWindow": (np.array([2, 1], np.int32), np.array([W + 1, H], np.int32)),
+                      "displayWindow": (np.array([0, 0], np.int32), np.array([W - 1, H - 1], np.int32))},
+                     ch).write(str(d / "0001_L.exr"))
+        with pytest.raises(SequenceError, match=r"0001_L\.exr: data window .* differs from the display window"):
+            load_sequence(d, source="blender")
+
+    def test_duplicated_frame_numbers(self, tmp_path):
+        d = blender_dir(tmp_path / "in")
+        doc = json.loads((d / "cameras.json").read_text())
+        doc["meta"]["frame_numbers"] = [1, 1]
+        (d / "cameras.json").write_text(json.dumps(doc))
+        with pytest.raises(SequenceError, match=r"frame_numbers lists frame\(s\) \[1\] more than once"):
+            load_sequence(d, source="blender")
+
+    def test_unlisted_frame_files(self, tmp_path):
+        d = blender_dir(tmp_path / "in", numbers=(1, 2))
+        blender_file(d / "0007_L.exr")
+        doc = json.loads((d / "cameras.json").read_text())
+        with pytest.raises(SequenceError, match=r"frame files not in its meta\.frame_numbers: 0007_L\.exr"):
+            load_sequence(d, source="blender")
+        (d / "0007_L.exr").unlink()
+        doc["frames"], doc["meta"]["frame_numbers"] = doc["frames"][:1], [2]  # 0001_* now unlisted
+        (d / "cameras.json").write_text(json.dumps(doc))
+        with pytest.raises(SequenceError, match=r"0001_L\.exr, 0001_R\.exr"):
+            load_sequence(d, source="blender")
+
+    def test_no_view_layer_prefix(self, tmp_path):
+        """Channels named Combined.R (no view layer): a message saying so (it said "missing Combined.R ... found:
+        Combined.R")."""
+        d = blender_dir(tmp_path / "in", prefix="")
+        with pytest.raises(SequenceError, match=r"0001_L\.exr: channels without a view-layer prefix") as e:
+            load_sequence(d, source="blender")
+        assert "missing" not in str(e.value)
+
+    def test_frame_from_channels_shapes(self, tmp_path):
+        """A channel of another shape through the Python API: one SequenceError naming it (numpy's 'all input
+        arrays must have the same shape' before)."""
+        from stereorepro.io.blender import frame_from_channels
+
+        blender_file(tmp_path / "f.exr")
+        ch = read_exr(tmp_path / "f.exr")
+        ch["ViewLayer.Normal.Y"] = ch["ViewLayer.Normal.Y"][:, :-1]
+        with pytest.raises(SequenceError, match=rf"where: channel ViewLayer\.Normal\.Y is {W - 1}x{H}"):
+            frame_from_channels(ch, "where")
+        ch = read_exr(tmp_path / "f.exr")
+        ch["ViewLayer.Vector.X"], ch["ViewLayer.Vector.Y"] = np.zeros((H, W), np.float32), np.zeros(3, np.float32)
+        with pytest.raises(SequenceError, match=r"channel ViewLayer\.Vector\.Y has shape \(3,\)"):
+            frame_from_channels(ch, "where")

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from stereorepro.errors import ShapeError
 from stereorepro.io.exr import exr_to_tensors, read_exr, write_exr
 from stereorepro.render import RenderResult
 
@@ -53,8 +54,15 @@ class TestExr:
         bad.write_bytes(b"not an exr")
         with pytest.raises(ValueError, match="bad.exr"):
             read_exr(bad)
-        with pytest.raises(ValueError, match="same size|one size"):
+        with pytest.raises(ShapeError, match="same size|one size"):
             write_exr(tmp_path / "x.exr", {"A": np.zeros((2, 2)), "B": np.zeros((3, 2))})
+
+    def test_empty_channels(self, tmp_path):
+        """0x0 (and 0xW) channels: a ShapeError naming the file, nothing written (OpenEXR's raw RuntimeError)."""
+        for shape in ((0, 0), (0, 4), (3, 0)):
+            with pytest.raises(ShapeError, match=r"x\.exr: channels of shape .* are empty"):
+                write_exr(tmp_path / "x.exr", {"R": np.zeros(shape, np.float32)})
+        assert list(tmp_path.iterdir()) == []
 
 
 def _write(tmp_path, chans):
@@ -73,8 +81,8 @@ def _forge_data_window(path, width: int, height: int) -> None:
 
 
 class TestReadExrHardCases:
-    """Files the reliability sweep and the renderer-adapters issue found: forged headers, corrupt pixel data,
-    multi-part files with grouped channel names, half channels."""
+    """Malformed files: forged headers, corrupt pixel data, multi-part files with grouped channel names, half
+    channels."""
 
     def test_forged_huge_header_is_refused_before_allocating(self, tmp_path):
         import resource
@@ -138,3 +146,48 @@ class TestReadExrHardCases:
         with pytest.raises(OSError, match="No space") as e:
             write_exr(tmp_path / "f.exr", _result())
         assert e.value.filename == str(tmp_path / "f.exr") and list(tmp_path.iterdir()) == []
+
+
+READ_FROM_THREADS = """
+import os, sys
+from concurrent.futures import ThreadPoolExecutor
+from stereorepro.io.exr import exr_header, read_exr
+
+good, bad = sys.argv[1], sys.argv[2]
+
+def read(i):
+    if i % 4 == 3:
+        try:
+            read_exr(bad)
+        except ValueError as e:
+            return "cannot read" in str(e)
+        return False
+    return read_exr(good)["R"].shape == (64, 64) and exr_header(good)[1] == [(64, 64)]
+
+with ThreadPoolExecutor(8) as ex:
+    ok = list(ex.map(read, range(64)))
+print("after", all(ok), flush=True)
+os.write(1, b"fd1\\n")
+print("err", file=sys.stderr, flush=True)
+os.write(2, b"fd2\\n")
+"""
+
+
+class TestReadExrThreads:
+    def test_threads_keep_the_process_streams(self, tmp_path):
+        """Reads from 8 threads (good files, corrupt ones, headers) overlap; afterwards print and the raw
+        descriptors 1 and 2 still reach the process's stdout and stderr (overlapping reads restored each
+        other's swapped streams: everything printed after them was lost)."""
+        import subprocess
+        import sys
+
+        rng = np.random.default_rng(0)
+        good = _write(tmp_path, {"R": rng.random((64, 64)).astype(np.float32)})
+        bad = tmp_path / "bad.exr"
+        data = bytearray(good.read_bytes())
+        data[len(data) // 2:] = rng.integers(0, 256, len(data) - len(data) // 2, dtype=np.uint8).tobytes()
+        bad.write_bytes(bytes(data))
+        r = subprocess.run([sys.executable, "-c", READ_FROM_THREADS, str(good), str(bad)], capture_output=True,
+                           text=True, timeout=120)
+        assert r.returncode == 0, r.stderr[-2000:]
+        assert r.stdout == "after True\nfd1\n" and r.stderr == "err\nfd2\n", (r.stdout, r.stderr)

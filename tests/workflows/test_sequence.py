@@ -71,9 +71,8 @@ class TestReprojectCli:
         reproject_sequence(seq_dir, out, "stereo", position_threshold=0.4, normal_threshold=0.3)
         seq = load_sequence(seq_dir)
         L, R = read_frame(seq, 1, "left"), read_frame(seq, 1, "right")
-        color, valid, reason = StereoReprojection(0.4, 0.3)(R["color"], R["depth"], R["normal"], R["K"],
-                                                             R["cam_from_world"], L["depth"], L["normal"], L["K"],
-                                                             L["cam_from_world"])
+        color, valid, reason = StereoReprojection(0.4, 0.3)(R.color, R.depth, R.normal, R.K, R.cam_from_world,
+                                                             L.depth, L.normal, L.K, L.cam_from_world)
         ch = read_exr(out / "0001_left_reprojected.exr")
         np.testing.assert_array_equal(np.stack([ch["R"], ch["G"], ch["B"]]), color[0].numpy())
         np.testing.assert_array_equal(ch["valid"], valid[0, 0].float().numpy())
@@ -87,9 +86,9 @@ class TestReprojectCli:
         st = SpatiotemporalReprojection(seq.position_threshold, seq.normal_threshold)
         for i in range(N):
             L, R = read_frame(seq, i, "left"), read_frame(seq, i, "right")
-            right = st.right(R["color"], R["depth"], R["normal"], R["K"], R["cam_from_world"])
-            mask = st.left_trace_mask(L["depth"], L["normal"], L["K"], L["cam_from_world"])
-            left = st.left(L["color"])
+            right = st.right(R.color, R.depth, R.normal, R.K, R.cam_from_world)
+            mask = st.left_trace_mask(L.depth, L.normal, L.K, L.cam_from_world)
+            left = st.left(L.color)
         for eye, img in (("left", left), ("right", right)):
             ch = read_exr(out / f"{N - 1:04d}_{eye}_reprojected.exr")
             np.testing.assert_array_equal(np.stack([ch["R"], ch["G"], ch["B"]]), img[0].numpy())
@@ -100,7 +99,7 @@ class TestReprojectCli:
         reproject_sequence(seq_dir, out, "temporal", eye="left")
         first, second = read_exr(out / "0000_left_reprojected.exr"), read_exr(out / "0001_left_reprojected.exr")
         seq = load_sequence(seq_dir)
-        np.testing.assert_array_equal(first["R"], read_frame(seq, 0, "left")["color"][0, 0].numpy())
+        np.testing.assert_array_equal(first["R"], read_frame(seq, 0, "left").color[0, 0].numpy())
         assert (first["valid"] == 0).all() and (first["reason"] == NO_HISTORY).all()
         assert (first["history_len"] == 1).all()
         assert second["history_len"].max() == 2 and second["valid"].mean() > 0.5
@@ -280,8 +279,8 @@ class TestMotionChannels:
         assert "M.X" not in read_exr(seq_dir / "0001_left.exr")  # static scenes: the cameras say it all
         seq = load_sequence(moving_dir)
         fr = read_frame(seq, 1, "right")
-        assert fr["motion"].shape == (1, 2, 36, 64) and fr["motion_world"].shape == (1, 3, 36, 64)
-        assert float(fr["motion_world"].nan_to_num().abs().max()) > 0
+        assert fr.motion.shape == (1, 2, 36, 64) and fr.motion_world.shape == (1, 3, 36, 64)
+        assert float(fr.motion_world.nan_to_num().abs().max()) > 0
 
     @pytest.mark.parametrize("mode", ["temporal", "both"])
     def test_reproject_uses_motion(self, moving_dir, tmp_path, mode):
@@ -297,3 +296,93 @@ class TestMotionChannels:
         d_mv = np.mean([f["right"]["discard_pct"] for f in with_mv["per_frame"][later]])
         d_cam = np.mean([f["right"]["discard_pct"] for f in without["per_frame"][later]])
         assert d_mv < 0.85 * d_cam, (d_mv, d_cam)  # the moving objects keep their history
+
+
+#: A ``reproject`` run whose frame reads or writes wait at a point for a file to appear (two runs interleaved).
+GATED_RUN = """
+import pathlib, sys, time
+import stereorepro.workflows.sequence as rs
+from stereorepro.cli import main
+
+inp, out, role, signal, wait_for = sys.argv[1:6]
+
+def wait():
+    t = time.time()
+    while not pathlib.Path(wait_for).exists():
+        if time.time() - t > 120:
+            sys.exit(f"gated run: {wait_for} never appeared")
+        time.sleep(0.02)
+
+if role == "fail":  # read the last (corrupt) frame only once the other run is staging
+    real_read = rs.read_frame
+    def read_frame(seq, frame, eye, device=None):
+        if frame == len(seq) - 1:
+            wait()
+        return real_read(seq, frame, eye, device)
+    rs.read_frame = read_frame
+else:  # after the first staged file: tell, and go on once the failing run is over
+    real_write, count = rs.write_exr, [0]
+    def write_exr(path, chans):
+        real_write(path, chans)
+        count[0] += 1
+        if count[0] == 1:
+            pathlib.Path(signal).touch()
+            wait()
+    rs.write_exr = write_exr
+sys.exit(main(["reproject", "--input", inp, "--out", out, "--quiet"]))
+"""
+
+
+class TestConcurrentRuns:
+    def test_failing_run_keeps_a_concurrent_runs_output(self, seq_dir, work_dir, tmp_path):
+        """Run A (last frame's pixel data corrupt) creates --out; run B (valid input) starts staging into it; A
+        fails. A removes only its own staging (the folder it created still holds B's): B ends with exit 0 and its
+        complete set. (A removed the whole folder it had created, B's staged frame with it: 6 of 7 files.)"""
+        import subprocess
+        import sys
+        import time
+
+        bad = work_dir / f"{N - 1:04d}_right.exr"
+        data = bytearray(bad.read_bytes())
+        data[len(data) // 2:] = bytes(len(data) - len(data) // 2)
+        bad.write_bytes(bytes(data))
+        out, b_staged, a_done = tmp_path / "out", tmp_path / "b_staged", tmp_path / "a_done"
+
+        def run(inp, role, signal, wait_for):
+            return subprocess.Popen([sys.executable, "-c", GATED_RUN, str(inp), str(out), role, str(signal),
+                                     str(wait_for)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+        a = run(work_dir, "fail", tmp_path / "unused", b_staged)
+        t = time.time()
+        while not (out.is_dir() and any(p.name.startswith(".staging-") for p in out.iterdir())):
+            assert a.poll() is None and time.time() - t < 120, a.communicate()
+            time.sleep(0.02)
+        b = run(seq_dir, "ok", b_staged, a_done)
+        _, a_err = a.communicate(timeout=180)
+        a_done.touch()
+        _, b_err = b.communicate(timeout=180)
+        assert a.returncode == 2 and len(a_err.strip().splitlines()) == 1 and bad.name in a_err, a_err
+        assert b.returncode == 0, b_err
+        names = sorted([f"{i:04d}_{e}_reprojected.exr" for i in range(N) for e in ("left", "right")]
+                       + ["summary.json"])
+        assert _frames(out) == names
+        reference = tmp_path / "reference"
+        reproject_sequence(seq_dir, reference, "both")
+        for name in names[:-1]:
+            got, want = read_exr(out / name), read_exr(reference / name)
+            assert all(np.array_equal(got[k], want[k]) for k in want), name
+
+
+class TestExportReplaces:
+    def test_shorter_export_replaces_the_sequence(self, tmp_path, capsys):
+        """export-sequence --frames 3 then --frames 2 into one folder: a valid reproject input of 2 frames (frame 2
+        of the first export was left behind, and reproject refused the folder: 'frame files beyond them')."""
+        out = tmp_path / "S"
+        common = ["export-sequence", "--scene", "atrium", "--resolution", "16x9", "--out", str(out)]
+        assert main(common + ["--frames", "3"]) == 0
+        (out / "notes.txt").write_text("the user's")
+        assert main(common + ["--frames", "2"]) == 0
+        assert _frames(out) == ["0000_left.exr", "0000_right.exr", "0001_left.exr", "0001_right.exr",
+                                "cameras.json", "notes.txt"]
+        assert main(["reproject", "--input", str(out), "--out", str(tmp_path / "o"), "--quiet"]) == 0, \
+            capsys.readouterr().err
