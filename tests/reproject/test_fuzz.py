@@ -545,3 +545,110 @@ class TestFuzzExportFormulation:
                 assert got[i].dtype == ref[i].dtype and bool(torch.isfinite(got[i]).all())
                 torch.testing.assert_close(got[i].double(), ref[i].double(), atol=1e-5, rtol=1e-5)
         check()
+
+
+class TestFuzzReaders:
+    """The EXR and frame readers on mutated files (random bytes overwritten, truncated), from several threads at
+    once: every read gives (H, W) float32 channels or one ``ValueError`` (``SequenceError`` from the frame
+    reader), prints nothing, and leaves the process's standard streams as they were (descriptors 1 and 2 and
+    ``sys.stdout`` / ``sys.stderr``: the readers swap them to capture OpenEXR's messages)."""
+
+    EXAMPLES = 150  #: per CI run (``STEREOREPRO_FUZZ_SCALE`` multiplies it)
+
+    @staticmethod
+    def _settings():
+        return settings(max_examples=max(1, int(TestFuzzReaders.EXAMPLES * SCALE)), derandomize=True, database=None,
+                        deadline=None, print_blob=True, suppress_health_check=list(HealthCheck))
+
+    @pytest.fixture(scope="class")
+    def sequence(self, tmp_path_factory):
+        """A valid two-frame sequence of our format (8x6, with motion channels on frame 1)."""
+        from stereorepro.io.exr import write_exr
+
+        d = tmp_path_factory.mktemp("fuzz_frames")
+        rng = np.random.default_rng(0)
+        for i in range(2):
+            for e in ("left", "right"):
+                ch = {c: rng.random((6, 8)).astype(np.float32) for c in ("R", "G", "B", "N.X", "N.Y", "N.Z")}
+                ch["Z"] = (1 + rng.random((6, 8))).astype(np.float32)
+                if i:
+                    ch.update({"M.X": np.zeros((6, 8), np.float32), "M.Y": np.zeros((6, 8), np.float32)})
+                write_exr(d / f"{i:04d}_{e}.exr", ch)
+        cam = {"K": [[8.0, 0, 4], [0, 8.0, 3], [0, 0, 1]], "cam_from_world": np.eye(4).tolist()}
+        (d / "cameras.json").write_text(json.dumps({"frames": [{"left": cam, "right": cam}] * 2, "reprojection": {
+            "position_threshold": 0.1, "normal_threshold": 0.25}}))
+        return d
+
+    @staticmethod
+    def mutations():
+        edit = st.tuples(st.floats(0, 1), st.integers(0, 255), st.integers(1, 16))
+        return st.tuples(st.lists(edit, max_size=6), st.one_of(st.none(), st.floats(0, 1)))
+
+    @staticmethod
+    def mutate(data: bytes, mutation) -> bytes:
+        edits, cut = mutation
+        out = bytearray(data)
+        for where, value, length in edits:
+            at = int(where * (len(out) - 1))
+            out[at:at + length] = bytes([value]) * len(out[at:at + length])
+        return bytes(out[:int(cut * len(out))] if cut is not None else out)
+
+    def test_read_exr_threads(self, sequence, tmp_path_factory, capfd):
+        import contextlib
+        import sys
+        from concurrent.futures import ThreadPoolExecutor
+
+        from stereorepro.io.exr import exr_header, read_exr
+
+        original = (sequence / "0001_right.exr").read_bytes()
+        folder = tmp_path_factory.mktemp("fuzz_exr")
+        streams = (sys.stdout, sys.stderr, os.fstat(1).st_ino, os.fstat(2).st_ino)
+
+        def read(path):
+            try:
+                ch = read_exr(path)
+            except ValueError as e:
+                assert str(path) in str(e)
+                return "refused"
+            assert all(v.dtype == np.float32 and v.ndim == 2 and v.shape == next(iter(ch.values())).shape
+                       for v in ch.values())
+            with contextlib.suppress(ValueError):
+                exr_header(path)
+            return "read"
+
+        @self._settings()
+        @given(st.lists(self.mutations(), min_size=4, max_size=4))
+        def check(mutations):
+            paths = []
+            for i, m in enumerate(mutations):
+                paths.append(folder / f"{i}.exr")
+                paths[-1].write_bytes(self.mutate(original, m))
+            with ThreadPoolExecutor(4) as ex:
+                list(ex.map(read, paths))
+            assert (sys.stdout, sys.stderr, os.fstat(1).st_ino, os.fstat(2).st_ino) == streams
+        check()
+        assert capfd.readouterr() == ("", "")  # OpenEXR's messages were folded into the errors, never printed
+
+    def test_read_frame(self, sequence, tmp_path_factory, capfd):
+        import shutil
+
+        from stereorepro.errors import SequenceError
+        from stereorepro.io.frames import Frame, load_sequence, read_frame
+
+        work = tmp_path_factory.mktemp("fuzz_seq") / "in"
+        shutil.copytree(sequence, work)
+        original = (sequence / "0001_left.exr").read_bytes()
+
+        @self._settings()
+        @given(self.mutations())
+        def check(mutation):
+            (work / "0001_left.exr").write_bytes(self.mutate(original, mutation))
+            try:
+                seq = load_sequence(work)
+                frames = [read_frame(seq, i, e) for i in range(2) for e in ("left", "right")]
+            except SequenceError as e:
+                assert "0001_left.exr" in str(e)
+                return
+            assert all(isinstance(f, Frame) and f.color.shape == (1, 3, 6, 8) for f in frames)
+        check()
+        assert capfd.readouterr() == ("", "")
