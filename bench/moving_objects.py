@@ -1,5 +1,6 @@
 """What moving objects cost: the per-frame BVH against the alternatives embreex allows, and the reprojection
-with motion vectors (torch's general path) against camera-only warping (native and torch fast path).
+with motion vectors against camera-only warping, on each implementation (native, torch fast path, torch general
+path) and on ``backend="auto"``.
 
     .venv/bin/python bench/moving_objects.py        # writes bench/results/moving_objects.{json,md}
 
@@ -15,12 +16,12 @@ import numpy as np
 import torch
 
 from _bench_common import header, save, time_interleaved, time_ms
-from stereorepro import TemporalReprojection, camera_motion, load_scene
+from stereorepro import History, TemporalReprojection, View, camera_motion, load_scene
 from stereorepro.camera import Eye
 from stereorepro._testing import example_inputs
 from stereorepro.render import PathTracer
 from stereorepro.render._embree import TriangleBVH
-from stereorepro.reproject import _native
+from stereorepro.reproject import _native, functional
 from stereorepro.reproject.functional import temporal_reproject
 
 
@@ -59,18 +60,38 @@ def bvh_costs(W=320, H=180) -> dict:
     return out
 
 
+def _general_path(fn):
+    """``fn`` with the torch fast path switched off (the general path: the reference)."""
+    def call():
+        functional.FAST_PATH = False
+        try:
+            return fn()
+        finally:
+            functional.FAST_PATH = True
+    return call
+
+
 def reprojection_costs() -> dict:
+    """Temporal reprojection (the cameras' own motion vectors, zero world motion) on every implementation."""
     rows = {}
+    thr = (0.05, 0.25)
     for W, H in ((320, 180), (1280, 720)):
-        m = TemporalReprojection(0.05, 0.25)
-        x = example_inputs(m, height=H, width=W)
-        motion = camera_motion(x[1], x[3], x[4], x[9], x[10])
-        zero = torch.zeros_like(x[2])
-        fns = {"torch fast path, cameras": lambda: temporal_reproject(*x, 0.05, 0.25, backend="torch"),
-               "torch general path, motion vectors": lambda: temporal_reproject(*x, 0.05, 0.25, motion=motion,
-                                                                                motion_world=zero)}
+        m = TemporalReprojection(*thr)
+        cur, depth, normal, K, T, hc, hl, pd, pn, pK, pT = example_inputs(m, height=H, width=W)
+        motion = camera_motion(depth, K, T, pK, pT)
+        view, moving = View(depth, normal, K, T), View(depth, normal, K, T, motion, torch.zeros_like(normal))
+        prev, hist = View(pd, pn, pK, pT), History(hc, hl)
+
+        def step(v, backend):
+            return lambda: temporal_reproject(cur, v, hist, prev, thr, backend=backend)
+
+        fns = {"torch fast path, cameras": step(view, "torch"),
+               "torch fast path, motion vectors": step(moving, "torch"),
+               "torch general path, motion vectors": _general_path(step(moving, "torch")),
+               "auto, motion vectors": step(moving, "auto")}
         if _native.available():
-            fns["native, cameras"] = lambda: temporal_reproject(*x, 0.05, 0.25, backend="native")
+            fns["native, cameras"] = step(view, "native")
+            fns["native, motion vectors"] = step(moving, "native")
         with torch.no_grad():
             rows[f"{W}x{H}"] = time_interleaved(fns, repeats=7, warmup=2)
     return rows

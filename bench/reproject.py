@@ -1,9 +1,12 @@
 """Reprojection speed at 1280×720: torch eager, native (when built; also on float16 colour and normals),
 onnxruntime (the exported graph export_onnx writes, and the traced general path for comparison), kornia's bare
 warp, and the copy floor, on the same realistic inputs, in one run; and each implementation's peak memory, measured
-in a fresh process. Writes bench/results/reproject.{json,md}.
+in a fresh process. Temporal reprojection runs camera-only and with motion vectors (``backend="auto"`` too, paired
+against native camera-only, and checked byte for byte against the torch general path). Writes
+bench/results/<name>.{json,md} (``--name``, default reproject), with the command that made them.
 
     python bench/reproject.py [--height 720 --width 1280 --repeats 7] [--no-onnx] [--no-memory]
+                              [--cases temporal "temporal + motion vectors"] [--name reproject_temporal]
 """
 
 from __future__ import annotations
@@ -33,7 +36,12 @@ from stereorepro.reproject import functional  # noqa: E402
 CASES = (("stereo", StereoReprojection, {}, False, "stereo"),
          ("stereo (rectified)", StereoReprojection, {"rectified": True}, False, "stereo"),
          ("stereo + head motion", StereoReprojection, {}, True, "stereo"),
-         ("temporal", TemporalReprojection, {}, True, "temporal"))
+         ("temporal", TemporalReprojection, {}, True, "temporal"),
+         ("temporal + motion vectors", TemporalReprojection, {"motion_vectors": True}, True, "temporal"))
+
+#: The motion-vector case (example_inputs: the cameras' own motion vectors, zero world motion): timed with
+#: backend="auto" as well, which must pick the native kernels.
+MOTION_CASE = "temporal + motion vectors"
 THRESHOLDS = dict(position_threshold=0.05, normal_threshold=0.3)
 
 #: The paired timings: (record key, implementation a, implementation b (the ratio is b / a), table title, column
@@ -90,10 +98,10 @@ def memory_child(case: str, impl: str, H: int, W: int) -> dict:
             "output_bytes": sum(nbytes(o) for o in out)}
 
 
-def memory_rows(H: int, W: int, impls) -> list[dict]:
+def memory_rows(H: int, W: int, impls, cases=CASES) -> list[dict]:
     """:func:`memory_child` for every case and implementation, each in a fresh interpreter."""
     rows = []
-    for case, *_ in CASES:
+    for case, *_ in cases:
         for impl in impls:
             res = subprocess.run([sys.executable, __file__, "--memory-child", case, impl, "--height", str(H),
                                   "--width", str(W)], capture_output=True, text=True, check=True)
@@ -109,8 +117,45 @@ HALF_INPUTS = {"src_color", "src_normal", "dst_normal", "current_color", "normal
                "prev_normal"}
 
 
+def motion_check(fns: dict, cases, H: int, W: int, repeats: int) -> dict | None:
+    """Temporal with motion vectors on ``backend="auto"`` against native camera-only, paired (the done-when ratio
+    of motion on the fast paths), which backend auto ran, and whether its outputs equal the torch general path's
+    (the reference: fast path off) byte for byte on the same inputs."""
+    a, b = ("temporal", "native eager"), (MOTION_CASE, "auto eager")
+    if not ({"temporal", MOTION_CASE} <= {c[0] for c in cases} and a in fns and b in fns):
+        return None
+    from stereorepro.reproject import _native
+
+    ran = []
+    saved_kernel = _native.temporal_reproject
+
+    def spy(*args, **kwargs):
+        ran.append("native")
+        return saved_kernel(*args, **kwargs)
+
+    m = TemporalReprojection(**THRESHOLDS, motion_vectors=True, backend="auto")
+    inp = example_inputs(m, batch=1, height=H, width=W, head_motion=True)
+    _native.temporal_reproject = spy
+    try:
+        with torch.inference_mode():
+            got = m(*inp)
+    finally:
+        _native.temporal_reproject = saved_kernel
+    functional.FAST_PATH, saved_fast = False, functional.FAST_PATH
+    try:
+        with torch.inference_mode():
+            ref = TemporalReprojection(**THRESHOLDS, motion_vectors=True, backend="torch")(*inp)
+    finally:
+        functional.FAST_PATH = saved_fast
+    same = all(g.dtype == r.dtype and torch.equal(g.contiguous().view(-1).view(torch.uint8),
+                                                  r.contiguous().view(-1).view(torch.uint8)) for g, r in zip(got, ref))
+    with torch.inference_mode():
+        res = paired_ratio(fns[a], fns[b], repeats)
+    return {**res, "auto_ran": ran[0] if ran else "torch", "identical_to_torch_general": same}
+
+
 def module_backends(cls, **kw):
-    """(label, module) for each backend the module supports here."""
+    """(label, module) for each backend the module supports here (with motion vectors also ``auto``)."""
     out = []
     try:
         out.append(("torch", cls(**kw, backend="torch")))
@@ -118,6 +163,8 @@ def module_backends(cls, **kw):
 
         if native.available():
             out.append(("native", cls(**kw, backend="native")))
+        if kw.get("motion_vectors"):
+            out.append(("auto", cls(**kw, backend="auto")))
     except TypeError:  # modules without a backend argument
         out.append(("torch", cls(**kw)))
     return out
@@ -132,6 +179,9 @@ def main(argv=None) -> int:
                     help="rounds of the paired onnxruntime / torch eager timing")
     ap.add_argument("--no-onnx", action="store_true")
     ap.add_argument("--no-memory", action="store_true")
+    ap.add_argument("--cases", nargs="+", choices=[c[0] for c in CASES], metavar="CASE",
+                    help=f"run only these rows (of {', '.join(repr(c[0]) for c in CASES)})")
+    ap.add_argument("--name", default="reproject", help="results file name: bench/results/NAME.{json,md}")
     ap.add_argument("--memory-child", nargs=2, metavar=("CASE", "IMPL"), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     H, W, R = args.height, args.width, args.repeats
@@ -140,7 +190,7 @@ def main(argv=None) -> int:
         return 0
     px = H * W
     nbytes = floor_bytes(px)  # float32, and float16 colour, normals and history length (HALF_INPUTS)
-    cases = CASES
+    cases = CASES if not args.cases else tuple(c for c in CASES if c[0] in args.cases)
     fns = {(op, "copy floor" + suffix): copy_floor(nbytes[op + suffix])
            for op in ("stereo", "temporal") for suffix in ("", " fp16")}
     floor_of = {}
@@ -226,9 +276,13 @@ def main(argv=None) -> int:
                 if (name, impl_a) in fns and (name, impl_b) in fns:
                     paired[key].append({"op": name, **paired_ratio(fns[(name, impl_a)], fns[(name, impl_b)],
                                                                    args.paired_repeats)})
+    motion = motion_check(fns, cases, H, W, args.paired_repeats)
     mem = [] if args.no_memory else memory_rows(H, W, ["torch", "native", "onnxruntime"] if not args.no_onnx
-                                                else ["torch", "native"])
-    record = {**header(), "resolution": f"{W}x{H}", "rows": rows, **paired, "memory": mem, "floor_bytes": nbytes}
+                                                else ["torch", "native"], cases)
+    command = "python bench/reproject.py" + "".join(f" {a}" if a.startswith("-") or " " not in a else f' "{a}"'
+                                                    for a in (argv if argv is not None else sys.argv[1:]))
+    record = {**header(), "command": command, "resolution": f"{W}x{H}", "rows": rows, **paired,
+              "motion_vs_camera": motion, "memory": mem, "floor_bytes": nbytes}
     lines = ["| op | implementation | median ms | min ms | × copy floor | × torch eager |",
              "|---|---|---:|---:|---:|---:|"]
     for r in rows:
@@ -242,6 +296,15 @@ def main(argv=None) -> int:
                       "|---|---:|---:|---:|---:|---:|"]
             lines += [f"| {r['op']} | **{r['median']:.2f}** | {r['q1']:.2f} – {r['q3']:.2f} | {r['min']:.2f} – "
                       f"{r['max']:.2f} | {r['a_median_ms']:.1f} | {r['b_median_ms']:.1f} |" for r in paired[key]]
+    if motion:
+        lines += ["", "Temporal with motion vectors, backend=\"auto\" / native camera-only, paired "
+                  f"({args.paired_repeats} rounds, as above), and auto's outputs against the torch general path's on "
+                  "the same inputs:", "",
+                  "| median | quartiles | min – max | native camera-only ms | auto with motion ms | byte-identical |",
+                  "|---:|---:|---:|---:|---:|---|",
+                  f"| **{motion['median']:.2f}** | {motion['q1']:.2f} – {motion['q3']:.2f} | {motion['min']:.2f} – "
+                  f"{motion['max']:.2f} | {motion['a_median_ms']:.1f} | {motion['b_median_ms']:.1f} | "
+                  f"{motion['identical_to_torch_general']} (auto ran {motion['auto_ran']}) |"]
     if mem:
         lines += ["", "Peak memory of one call (the first, in a fresh process, inputs built and session created: the "
                   "rise of VmHWM over VmRSS), against the bytes of its inputs and outputs:", "",
@@ -251,11 +314,12 @@ def main(argv=None) -> int:
             io = (r["input_bytes"] + r["output_bytes"]) / 2 ** 20
             lines.append(f"| {r['case']} | {r['impl']} | {r['peak_bytes'] / 2 ** 20:.1f} | {io:.1f} "
                          f"| {r['x_inputs_outputs']:.2f} | {r['x_outputs']:.2f} |")
-    table = (f"Reprojection at {W}×{H}, B=1, float32 (native fp16: colour, normals and history length float16, "
+    table = (f"`{command}`\n\n"
+             f"Reprojection at {W}×{H}, B=1, float32 (native fp16: colour, normals and history length float16, "
              f"depths float32), median of {R} after warm-up; each implementation timed round-robin with the copy "
              f"floors (one call each per round), × copy floor against the floor of its own run (native fp16: the "
              f"floor of the bytes it reads and writes).\n\n") + "\n".join(lines) + "\n"
-    j, md = save("reproject", record, table)
+    j, md = save(args.name, record, table, script="reproject.py")
     print(table)
     print(f"wrote {j} and {md}")
     return 0
