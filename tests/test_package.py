@@ -20,7 +20,7 @@ PACKAGE = Path(stereorepro.__file__).resolve().parent
 #: The layers of the package, lowest first: a module may import from its own layer and the layers below it,
 #: never from one above (lazy imports inside functions included). Entries name the top-level modules or packages
 #: under ``stereorepro``; ``""`` is the package's ``__init__`` (the public names, which re-exports from every
-#: layer). README's Development section shows the same order.
+#: layer). CONTRIBUTING.md (Layout: the layers) shows the same order.
 LAYERS = (
     ("foundation", ("errors", "_checks", "_backend", "_version", "_extras", "_tensors", "camera", "_core")),
     ("io", ("io",)),  # file formats
