@@ -1,4 +1,4 @@
-"""The used-by examples in smoke mode, and the device/dtype support table of docs/used_by.md.
+"""The used-by examples in smoke mode, and the device/dtype support table of docs/support.md.
 
 Each example is imported from ``examples/`` as a module and run as ``main(["--smoke", "--out", tmp])`` (< 60 s
 each on 2 cores); assertions are on the JSON it writes.
@@ -109,7 +109,7 @@ class TestExamples:
 
 
     def test_train_thresholds_learned_beat_hand_set(self, tmp_path):
-        """What the example shows (docs/used_by.md): given enough training frames, the learned thresholds and alpha
+        """What the example shows (docs/guides/denoisers.md): given enough training frames, the learned thresholds and alpha
         beat the hand-set ones on held-out frames (with hard tests). A fixed small case: 64x36, 60 Adam steps over
         10-frame windows of frames 0-29, held-out frames 40-49, 32-spp references, seed 0. Measured: RMSE 0.1930
         (hand-set) -> 0.1911 (learned), effective spp 3.82 -> 3.89, the same in repeated runs. (The smoke run
@@ -139,7 +139,7 @@ def _inputs(module, dtype, device, cameras=torch.float64):
 
 
 class TestSupportTable:
-    """Backs the ✅ of docs/used_by.md: every cell marked tested here is one of these tests."""
+    """Backs the ✅ of docs/support.md: every cell marked tested here is one of these tests."""
 
     @pytest.mark.parametrize("kind", sorted(MODULES))
     def test_float(self, kind, device, dtype):

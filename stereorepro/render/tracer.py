@@ -285,7 +285,7 @@ class PathTracer:
         workers: threads (default: the usable CPU count).
         max_batch: most paths one worker traces at once: frames are split into pixel ranges of at most this many
             pixels (see :meth:`_ranges`). It bounds memory (about 1 KiB per path) and keeps a batch's arrays and the
-            BVH in cache (the default is chosen by ``bench/tracer.py``; see the README). Results do not depend on it.
+            BVH in cache (the default is chosen by ``bench/tracer.py``; see docs/performance.md). Results do not depend on it.
         clamp: firefly clamp on reflected radiance (see the module docstring): ``"auto"`` (default) uses the
             scene's ``[render] radiance_clamp`` when it is > 0, else the bound of
             :func:`~stereorepro.render.lights.radiance_bound` (per frame for moving lights); a positive number is

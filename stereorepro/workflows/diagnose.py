@@ -137,7 +137,7 @@ def diagnose_conventions(seq: FrameSequence, mode: str, eyes: tuple[str, ...], p
                             "position_pct_by_hypothesis": {h: 100.0 * v for h, v in tried.items()},
                             "message": f"{test}: {pct:.1f} % of the surface pixels fail the position test: check "
                                        "the conventions (cam_from_world, OpenCV axes, Z = camera z, eye order; "
-                                       "docs/used_by.md) and the thresholds"})
+                                       "docs/conventions.md) and the thresholds"})
     stereo = [w for w in out if w["test"] == "stereo" and w["suspects"]]
     if stereo and mode == "both" and not any(w["test"] == "temporal" for w in out) and n > 1:
         # the cameras are consistent over time, so the stereo failure is between the eyes: their order
