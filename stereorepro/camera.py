@@ -91,6 +91,12 @@ def has_surface(depth: Tensor) -> Tensor:
 
     Returns:
         bool tensor of the same shape.
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro.camera import has_surface
+        >>> has_surface(torch.tensor([[2.0, 0.0, float("inf"), float("nan")]])).tolist()
+        [[True, False, False, False]]
     """
     return (depth > 0) & (depth < math.inf)  # NaN compares false; one comparison less than isfinite, and an
     # exported graph gets two nodes where torch.isfinite exports as a cast to double, IsInf, IsNaN, Or and Not
@@ -101,6 +107,12 @@ def pixel_centers(height: int, width: int, device=None, dtype=torch.float32) -> 
 
     Returns:
         (2, H, W): ``[0]`` = u = x + 0.5 (column), ``[1]`` = v = y + 0.5 (row).
+
+    Examples:
+        >>> from stereorepro.camera import pixel_centers
+        >>> uv = pixel_centers(2, 3)
+        >>> tuple(uv.shape), uv[:, 1].tolist()
+        ((2, 2, 3), [[0.5, 1.5, 2.5], [1.5, 1.5, 1.5]])
     """
     v = torch.arange(height, device=device, dtype=dtype) + 0.5
     u = torch.arange(width, device=device, dtype=dtype) + 0.5
@@ -117,6 +129,12 @@ def intrinsics_from_fov(vfov_deg: float, width: int, height: int, batch: int = 1
 
     Returns:
         K: (B, 3, 3).
+
+    Examples:
+        >>> from stereorepro import intrinsics_from_fov
+        >>> K = intrinsics_from_fov(90.0, 4, 2)  # focal length = half the height at 90 degrees
+        >>> tuple(K.shape), K[0].tolist()
+        ((1, 3, 3), [[1.0, 0.0, 2.0], [0.0, 1.0, 1.0], [0.0, 0.0, 1.0]])
     """
     if not (0.0 < vfov_deg < 180.0):
         raise ValueError(f"vfov_deg must be in (0, 180), got {vfov_deg}")
@@ -136,6 +154,13 @@ def look_at(eye: Tensor, target: Tensor, up: Tensor) -> Tensor:
 
     Raises:
         ValueError: a non-finite input, ``target == eye``, a zero ``up`` or one parallel to the view direction.
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro.camera import look_at
+        >>> T = look_at(torch.tensor([[0.0, 0.0, -2.0]]), torch.zeros(1, 3), torch.tensor([[0.0, -1.0, 0.0]]))
+        >>> (T[0, :3, :3] + 0.0).tolist(), (T[0, :3, 3] + 0.0).tolist()  # axes aligned, origin 2 ahead
+        ([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], [0.0, 0.0, 2.0])
     """
     check_shape(eye, ["B", "3"], "eye")
     check_shape(target, ["B", "3"], "target")
@@ -165,7 +190,15 @@ def look_at(eye: Tensor, target: Tensor, up: Tensor) -> Tensor:
 
 
 def invert_rigid(T: Tensor) -> Tensor:
-    """Inverse of rigid (B, 4, 4) transforms: ``[R | t]^-1 = [R^T | -R^T t]`` (ONNX-friendly, no linalg.inv)."""
+    """Inverse of rigid (B, 4, 4) transforms: ``[R | t]^-1 = [R^T | -R^T t]`` (ONNX-friendly, no linalg.inv).
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro.camera import invert_rigid
+        >>> T = torch.eye(4)[None]; T[0, :3, 3] = torch.tensor([1.0, 2.0, 3.0])
+        >>> invert_rigid(T)[0, :3, 3].tolist(), bool(torch.equal(invert_rigid(T) @ T, torch.eye(4)[None]))
+        ([-1.0, -2.0, -3.0], True)
+    """
     return _invert_rigid(T, torch)
 
 
@@ -236,6 +269,15 @@ class Warp(NamedTuple):
 
     The former one-letter names (``M``, ``t``, ``P``, ``kt``, ``Ks_inv``) still read the same fields, with a
     DeprecationWarning, for one release; positional unpacking is unchanged.
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro import intrinsics_from_fov
+        >>> from stereorepro.camera import compose_warp
+        >>> K = intrinsics_from_fov(90.0, 4, 2); src = torch.eye(4)[None]; dst = src.clone(); dst[0, 0, 3] = -0.5
+        >>> warp = compose_warp(K, src, K, dst, torch.float32)  # dst camera 0.5 to the right of src
+        >>> warp.K_src_t.flatten().tolist(), bool(torch.equal(warp.pixel_src_from_pixel_dst, torch.eye(3)[None]))
+        ([0.5, 0.0, 0.0], True)
     """
 
     ray_src_from_pixel_dst: Tensor
@@ -267,6 +309,15 @@ def compose_warp(src_K: Tensor, src_cam_from_world: Tensor, dst_K: Tensor, dst_c
     Args:
         src_K, dst_K: (B, 3, 3) intrinsics. src_cam_from_world, dst_cam_from_world: (B, 4, 4) rigid extrinsics.
         dtype: dtype of the returned matrices.
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro import intrinsics_from_fov
+        >>> from stereorepro.camera import compose_warp
+        >>> K, pose = intrinsics_from_fov(60.0, 6, 4), torch.eye(4)[None]
+        >>> warp = compose_warp(K, pose, K, pose, torch.float32)  # identical cameras: an exact identity
+        >>> bool(torch.equal(warp.pixel_src_from_pixel_dst, torch.eye(3)[None])), float(warp.t_src_from_dst.abs().max())
+        (True, 0.0)
     """
     cams = (src_K, src_cam_from_world, dst_K, dst_cam_from_world)
     if not tracing() and all(c.device.type == "cpu" and not (c.requires_grad and torch.is_grad_enabled())
@@ -337,6 +388,14 @@ def unproject(depth: Tensor, K: Tensor) -> Tensor:
 
     Returns:
         points_cam: (B, 3, H, W).
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro import intrinsics_from_fov
+        >>> from stereorepro.camera import unproject
+        >>> points = unproject(torch.full((1, 1, 2, 4), 2.0), intrinsics_from_fov(90.0, 4, 2))
+        >>> tuple(points.shape), points[0, :, 0, 0].tolist()  # the top-left pixel centre (0.5, 0.5) at z = 2
+        ((1, 3, 2, 4), [-3.0, -1.0, 2.0])
     """
     check_shape(depth, ["B", "1", "H", "W"], "depth")
     check_shape(K, ["B", "3", "3"], "K")
@@ -357,6 +416,15 @@ def project(points_cam: Tensor, K: Tensor) -> tuple[Tensor, Tensor]:
     Returns:
         uv: (B, 2, H, W) pixel coordinates (centres at +0.5); undefined where z <= 0.
         z: (B, 1, H, W) camera-space depth of the points.
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro import intrinsics_from_fov
+        >>> from stereorepro.camera import pixel_centers, project, unproject
+        >>> K = intrinsics_from_fov(90.0, 4, 2)
+        >>> uv, z = project(unproject(torch.full((1, 1, 2, 4), 2.0), K), K)  # back to the pixel centres
+        >>> bool(torch.allclose(uv, pixel_centers(2, 4))), z.unique().tolist()
+        (True, [2.0])
     """
     check_shape(points_cam, ["B", "3", "H", "W"], "points_cam")
     B, _, H, W = points_cam.shape
@@ -384,6 +452,15 @@ def camera_motion(depth: Tensor, K: Tensor, cam_from_world: Tensor, prev_K: Tens
         ParameterTypeError: a tensor that is not floating point.
         CameraError: camera values the ops refuse (``K`` must be finite pinhole, ``cam_from_world`` rigid), e.g.
             ``K * 0`` or a scaled ``cam_from_world``.
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro import camera_motion, intrinsics_from_fov
+        >>> K, pose = intrinsics_from_fov(90.0, 4, 2), torch.eye(4)[None]
+        >>> prev = pose.clone(); prev[0, 0, 3] = -0.5  # the previous camera sat 0.5 to the right
+        >>> motion = camera_motion(torch.full((1, 1, 2, 4), 2.0), K, pose, K, prev)
+        >>> tuple(motion.shape), motion[0, :, 0, 0].tolist()  # a point 2 away moved 0.25 px
+        ((1, 2, 2, 4), [-0.25, 0.0])
     """
     if not tracing():
         bind = check_shape(depth, ["B", "1", "H", "W"], "camera_motion: depth", None, False)
@@ -572,6 +649,15 @@ class PinholeCamera:
         K: (B, 3, 3) intrinsics, pixel centres at +0.5.
         cam_from_world: (B, 4, 4) rigid extrinsics (OpenCV axes).
         height, width: image size in pixels.
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro import PinholeCamera, intrinsics_from_fov
+        >>> cam = PinholeCamera(intrinsics_from_fov(90.0, 4, 2), torch.eye(4)[None], height=2, width=4)
+        >>> points = cam.unproject(torch.full((1, 1, 2, 4), 2.0))  # world points, (1, 3, 2, 4)
+        >>> uv, z = cam.project(points)
+        >>> cam.batch_size, points[0, :, 0, 0].tolist(), uv[0, :, 0, 0].tolist(), float(z.max())
+        (1, [-3.0, -1.0, 2.0], [0.5, 0.5], 2.0)
     """
 
     K: Tensor
@@ -705,6 +791,14 @@ class StereoRig:
         convergence_distance: distance (scene units) at which the views converge through a sensor shift
             (principal points shifted, optical axes stay parallel: no keystoning). ``None`` = parallel
             views converging at infinity.
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro import StereoRig, intrinsics_from_fov
+        >>> K, head = intrinsics_from_fov(90.0, 4, 2), torch.eye(4)[None]
+        >>> left, right = StereoRig(eye_separation=0.1).cameras(head, K, 2, 4)
+        >>> [round(x, 6) + 0.0 for x in left.center_world[0].tolist()], round(float(right.center_world[0, 0]), 6)
+        ([-0.05, 0.0, 0.0], 0.05)
     """
 
     eye_separation: float = DEFAULT_BASELINE
