@@ -13,7 +13,13 @@ __all__ = ["Reason", "REASON_COLORS", "reason_to_rgb"]
 
 
 class Reason(enum.IntEnum):
-    """Why a destination pixel was discarded (values of the uint8 ``reason`` map)."""
+    """Why a destination pixel was discarded (values of the uint8 ``reason`` map).
+
+    Examples:
+        >>> from stereorepro.reproject import Reason
+        >>> Reason(5), int(Reason.NORMAL), Reason.OUT_OF_FRAME.name
+        (<Reason.POSITION: 5>, 6, 'OUT_OF_FRAME')
+    """
 
     KEPT = 0
     NO_SURFACE_DST = 1  #: the destination pixel has no surface: nothing to reproject
@@ -48,6 +54,14 @@ def reason_to_rgb(reason: Tensor) -> Tensor:
 
     Returns:
         (B, 3, H, W) float32 RGB in [0, 1].
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro.reproject import Reason, reason_to_rgb
+        >>> codes = [Reason.KEPT, Reason.OUT_OF_FRAME, Reason.POSITION, Reason.NORMAL]
+        >>> rgb = reason_to_rgb(torch.tensor(codes, dtype=torch.uint8).reshape(1, 1, 1, 4))
+        >>> tuple(rgb.shape), rgb[0, :, 0].T.tolist()  # black, red, green, cyan
+        ((1, 3, 1, 4), [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 1.0, 1.0]])
     """
     check_shape(reason, ["B", "1", "H", "W"], "reason")
     lut = torch.tensor([REASON_COLORS[Reason(i)] for i in range(len(Reason))], dtype=torch.float32,

@@ -175,7 +175,14 @@ class View:
 class Thresholds(NamedTuple):
     """The accept tests of a tap: ``|P_src − P_dst| <= position`` (scene units) and ``|N_src − N_dst| <= normal``
     (unit normals), each a number or a one-element tensor >= 0 (``inf`` accepts everything); ``temperature`` is the
-    softness of ``soft=True`` tests, relative to the thresholds. A plain ``(position, normal)`` pair works too."""
+    softness of ``soft=True`` tests, relative to the thresholds. A plain ``(position, normal)`` pair works too.
+
+    Examples:
+        >>> from stereorepro import Thresholds
+        >>> t = Thresholds(0.01, 0.1)  # 1 cm of position, 0.1 of normal
+        >>> t, t.position, t._replace(normal=float("inf")).normal
+        (Thresholds(position=0.01, normal=0.1, temperature=0.1), 0.01, inf)
+    """
 
     position: float | Tensor
     normal: float | Tensor
@@ -185,7 +192,13 @@ class Thresholds(NamedTuple):
 class Blend(NamedTuple):
     """Temporal accumulation: ``a = max(1/(n+1), alpha)`` with ``warmup`` (BMFR's running mean until the weight
     reaches ``alpha``), else ``a = alpha``; ``out = (1 − a)·history + a·current``; n capped at ``max_history``.
-    ``alpha`` may be a learnable one-element tensor."""
+    ``alpha`` may be a learnable one-element tensor.
+
+    Examples:
+        >>> from stereorepro import Blend
+        >>> Blend(), Blend(alpha=0.1, warmup=False).alpha
+        (Blend(alpha=0.2, warmup=True, max_history=255.0), 0.1)
+    """
 
     alpha: float | Tensor = 0.2
     warmup: bool = True
@@ -194,7 +207,18 @@ class Blend(NamedTuple):
 
 class History(NamedTuple):
     """The accumulated state of one eye: ``color`` (B, C, H, W) and ``length`` (B, 1, H, W), the float sample
-    count n (0 = no history)."""
+    count n (0 = no history).
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro import View, intrinsics_from_fov
+        >>> depth = torch.full((1, 1, 2, 4), 2.0); normal = torch.zeros(1, 3, 2, 4); normal[:, 2] = -1
+        >>> view = View(depth, normal, intrinsics_from_fov(90.0, 4, 2), torch.eye(4)[None])
+        >>> from stereorepro import History
+        >>> history = History.empty(view)  # the first frame: no samples yet
+        >>> tuple(history.color.shape), tuple(history.length.shape), float(history.length.max())
+        ((1, 3, 2, 4), (1, 1, 2, 4), 0.0)
+    """
 
     color: Tensor
     length: Tensor
@@ -218,6 +242,17 @@ class ReprojectionResult(NamedTuple):
         reason: (B, 1, H, W) uint8 :class:`~stereorepro.reproject.Reason` codes (0 where valid).
         confidence: (B, 1, H, W) accepted bilinear weight in [0, 1] before renormalisation (soft weights with
             soft tests), in the compute dtype; ``None`` where the op was not asked for it.
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro import View, intrinsics_from_fov
+        >>> depth = torch.full((1, 1, 2, 4), 2.0); normal = torch.zeros(1, 3, 2, 4); normal[:, 2] = -1
+        >>> view = View(depth, normal, intrinsics_from_fov(90.0, 4, 2), torch.eye(4)[None])
+        >>> from stereorepro import backward_reproject
+        >>> out = backward_reproject(torch.arange(8.0).reshape(1, 1, 2, 4), view, view, (0.01, 0.1))
+        >>> out.values[0, 0].tolist(), bool(out.valid.all()), out.reason.dtype, float(out.confidence.min())
+        ([[0.0, 1.0, 2.0, 3.0], [4.0, 5.0, 6.0, 7.0]], True, torch.uint8, 1.0)
+        >>> values, valid, reason, confidence = out  # a NamedTuple: unpacks too
     """
 
     values: Tensor
@@ -235,6 +270,17 @@ class TemporalResult(NamedTuple):
         valid: (B, 1, H, W) bool, where the history was kept.
         reason: (B, 1, H, W) uint8 :class:`~stereorepro.reproject.Reason` of the history's discards; ``None``
             unless asked for (``return_reason=True``).
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro import View, intrinsics_from_fov
+        >>> depth = torch.full((1, 1, 2, 4), 2.0); normal = torch.zeros(1, 3, 2, 4); normal[:, 2] = -1
+        >>> view = View(depth, normal, intrinsics_from_fov(90.0, 4, 2), torch.eye(4)[None])
+        >>> from stereorepro import History, temporal_reproject
+        >>> first = temporal_reproject(torch.ones(1, 3, 2, 4), view, History.empty(view), view, (0.01, 0.1))
+        >>> second = temporal_reproject(torch.zeros(1, 3, 2, 4), view, first.history, view, (0.01, 0.1))
+        >>> float(second.color.max()), float(second.history_len.max()), bool(second.valid.all()), second.reason
+        (0.5, 2.0, True, None)
     """
 
     color: Tensor
