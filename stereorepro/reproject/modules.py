@@ -76,6 +76,16 @@ class StereoReprojection(_ReprojectionBase):
         dst_depth, dst_normal, dst_K, dst_cam_from_world) -> (color, valid, reason)`` with shapes
         (B,3,Hs,Ws), (B,1,Hs,Ws), (B,3,Hs,Ws), (B,3,3), (B,4,4), (B,1,H,W), (B,3,H,W), (B,3,3), (B,4,4)
         → (B,3,H,W), (B,1,H,W) bool, (B,1,H,W) uint8.
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro import StereoReprojection, intrinsics_from_fov
+        >>> depth = torch.full((1, 1, 2, 4), 2.0); normal = torch.zeros(1, 3, 2, 4); normal[:, 2] = -1
+        >>> K, pose = intrinsics_from_fov(90.0, 4, 2), torch.eye(4)[None]
+        >>> color = torch.arange(24.0).reshape(1, 3, 2, 4)
+        >>> out, valid, reason = StereoReprojection(0.01, 0.1)(color, depth, normal, K, pose, depth, normal, K, pose)
+        >>> bool(torch.equal(out, color)), bool(valid.all()), int(reason.max())  # same view: every pixel kept
+        (True, True, 0)
     """
 
     #: The forward's inputs: name and symbolic shape (the one description ONNX export reads).
@@ -119,6 +129,17 @@ class TemporalReprojection(_ReprojectionBase):
         prev_normal, prev_K, prev_cam_from_world[, motion, motion_world]) -> (color, history_len, valid)`` with
         shapes (B,3,H,W), (B,1,H,W), (B,3,H,W), (B,3,3), (B,4,4), (B,3,H,W), (B,1,H,W), (B,1,H,W), (B,3,H,W),
         (B,3,3), (B,4,4)[, (B,2,H,W), (B,3,H,W)] → (B,3,H,W), (B,1,H,W) float, (B,1,H,W) bool.
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro import TemporalReprojection, intrinsics_from_fov
+        >>> depth = torch.full((1, 1, 2, 4), 2.0); normal = torch.zeros(1, 3, 2, 4); normal[:, 2] = -1
+        >>> K, pose = intrinsics_from_fov(90.0, 4, 2), torch.eye(4)[None]
+        >>> step = TemporalReprojection(0.01, 0.1, alpha=0.2)
+        >>> history, n = torch.zeros(1, 3, 2, 4), torch.full((1, 1, 2, 4), 9.0)  # 9 samples of black
+        >>> color, n, valid = step(torch.ones(1, 3, 2, 4), depth, normal, K, pose, history, n, depth, normal, K, pose)
+        >>> round(float(color.max()), 6), float(n.max()), bool(valid.all())  # weight max(1/10, 0.2) on the new frame
+        (0.2, 10.0, True)
     """
 
     #: The forward's inputs without motion vectors: name and symbolic shape (what ONNX export reads); with
