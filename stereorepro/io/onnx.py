@@ -47,6 +47,19 @@ def export_onnx(module: nn.Module, path, opset: int = 18, inputs: tuple[Tensor, 
 
     Returns:
         the path written.
+
+    Examples:
+        >>> import tempfile, torch
+        >>> from stereorepro import StereoReprojection, intrinsics_from_fov
+        >>> from stereorepro.io.onnx import export_onnx, onnx_input_dims
+        >>> depth = torch.full((1, 1, 2, 4), 2.0); normal = torch.zeros(1, 3, 2, 4); normal[:, 2] = -1
+        >>> view = (depth, normal, intrinsics_from_fov(90.0, 4, 2), torch.eye(4)[None])
+        >>> with tempfile.TemporaryDirectory() as tmp:
+        ...     path = export_onnx(StereoReprojection(0.01, 0.1), f"{tmp}/stereo.onnx",
+        ...                        inputs=(torch.ones(1, 3, 2, 4), *view, *view))
+        ...     dims = onnx_input_dims(path)
+        >>> path.name, dims["src_color"], dims["dst_depth"]  # batch and image size stay symbolic
+        ('stereo.onnx', ['B', 3, 'Hp', 'Wp'], ['B', 1, 'H', 'W'])
     """
     if opset < 17:
         raise ValueError(f"opset must be >= 17 (GridSample/ReduceMax semantics), got {opset}")
