@@ -87,6 +87,15 @@ class EyeState:
         color: (B, 3, H, W) accumulated colour.
         history_len: (B, 1, H, W) float sample count.
         depth: (B, 1, H, W); normal: (B, 3, H, W); K: (B, 3, 3); cam_from_world: (B, 4, 4).
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro.accumulate import EyeState
+        >>> z = torch.zeros(1, 1, 2, 2)
+        >>> state = EyeState(torch.ones(1, 3, 2, 2), z + 4, z + 2, torch.zeros(1, 3, 2, 2), torch.eye(3)[None],
+        ...                  torch.eye(4)[None])
+        >>> float(state.history.length.max()), tuple(state.view.depth.shape)
+        (4.0, (1, 1, 2, 2))
     """
 
     color: Tensor
@@ -125,6 +134,20 @@ def temporal_step(module: TemporalReprojection, state: EyeState | None, color: T
         state: the new :class:`EyeState` (accumulated colour and sample count with this frame's G-buffer).
         valid: (B, 1, H, W) bool, where the history was kept (all False on the first frame).
         reason: (B, 1, H, W) uint8 :class:`~stereorepro.Reason` (``NO_HISTORY`` everywhere on the first frame).
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro import TemporalReprojection, intrinsics_from_fov
+        >>> from stereorepro.accumulate import temporal_step
+        >>> depth = torch.full((1, 1, 6, 8), 2.0); normal = torch.zeros(1, 3, 6, 8); normal[:, 2] = -1
+        >>> camera = (depth, normal, intrinsics_from_fov(60.0, 8, 6), torch.eye(4)[None])
+        >>> module = TemporalReprojection(0.03, 0.2)
+        >>> state, valid, _ = temporal_step(module, None, torch.ones(1, 3, 6, 8), *camera)  # first frame
+        >>> bool(valid.any()), float(state.history_len.max())
+        (False, 1.0)
+        >>> state, valid, _ = temporal_step(module, state, torch.zeros(1, 3, 6, 8), *camera)  # same camera
+        >>> bool(valid.all()), float(state.history_len.max()), round(float(state.color.mean()), 4)
+        (True, 2.0, 0.5)
     """
     if state is None:
         n = torch.ones_like(depth, dtype=torch.float32)
@@ -316,6 +339,19 @@ class SpatiotemporalReprojection:
         out[full_eye] = st.full(trace(full_eye), *gbuffer[full_eye])
         mask = st.other_trace_mask(*gbuffer[other_eye])
         out[other_eye] = st.other(trace(other_eye, pixel_mask=mask))
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro import SpatiotemporalReprojection, intrinsics_from_fov
+        >>> depth = torch.full((1, 1, 6, 8), 3.0); normal = torch.zeros(1, 3, 6, 8); normal[:, 2] = -1
+        >>> K, right_pose = intrinsics_from_fov(90.0, 8, 6), torch.eye(4)[None]
+        >>> left_pose = right_pose.clone(); left_pose[0, 0, 3] = 1.0  # 1 pixel of disparity at depth 3
+        >>> st = SpatiotemporalReprojection(0.03, 0.2)
+        >>> right = st.right(torch.ones(1, 3, 6, 8), depth, normal, K, right_pose)  # traced in full
+        >>> mask = st.left_trace_mask(depth, normal, K, left_pose)  # what the right eye cannot give
+        >>> left = st.left(torch.zeros(1, 3, 6, 8))  # traced where mask (zeros here), reprojected elsewhere
+        >>> tuple(left.shape), int(mask.sum()), float(left.sum())
+        ((1, 3, 6, 8), 6, 126.0)
     """
 
     def __init__(self, position_threshold: float, normal_threshold: float, alpha: float = 0.2,
