@@ -26,6 +26,7 @@ import math
 import numpy as np
 import torch
 
+from .._extras import require
 from ..camera import PinholeCamera
 from ..errors import SequenceError
 from .exr import channel_size
@@ -41,7 +42,7 @@ FLIP = np.diag([-1.0, -1.0, 1.0, 1.0])
 
 
 def _mi():
-    import mitsuba as mi
+    mi = require("mitsuba", "Mitsuba frames")
 
     if mi.variant() is None:
         mi.set_variant("scalar_rgb")

@@ -14,11 +14,13 @@ exported with float16 inputs widens them to float32 inside (tested with onnxrunt
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import torch
 from torch import Tensor, nn
 
+from .._extras import require
 from .atomic import atomic_path
 
 __all__ = ["export_onnx", "onnx_input_dims", "symbolic_axes"]
@@ -75,10 +77,13 @@ def export_onnx(module: nn.Module, path, opset: int = 18, inputs: tuple[Tensor, 
     inputs = tuple(inputs)
     if len(inputs) != len(names):
         raise ValueError(f"expected {len(names)} inputs ({', '.join(names)}), got {len(inputs)}")
+    require("onnx", "export_onnx")
     path = Path(path)
     dynamic_axes = symbolic_axes(fields)
     module = module.eval()
-    with atomic_path(path) as tmp:
+    with atomic_path(path) as tmp, warnings.catch_warnings():
+        # torch's constant folding notes every strided Slice it leaves alone: known noise, the graph is correct
+        warnings.filterwarnings("ignore", message="Constant folding - Only steps=1", category=UserWarning)
         torch.onnx.export(module, inputs, str(tmp), input_names=names, output_names=list(module.output_names),
                           dynamic_axes=dynamic_axes, opset_version=opset, dynamo=False,
                           do_constant_folding=True)
@@ -94,8 +99,7 @@ def export_onnx(module: nn.Module, path, opset: int = 18, inputs: tuple[Tensor, 
 
 def onnx_input_dims(path) -> dict[str, list]:
     """Input name → list of dims (int for fixed, str for symbolic) of an ONNX file."""
-    import onnx
-
+    onnx = require("onnx", "onnx_input_dims")
     model = onnx.load(str(path))
     out = {}
     for i in model.graph.input:
