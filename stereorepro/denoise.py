@@ -103,6 +103,15 @@ def denoise_features(color: Tensor, history_len: Tensor, valid: Tensor, depth: T
         max_history: the accumulation's cap of ``history_len``; the feature is ``history_len / max_history``.
         stereo_color: optional (B, 3, H, W) the other eye's colour reprojected into this eye.
         stereo_valid: (B, 1, H, W) bool, where it was kept (required with ``stereo_color``).
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro.denoise import denoise_features
+        >>> depth = torch.full((1, 1, 4, 4), 2.0); normal = torch.zeros(1, 3, 4, 4); normal[:, 2] = -1
+        >>> valid = torch.ones(1, 1, 4, 4, dtype=torch.bool)
+        >>> x = denoise_features(torch.ones(1, 3, 4, 4), torch.full((1, 1, 4, 4), 51.0), valid, depth, normal)
+        >>> tuple(x.shape), [round(float(v), 4) for v in x[0, :, 0, 0]]  # log1p colour, n / 255, valid, 1 / z, N
+        ((1, 9, 4, 4), [0.6931, 0.6931, 0.6931, 0.2, 1.0, 0.5, 0.0, 0.0, -1.0])
     """
     bind = check_shape(color, ["B", "3", "H", "W"], "color")
     check_shape(history_len, ["B", "1", "H", "W"], "history_len", bind)
@@ -357,7 +366,16 @@ def empty_history(depth: Tensor, normal: Tensor, K: Tensor, cam_from_world: Tens
     """The state to pass on a first frame (or after a camera cut): (history_color, history_len, prev_depth,
     prev_normal, prev_K, prev_cam_from_world) = zeros (B, 3, H, W), zeros (B, 1, H, W), zeros (B, 1, H, W) (no
     surface: every history tap is rejected), zeros (B, 3, H, W), ``K``, ``cam_from_world``; images in ``depth``'s
-    dtype, on its device."""
+    dtype, on its device.
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro.denoise import empty_history
+        >>> depth, normal = torch.full((1, 1, 4, 4), 2.0), torch.zeros(1, 3, 4, 4)
+        >>> color, length, prev_depth, *_ = empty_history(depth, normal, torch.eye(3)[None], torch.eye(4)[None])
+        >>> tuple(color.shape), tuple(length.shape), float(prev_depth.abs().max())
+        ((1, 3, 4, 4), (1, 1, 4, 4), 0.0)
+    """
     bind = check_shape(depth, ["B", "1", "H", "W"], "depth")
     check_shape(normal, ["B", "3", "H", "W"], "normal", bind)
     z1 = torch.zeros_like(depth)
@@ -386,6 +404,21 @@ class ReprojectionDenoiser(nn.Module):
 
     Export: ``stereorepro.export_onnx(model, path, inputs=denoiser_example_inputs(model))`` (symbolic B, H, W,
     and Hp, Wp for the history).
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro import ReprojectionDenoiser, intrinsics_from_fov
+        >>> from stereorepro.denoise import empty_history
+        >>> depth = torch.full((1, 1, 6, 8), 2.0); normal = torch.zeros(1, 3, 6, 8); normal[:, 2] = -1
+        >>> view = (depth, normal, intrinsics_from_fov(60.0, 8, 6), torch.eye(4)[None])
+        >>> model = ReprojectionDenoiser(torch.nn.Conv2d(9, 3, 3, padding=1), 0.03, 0.2)
+        >>> history = empty_history(*view)  # first frame: nothing to reproject
+        >>> denoised, color, n = model(torch.rand(1, 3, 6, 8), *view, *history)
+        >>> model.in_channels, tuple(denoised.shape), float(n.max())
+        (9, (1, 3, 6, 8), 1.0)
+        >>> denoised, color, n = model(torch.rand(1, 3, 6, 8), *view, color, n, *view)  # next frame, same camera
+        >>> float(n.min())
+        2.0
     """
 
     #: The forward's inputs without the other eye (name, symbolic shape): the temporal op's; with ``stereo`` the
