@@ -409,6 +409,7 @@ class ReprojectionDenoiser(nn.Module):
         >>> import torch
         >>> from stereorepro import ReprojectionDenoiser, intrinsics_from_fov
         >>> from stereorepro.denoise import empty_history
+        >>> _ = torch.manual_seed(0)  # the convolution's initial weights and the colours below
         >>> depth = torch.full((1, 1, 6, 8), 2.0); normal = torch.zeros(1, 3, 6, 8); normal[:, 2] = -1
         >>> view = (depth, normal, intrinsics_from_fov(60.0, 8, 6), torch.eye(4)[None])
         >>> model = ReprojectionDenoiser(torch.nn.Conv2d(9, 3, 3, padding=1), 0.03, 0.2)
