@@ -199,6 +199,13 @@ def rmse(image: Tensor, reference: Tensor, mask: Tensor | None = None, nonfinite
 
     Returns:
         (B,) float64.
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro.measure import rmse
+        >>> ref = torch.zeros(2, 3, 4, 4); img = ref.clone(); img[1] += 0.5
+        >>> rmse(img, ref).tolist()
+        [0.0, 0.5]
     """
     return mse(image, reference, mask, nonfinite).sqrt()
 
@@ -264,6 +271,14 @@ def ssim(image: Tensor, reference: Tensor, mask: Tensor | None = None, window_si
     Returns:
         (B,) float64, exactly 1 for identical images (black ones too: the SSIM ratio without an epsilon, its
         constants keep the denominator > 0).
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro.measure import ssim
+        >>> ref = torch.linspace(0, 1, 768).reshape(1, 3, 16, 16)
+        >>> checker = ((torch.arange(16)[:, None] + torch.arange(16)) % 2).float()
+        >>> round(float(ssim(ref, ref)[0]), 6), round(float(ssim(ref + 0.1 * checker, ref)[0]), 3)
+        (1.0, 0.502)
     """
     _check_pair(image, reference, mask, "ssim")
     if tonemap not in ("clamp", "reinhard", "none"):
@@ -310,6 +325,14 @@ def ladder_rmse(ladder_images: Tensor | Sequence[Tensor], reference: Tensor, mas
 
     Returns:
         (B, N) float64: row b is the ladder of batch item (frame) b, ready for :func:`effective_spp_many`.
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro.measure import ladder_rmse
+        >>> ref = torch.zeros(1, 3, 4, 4)
+        >>> rungs = [ref + 0.4, ref + 0.2, ref + 0.1]  # 1, 4 and 16 spp: the error halves per 4x samples
+        >>> [[round(v, 6) for v in row] for row in ladder_rmse(rungs, ref).tolist()]
+        [[0.4, 0.2, 0.1]]
     """
     if isinstance(ladder_images, Tensor):
         check_shape(ladder_images, ["N", "B", "C", "H", "W"], "ladder_rmse ladder_images")
@@ -426,6 +449,12 @@ def fit_ladder(ladder_spp, ladder_rmse) -> tuple[Tensor, Tensor]:
 
     Returns:
         (a, b): float64 tensors of shape () for a (N,) ladder, (F,) for (F, N); in MSE units.
+
+    Examples:
+        >>> from stereorepro.measure import fit_ladder
+        >>> a, b = fit_ladder([1.0, 4.0, 16.0], [0.4, 0.2, 0.1])  # MSE(n) = 0.16 / n
+        >>> round(float(a), 6), round(float(b), 6)
+        (0.16, 0.0)
     """
     s, R = _check_ladder(ladder_spp, ladder_rmse, "fit_ladder")
     k = _unit_scale(R)
@@ -586,6 +615,14 @@ class EffectiveSppLadder:
         ladder_spp: (N,) float64, strictly increasing.
         ladder_rmse: (N,) float64, > 0.
         interpolation: ``"inverse_mse"`` or ``"linear"``.
+
+    Examples:
+        >>> from stereorepro.measure import EffectiveSppLadder
+        >>> ladder = EffectiveSppLadder([1.0, 4.0, 16.0], [0.4, 0.2, 0.1])  # RMSE of 1, 4 and 16 spp
+        >>> ladder((0.16 / 8) ** 0.5)  # an image with the RMSE of 8 spp
+        (8.0, 'interpolated')
+        >>> [round(v, 6) for v in ladder.fit]
+        [0.16, 0.0]
     """
 
     ladder_spp: Tensor
