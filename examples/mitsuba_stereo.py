@@ -91,7 +91,8 @@ def main(argv=None) -> dict:
     code = cli(["reproject", "--from", "mitsuba", "--input", str(d), "--out", str(out / "reprojected"),
                 "--mode", "both"])
     summary = json.loads((out / "reprojected" / "summary.json").read_text())
-    result = {"exit_code": code, "mean_discard_pct": summary["mean_discard_pct"], "warnings": summary["warnings"],
+    result = {"exit_code": code, "mean_surface_discard_pct": summary["mean_surface_discard_pct"],
+              "mean_discard_pct": summary["mean_discard_pct"], "warnings": summary["warnings"],
               "frames": frames, "resolution": f"{W}x{H}"}
     (out / "mitsuba_stereo.json").write_text(json.dumps(result, indent=1))
     print(json.dumps(result, indent=1))

@@ -53,7 +53,10 @@ def _stats(valid: Tensor, reason: Tensor, frame: Frame | None = None) -> dict:
     codes = reason.flatten().to(torch.int64).bincount(minlength=256).tolist()
     names = {int(r): r.name for r in Reason}
     names[NO_HISTORY] = "NO_HISTORY"
+    surface = reason != int(Reason.NO_SURFACE_DST)
+    n_surface = int(surface.sum())
     out = {"discard_pct": 100.0 * (1.0 - float(valid.float().mean())),
+           "surface_discard_pct": 100.0 * float((~valid & surface).sum()) / n_surface if n_surface else None,
            "reasons": {names.get(c, str(c)): n for c, n in enumerate(codes) if n and c != 0},
            "no_history": bool((reason == NO_HISTORY).all())}
     if frame is not None:
@@ -192,7 +195,9 @@ def reproject_sequence(input_dir, out_dir, mode: str = "both", eye: str = "right
             ``aov`` integrator, :mod:`stereorepro.io.mitsuba`); see :func:`~stereorepro.io.frames.load_sequence`.
 
     Returns:
-        the summary written to ``summary.json``. Its ``mean_discard_pct`` averages the frames that have a history
+        the summary written to ``summary.json``. Its ``mean_discard_pct`` (over all pixels) and
+        ``mean_surface_discard_pct`` (over the pixels with a surface, the share the paper reports) average the frames
+        that have a history
         (``NO_HISTORY`` frames, the first of an accumulation, are listed in ``no_history_frames``); ``warnings``
         lists the likely convention mistakes (:func:`stereorepro.workflows.diagnose.diagnose_conventions`) and frames
         whose normals are zero or not finite on more than 1 % of the surface pixels.
@@ -224,13 +229,18 @@ def reproject_sequence(input_dir, out_dir, mode: str = "both", eye: str = "right
         warnings += _normal_warnings(per_frame, eyes_out)
         for w in warnings:
             warn(w["message"])
-        with_history = {e: [f[e]["discard_pct"] for f in per_frame if not f[e]["no_history"]] for e in eyes_out}
+        def mean_over_history(key: str) -> dict:
+            vals = {e: [f[e][key] for f in per_frame if not f[e]["no_history"] and f[e][key] is not None]
+                    for e in eyes_out}
+            return {e: float(np.mean(v)) if v else None for e, v in vals.items()}
+
         summary = {
             "mode": mode, "eyes": list(eyes_out), "input": str(seq.root), "frames": len(seq),
             "width": seq.width, "height": seq.height, "position_threshold": float(pos),
             "normal_threshold": float(nrm), "alpha": float(alpha) if mode != "stereo" else None,
             "sampling": sampling, "source": source,
-            "mean_discard_pct": {e: float(np.mean(v)) if v else None for e, v in with_history.items()},
+            "mean_discard_pct": mean_over_history("discard_pct"),
+            "mean_surface_discard_pct": mean_over_history("surface_discard_pct"),
             "no_history_frames": {e: [f["frame"] for f in per_frame if f[e]["no_history"]] for e in eyes_out},
             "warnings": warnings,
             "per_frame": per_frame,

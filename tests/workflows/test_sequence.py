@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from stereorepro import SpatiotemporalReprojection, StereoReprojection
+from stereorepro import SpatiotemporalReprojection, StereoReprojection, has_surface
 from stereorepro.cli import main
 from stereorepro.errors import SequenceError
 from stereorepro.io.exr import read_exr, write_exr
@@ -93,6 +93,10 @@ class TestReprojectCli:
             ch = read_exr(out / f"{N - 1:04d}_{eye}_reprojected.exr")
             np.testing.assert_array_equal(np.stack([ch["R"], ch["G"], ch["B"]]), img[0].numpy())
         assert summary["per_frame"][-1]["left"]["discard_pct"] == pytest.approx(100 * mask.float().mean().item())
+        surface = has_surface(L.depth)  # the share over surface pixels, the one the paper reports
+        want = 100 * float((mask & surface).sum()) / float(surface.sum())
+        assert summary["per_frame"][-1]["left"]["surface_discard_pct"] == pytest.approx(want)
+        assert summary["mean_surface_discard_pct"]["left"] is not None
 
     def test_temporal_first_frame(self, seq_dir, tmp_path):
         out = tmp_path / "o"
