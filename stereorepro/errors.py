@@ -3,6 +3,19 @@
 Each concrete error also derives from the built-in it refines (``ValueError``, or ``TypeError`` for
 :class:`ParameterTypeError`), so code written against the built-ins keeps working. Messages name what was wrong and
 where: the argument, the file, the frame or the key.
+
+Examples:
+    >>> import stereorepro
+    >>> try:
+    ...     stereorepro.TemporalReprojection(0.03, 0.2, alpha=1.5)  # alpha must be in (0, 1]
+    ... except stereorepro.StereoreproError as e:
+    ...     print(type(e).__name__, isinstance(e, ValueError))
+    ParameterError True
+    >>> try:
+    ...     stereorepro.TemporalReprojection(0.03, 0.2, alpha=1.5)
+    ... except ValueError:  # code written against the built-in catches it too
+    ...     print("caught")
+    caught
 """
 
 from __future__ import annotations

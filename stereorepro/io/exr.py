@@ -60,6 +60,17 @@ def write_exr(path: str | os.PathLike, data) -> None:
 
     Raises:
         ShapeError: channels that are not (H, W) arrays of one size with H, W >= 1.
+
+    Examples:
+        >>> import os, tempfile
+        >>> import numpy as np
+        >>> from stereorepro.io import read_exr, write_exr
+        >>> depth = np.arange(48, dtype=np.float32).reshape(6, 8)
+        >>> with tempfile.TemporaryDirectory() as d:
+        ...     write_exr(os.path.join(d, "frame.exr"), {"R": np.full((6, 8), 0.5, np.float32), "depth": depth})
+        ...     channels = read_exr(os.path.join(d, "frame.exr"))
+        >>> sorted(channels), bool(np.array_equal(channels["depth"], depth)), float(channels["R"][0, 0])
+        (['R', 'depth'], True, 0.5)
     """
     chans = result_channels(data) if not isinstance(data, dict) else data
     if not chans:
@@ -252,6 +263,16 @@ def read_exr(path: str | os.PathLike) -> dict[str, np.ndarray]:
         FileNotFoundError: the file does not exist.
         ValueError: it is not a readable EXR (the message says why; OpenEXR's own messages are folded into it
             instead of being printed).
+
+    Examples:
+        >>> import os, tempfile
+        >>> import numpy as np
+        >>> from stereorepro.io import read_exr, write_exr
+        >>> with tempfile.TemporaryDirectory() as d:
+        ...     write_exr(os.path.join(d, "a.exr"), {"Z": np.ones((6, 8), np.float32)})
+        ...     channels = read_exr(os.path.join(d, "a.exr"))
+        >>> {name: (a.shape, str(a.dtype)) for name, a in channels.items()}
+        {'Z': ((6, 8), 'float32')}
     """
     OpenEXR = require("OpenEXR", "EXR files")
 

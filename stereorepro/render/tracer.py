@@ -151,6 +151,15 @@ class RenderResult:
             static geometry); NaN where there is no surface. ``None`` unless ``prev_camera`` was given.
         object_id: (1, 1, H, W) int32 index of the moving object seen at the pixel (-1: static geometry or no
             surface); ``None`` unless the scene declares ``moving_objects``.
+
+    Examples:
+        >>> from stereorepro import PathTracer, load_scene
+        >>> scene = load_scene("living_room")
+        >>> result = PathTracer(scene, workers=1).render(scene.camera(0, 8, 6), frame=0, spp=1)
+        >>> tuple(result.radiance.shape), tuple(result.normal.shape), result.spp, result.ray_counts["primary"]
+        ((1, 3, 6, 8), (1, 3, 6, 8), 1, 48)
+        >>> result.motion is None  # no prev_camera given
+        True
     """
 
     radiance: Tensor
@@ -297,6 +306,14 @@ class PathTracer:
     Only the effects the scene declares are simulated: the glossy lobe is evaluated only when ``"glossy" in
     scene.effects``; lights are merged once per tracer unless ``"moving_light" in scene.effects`` (then once per
     frame). ``stats`` counts these preparations (``bvh_builds``, ``light_prepare``).
+
+    Examples:
+        >>> from stereorepro import PathTracer, load_scene
+        >>> scene = load_scene("living_room")
+        >>> tracer = PathTracer(scene, seed=0, workers=1)
+        >>> result = tracer.render(scene.camera(0, 8, 6), frame=0, spp=1)  # 8x6 pixels, 1 sample each
+        >>> tuple(result.radiance.shape), tuple(result.depth.shape), tracer.stats["bvh_builds"]
+        ((1, 3, 6, 8), (1, 1, 6, 8), 1)
     """
 
     def __init__(self, scene, seed: int = 0, workers: int | None = None, max_batch: int = 1 << 15,

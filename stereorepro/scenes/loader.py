@@ -125,7 +125,13 @@ def shared_scenes_dir() -> Path:
 def list_scenes(include_external: bool = False, beyond_paper: bool = False) -> list[str]:
     """Names of the built-in scenes (the paper's seven variants); with ``include_external`` also the scenes that
     need the shared meshes (``shared_*``); with ``beyond_paper`` also the built-in scenes of effects the paper
-    does not have (``living_room_moving_objects``)."""
+    does not have (``living_room_moving_objects``).
+
+    Examples:
+        >>> from stereorepro import list_scenes
+        >>> list_scenes()[:3], "living_room" in list_scenes(), len(list_scenes())
+        (['atrium', 'atrium_glossy', 'atrium_moving_light'], True, 7)
+    """
     return (list(BUILTIN_SCENES) + (list(BEYOND_PAPER_SCENES) if beyond_paper else [])
             + (list(EXTERNAL_SCENES) if include_external else []))
 
@@ -557,6 +563,12 @@ def load_scene(name_or_path: str | os.PathLike) -> Scene:
 
     Raises:
         SceneError: unknown name, missing file, unknown key, wrong type or inconsistent declaration.
+
+    Examples:
+        >>> from stereorepro import load_scene
+        >>> scene = load_scene("living_room")
+        >>> scene.name, scene.num_frames, tuple(scene.camera(0, 8, 6).K.shape)
+        ('living_room', 60, (1, 3, 3))
     """
     path = _scene_path(name_or_path)
     data = _read_toml(path)
