@@ -1,6 +1,6 @@
 # Entry points on a fresh machine:
 #   make demo          what the demo needs (.[experiment]: the tracer, EXR, figures, SSIM/FLIP), then `stereorepro demo`
-#   make test          the test suite (every extra), the docs site (warnings as errors), then the install checks in
+#   make test          lint (ruff), the test suite (every extra), the docs site (warnings as errors), the install checks in
 #                      fresh environments (.ci/test-install): what CI runs (.ci/run)
 #   make               everything a contributor needs (.[dev]: every extra, pytest, mkdocs, ruff) in .venv
 #   make test-suite    the test suite alone; make docs: the docs site alone (build/site); make test-install: the
@@ -22,7 +22,7 @@ PYTEST_ARGS ?=
 SOURCES := pyproject.toml cpp_ext/CMakeLists.txt $(wildcard cpp_ext/src/*.cpp cpp_ext/src/*.h)
 
 .DEFAULT_GOAL := venv
-.PHONY: venv demo test test-suite test-install test-all docs bench clean
+.PHONY: venv demo test test-suite test-install test-all docs lint bench clean
 
 $(BASE_STAMP):
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -52,7 +52,7 @@ $(BLENDER_STAMP): | $(STAMP)
 demo: $(DEMO_STAMP)
 	$(PY) -m stereorepro demo
 
-test: test-suite docs test-install
+test: lint test-suite docs test-install
 
 test-suite: $(STAMP) $(BLENDER_STAMP)
 	$(PY) -m pytest -q -m "not slow" $(PYTEST_ARGS)
@@ -63,6 +63,10 @@ test-install:
 
 docs: $(STAMP)
 	$(VENV)/bin/mkdocs build --strict
+
+# ruff's lint rules of pyproject.toml over the package, the tests, the benchmarks and the examples
+lint: $(STAMP)
+	$(VENV)/bin/ruff check stereorepro tests bench examples
 
 test-all: $(STAMP) $(BLENDER_STAMP)
 	$(PY) -m pytest -q $(PYTEST_ARGS)

@@ -199,7 +199,7 @@ def main(argv=None) -> dict:
     res["max_abs_diff_all"] = max(res["max_abs_diff"].values())
     (out / "onnx_deploy.json").write_text(json.dumps(res, indent=1))
     print(f"onnx_deploy: {frames} frames of {scene.name} at {W}x{H}; onnxruntime (no torch in process) vs torch:")
-    print(f"  max |diff|: " + ", ".join(f"{k} {v:.2e}" for k, v in res["max_abs_diff"].items()))
+    print("  max |diff|: " + ", ".join(f"{k} {v:.2e}" for k, v in res["max_abs_diff"].items()))
     print(f"  mask/reason mismatches (pixels): {res['mask_mismatch_pixels']}")
     print(f"  per frame (median): onnxruntime {res['ms_per_frame_onnxruntime']:.1f} ms, "
           f"torch {res['ms_per_frame_torch']:.1f} ms  -> {out / 'onnx_deploy.json'}")

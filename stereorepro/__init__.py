@@ -14,7 +14,7 @@ frame I/O are imported on first use of their names (``stereorepro.PathTracer``, 
 
 import importlib as _importlib
 
-from ._version import __version__
+from ._version import __version__  # noqa: F401 (the package version, read without importing the package)
 
 from .accumulate import EyeState, SpatiotemporalReprojection, temporal_step
 from .camera import (

@@ -141,7 +141,7 @@ def fast_motion_source(geo: _RowGeometry, zc: Tensor, motion: tuple[Tensor, Tens
     (zero where not finite), in place.
     """
     mo, mw = motion
-    B, N, wdt = zc.shape[0], zc.shape[-1], zc.dtype
+    B, wdt = zc.shape[0], zc.dtype
     h = r1 - r0
     mo = mo.to(wdt)
     ok = torch.isfinite(mo).all(1, keepdim=True)

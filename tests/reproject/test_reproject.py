@@ -552,7 +552,7 @@ class TestFastPath(BaseTester):
     @pytest.mark.parametrize("shift", [0.0, 1.0, 1.25, -2.5])
     def test_rectified_planes(self, monkeypatch, shift):
         """fy = 0 everywhere: the fast path reads the y0 taps only."""
-        from stereorepro.reproject import _fast, functional
+        from stereorepro.reproject import _fast
 
         inp = plane_pair(H=9, W=11, shift_px=shift, B=2)
         inp["src_depth"][0, 0, :, 4] = 2.5  # occluder: POSITION discards
@@ -603,7 +603,7 @@ class TestFastPath(BaseTester):
 
     def test_float64_table_indices(self, monkeypatch):
         """Source tables of 2^24 pixels or more index in float64 (forced here on a small image)."""
-        from stereorepro.reproject import _fast, functional
+        from stereorepro.reproject import _fast
 
         monkeypatch.setattr(_fast, "_F32_EXACT", 100)
         inp, *_ = scene_pair(H=12, W=16, forward=0.2)
@@ -613,7 +613,7 @@ class TestFastPath(BaseTester):
 
     def test_not_taken(self, monkeypatch):
         """Gradients, soft tests and thresholds whose square is not finite take the general path."""
-        from stereorepro.reproject import _fast, functional
+        from stereorepro.reproject import _fast
 
         monkeypatch.setattr(_fast, "fast_reproject", None)  # would raise if called
         inp, *_ = scene_pair(H=8, W=10)
@@ -645,7 +645,6 @@ class TestComposeCameras(BaseTester):
 
     @pytest.mark.parametrize("seed", [0, 1, 2])
     def test_numpy_equals_torch(self, seed):
-        from stereorepro.reproject import _fast, functional
 
         m = StereoReprojection(0.05, 0.3)
         a = dict(zip(m.input_names, example_inputs(m, batch=4, height=8, width=8, seed=seed)))

@@ -29,7 +29,6 @@ from stereorepro.reproject import (
     native_unsupported,
     select_backend,
     stereo_reproject,
-    temporal_blend,
     temporal_reproject,
 )
 from stereorepro._testing import camera_pair, default_scene, raycast
