@@ -7,6 +7,7 @@ carry Python-side asserts) but shapes are already fixed by then.
 from __future__ import annotations
 
 import math
+import os
 from typing import Sequence
 
 import numpy as np
@@ -19,7 +20,7 @@ __all__ = ["check_shape", "check_floating", "check_device", "check_camera", "che
            "check_sampling", "check_reprojection_inputs", "check_camera_values", "check_motion", "check_scalar",
            "check_thresholds", "check_blend", "check_blend_inputs", "intrinsics_problem", "rigid_problem", "tracing",
            "ShapeError", "CameraError", "ParameterError", "ParameterTypeError", "SAMPLINGS", "STEREO_NAMES",
-           "TEMPORAL_NAMES", "FLOAT32_MAX"]
+           "TEMPORAL_NAMES", "FLOAT32_MAX", "check_backend_env", "check_resolution", "physical_memory"]
 
 #: The largest finite float32: finite scalar parameters beyond it are refused (the ops compute in float32 unless an
 #: input is float64, the native kernels always; ``inf`` is the way to say "no limit").
@@ -307,3 +308,57 @@ def check_reprojection_inputs(src_values, src_depth, src_normal, src_K, src_cam_
                   names["src"] + "_cam_from_world": src_cam_from_world, names["dst_depth"]: dst_depth,
                   names["dst_normal"]: dst_normal, names["dst"] + "_K": dst_K,
                   names["dst"] + "_cam_from_world": dst_cam_from_world}, "reprojection", tr)
+
+
+def check_backend_env() -> str | None:
+    """The ``STEREOREPRO_BACKEND`` override, lower-cased, or None when unset; ParameterError naming the variable
+    and the names it takes (:data:`stereorepro._backend.NAMES`) otherwise. Commands check it before they create
+    anything (the ops and the tracer check it again when they resolve their backend)."""
+    from . import _backend
+
+    env = os.environ.get(_backend.ENV_VAR, "").strip().lower()
+    if env and env not in _backend.NAMES:
+        raise ParameterError(f"{_backend.ENV_VAR} must be one of {_backend.NAMES}, got {env!r}")
+    return env or None
+
+
+def physical_memory() -> int | None:
+    """Bytes of memory this process can have: the machine's physical memory, or its container's limit (cgroup v2
+    ``memory.max`` or v1 ``memory.limit_in_bytes``) when lower; None when neither can be read."""
+    sizes = []
+    try:
+        sizes.append(os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):
+        pass
+    for path in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
+        try:
+            with open(path) as f:
+                text = f.read().strip()
+        except OSError:
+            continue
+        if text.isdigit():
+            sizes.append(int(text))
+    sizes = [s for s in sizes if s > 0]
+    return min(sizes) if sizes else None
+
+
+def _bytes(n: float) -> str:
+    """``n`` bytes in binary units (``1.5 TiB``)."""
+    units = ("B", "KiB", "MiB", "GiB", "TiB", "PiB")
+    i = 0
+    while n >= 1024 and i < len(units) - 1:
+        n, i = n / 1024, i + 1
+    return f"{n:.1f} {units[i]}"
+
+
+def check_resolution(width: int, height: int, bytes_per_pixel: int, what: str, limit: int | None = None) -> int:
+    """The one resolution / memory guard: the memory a ``width`` × ``height`` run of ``what`` needs, estimated as
+    ``width·height·bytes_per_pixel`` (each workflow states its measured peak per pixel), returned when it fits in
+    ``limit`` (default: :func:`physical_memory`; no limit when that is unknown), else ParameterError naming the
+    estimate and the limit. Called before anything is allocated or created."""
+    need = int(width) * int(height) * int(bytes_per_pixel)
+    limit = physical_memory() if limit is None else limit
+    if limit is not None and need > limit:
+        raise ParameterError(f"{what} at {width}x{height} needs about {_bytes(need)} of memory ({bytes_per_pixel} "
+                             f"bytes per pixel), more than this machine's {_bytes(limit)}: use a smaller resolution")
+    return need

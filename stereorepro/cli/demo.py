@@ -1,7 +1,7 @@
 """``stereorepro demo``: the main job on a built-in default — a quick run of the paper's experiment.
 
-Runs :func:`stereorepro.workflows.experiment.run_experiment` on the built-in ``living_room`` scene at a small resolution,
-few frames and a low reference spp (a few minutes on 2 cores), prints Tables 1 and 2 and the report's path.
+Runs :func:`stereorepro.workflows.experiment.run_experiment` on the built-in ``living_room`` scene at a small
+resolution, few frames and a low reference spp (a few minutes on 2 cores), prints Tables 1 and 2 and the report's path.
 Every setting can be overridden with the same options as ``stereorepro experiment``.
 """
 

@@ -8,6 +8,7 @@ from pathlib import Path
 from ..camera import DEFAULT_RESOLUTION
 from ..errors import UserError
 from ..workflows.experiment import ExperimentConfig, run_experiment, tables_markdown
+from ..workflows.experiment.distributed import ClusterError
 from ._args import alpha_list, parse_resolution, positive_int, threshold_scale
 
 __all__ = ["add_arguments", "config_from_args", "run_command", "register"]
@@ -18,11 +19,13 @@ def add_arguments(p: argparse.ArgumentParser, defaults: dict | None = None) -> N
     p.add_argument("--scene", default=d.get("scene"), required="scene" not in d, help="built-in name or .toml path")
     p.add_argument("--frames", type=positive_int, default=d.get("frames"), help="frames (default: the scene's)")
     p.add_argument("--resolution", type=parse_resolution, default=d.get("resolution", DEFAULT_RESOLUTION), help="WxH")
-    p.add_argument("--reference-spp", type=positive_int, default=d.get("reference_spp", 256))
+    p.add_argument("--reference-spp", type=positive_int, default=d.get("reference_spp", 256),
+                   help=">= 4 and >= --ladder-spp")
     p.add_argument("--ladder-spp", type=positive_int, default=d.get("ladder_spp", 16), help=">= 2")
     p.add_argument("--reference-chunk-spp", type=positive_int, default=None,
-                   help="samples per reference render task (divides --reference-spp; default: one task); the ladder "
-                        "is also scored against the power-of-two chunk prefixes (a reference-spp study for free)")
+                   help="samples per reference render task (>= 4, divides --reference-spp; default: one task); the "
+                        "ladder is also scored against the power-of-two chunk prefixes (a reference-spp study for "
+                        "free)")
     p.add_argument("--out", default=d.get("out"), required="out" not in d)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--alphas", type=alpha_list, default=(0.1, 0.5),
@@ -63,11 +66,7 @@ def run_command(args) -> int:
     cfg = config_from_args(args)
     try:
         results = run_experiment(cfg)
-    except (ValueError, FileNotFoundError) as e:  # SceneError and the config's checks are ValueErrors
-        raise UserError(str(e)) from None
-    except RuntimeError as e:  # a cluster that cannot run it (distributed.ClusterError), named in one line
-        if type(e).__name__ != "ClusterError":
-            raise
+    except (ValueError, FileNotFoundError, ClusterError) as e:  # SceneError and the config's checks are ValueErrors
         raise UserError(str(e)) from None
     print(tables_markdown(results))
     print(f"report: {Path(cfg.out) / 'report.md'} (figures and results.json beside it); "

@@ -4,9 +4,28 @@ from __future__ import annotations
 
 import os
 
+from .._checks import check_backend_env, check_resolution
 from ..camera import DEFAULT_RESOLUTION, Eye
-from ..errors import UserError
+from ..errors import ParameterError, UserError
 from ._args import nonnegative_int, parse_resolution, positive_int
+
+#: Peak memory of ``render`` per pixel (a 1-spp render with G-buffers, then its EXR), with a margin: the estimate of
+#: the resolution guard (:func:`stereorepro._checks.check_resolution`).
+RENDER_BYTES_PER_PIXEL = 160
+#: One more than the largest sample index the renderer counts (a 64-bit signed integer).
+SAMPLE_LIMIT = 2**63
+
+
+def check_environment(what: str, width: int | None = None, height: int | None = None,
+                      bytes_per_pixel: int = RENDER_BYTES_PER_PIXEL) -> None:
+    """A command's checks of the machine before it creates anything: ``STEREOREPRO_BACKEND`` names a backend and,
+    given a resolution, its memory estimate fits (UserError naming the variable or the estimate)."""
+    try:
+        check_backend_env()
+        if width is not None:
+            check_resolution(width, height, bytes_per_pixel, what)
+    except ParameterError as e:
+        raise UserError(str(e)) from None
 
 
 def _missing_mesh(scene):
@@ -50,6 +69,10 @@ def _cmd_render(args) -> int:
         raise UserError(f"--spp must be >= 1, got {args.spp}")
     if not args.out.lower().endswith(".exr"):
         raise UserError(f"--out must be an .exr file, got {args.out}")
+    if args.sample_offset + args.spp > SAMPLE_LIMIT:
+        raise UserError(f"--sample-offset + --spp must be at most 2**63 (the renderer's 64-bit sample index), got "
+                        f"{args.sample_offset} + {args.spp}")
+    check_environment("render", *args.resolution)
     try:
         scene = load_scene(args.scene)
         if not (0 <= args.frame < scene.num_frames):

@@ -8,16 +8,24 @@ import sys
 import torch
 
 from ..camera import DEFAULT_RESOLUTION
-from ..errors import SceneError, SequenceError, UserError
+from .._checks import check_thresholds
+from ..errors import ParameterError, SceneError, SequenceError, UserError
 from ..io.frames import SOURCES
 from ..workflows.export import export_sequence
 from ..workflows.sequence import MODES, reproject_sequence
 from ._args import nonnegative_int, parse_resolution, positive_float, positive_int
+from .render import RENDER_BYTES_PER_PIXEL, check_environment
 
 
 def _cmd_reproject(args) -> int:
     if args.eye is not None and args.mode != "temporal":
         raise UserError(f"--eye applies to --mode temporal only (got --mode {args.mode})")
+    check_environment("reproject")
+    try:
+        check_thresholds(0.0 if args.position_threshold is None else args.position_threshold,
+                         0.0 if args.normal_threshold is None else args.normal_threshold, tracing=False)
+    except ParameterError as e:
+        raise UserError("--" + str(e).replace("_", "-", 1).split(";")[0]) from None  # the CLI takes no inf
     device = args.device
     if device == "auto":
         device = "cuda" if torch.cuda.is_available() else "cpu"
@@ -41,6 +49,7 @@ def _cmd_export(args) -> int:
     w, h = args.resolution
     if args.frames < 1 or args.spp < 1 or args.stride < 1 or args.start < 0:
         raise UserError("--frames, --spp and --stride must be >= 1 and --start >= 0")
+    check_environment("export-sequence", w, h, 2 * RENDER_BYTES_PER_PIXEL)  # both eyes of a frame at once
     try:
         scene = load_scene(args.scene)
     except SceneError as e:

@@ -105,6 +105,99 @@ class TestOptions:
         assert not (tmp_path / "o").exists()
 
 
+def _out_arg(cmd: str, out: Path) -> list[str]:
+    return ["--out", str(out / "a.exr" if cmd == "render" else out)]
+
+
+#: Each command with the options it needs to start (``--out`` follows).
+COMMANDS = {"render": ["render", "--scene", "living_room", "--resolution", "16x9", "--quiet"],
+            "export-sequence": ["export-sequence", "--scene", "living_room", "--frames", "1", "--resolution", "16x9",
+                                "--quiet"],
+            "experiment": ["experiment", *TINY_EXPERIMENT]}
+
+
+class TestEnvironment:
+    """The machine and the environment as the user set them: a bad STEREOREPRO_BACKEND, a resolution beyond the
+    memory, numbers beyond the renderer's or float32's range, an unusable scheduler, experiments too small to
+    measure. Each is refused before anything is created, in one line, exit 2 (render and reproject gave a
+    ValueError traceback for the backend, the resolutions a 37-line MemoryError after creating --out)."""
+
+    @pytest.mark.parametrize("cmd", ["render", "export-sequence", "experiment", "reproject"])
+    def test_bad_backend_variable(self, sequence, tmp_path, capsys, monkeypatch, cmd):
+        monkeypatch.setenv("STEREOREPRO_BACKEND", "bogus")
+        out = tmp_path / "out"
+        argv = (["reproject", "--input", str(sequence), "--quiet"] if cmd == "reproject" else COMMANDS[cmd])
+        assert main(argv + _out_arg(cmd, out)) == 2
+        assert one_line(capsys) == (f"stereorepro {cmd}: error: STEREOREPRO_BACKEND must be one of ('auto', "
+                                    "'native', 'reference', 'torch', 'numpy'), got 'bogus'")
+        assert not out.exists()
+
+    @pytest.mark.parametrize("cmd", ["render", "export-sequence", "experiment"])
+    def test_resolution_beyond_memory(self, tmp_path, capsys, cmd):
+        out = tmp_path / "out"
+        assert main(COMMANDS[cmd] + ["--resolution", "100000x100000"] + _out_arg(cmd, out)) == 2
+        line = one_line(capsys)
+        assert f"stereorepro {cmd}: error: " in line and "at 100000x100000 needs about " in line, line
+        assert "TiB of memory" in line and "use a smaller resolution" in line, line
+        assert not out.exists()
+
+    def test_sample_offset_beyond_the_sample_index(self, tmp_path, capsys):
+        out = tmp_path / "a.exr"
+        assert main(COMMANDS["render"] + ["--sample-offset", str(2**63), "--out", str(out)]) == 2
+        assert "--sample-offset + --spp must be at most 2**63" in one_line(capsys)
+        assert main(COMMANDS["render"] + ["--sample-offset", str(2**63 - 2), "--spp", "2", "--out", str(out)]) == 0
+        assert out.is_file()
+
+    @pytest.mark.parametrize("option", ["--position-threshold", "--normal-threshold"])
+    def test_threshold_beyond_float32(self, sequence, tmp_path, capsys, option):
+        out = tmp_path / "o"
+        assert main(["reproject", "--input", str(sequence), "--out", str(out), option, "1e300", "--quiet"]) == 2
+        assert one_line(capsys) == (f"stereorepro reproject: error: {option}: 1e+300 is beyond float32's range "
+                                    "(|x| <= 3.402823e+38)")
+        assert not out.exists()
+
+    @pytest.mark.parametrize("scheduler", ["tcp://127.0.0.1:99999", "tcp://127.0.0.1:0", "tcp://:8786", "local:0"])
+    def test_scheduler_address(self, tmp_path, capsys, scheduler):
+        out = tmp_path / "out"
+        assert main(["experiment", *TINY_EXPERIMENT, "--scheduler", scheduler, "--out", str(out)]) == 2
+        assert "scheduler must be 'local:N' (N >= 1) or 'tcp://HOST:PORT' (PORT in 1..65535)" in one_line(capsys)
+        assert not out.exists()
+
+    @pytest.mark.parametrize("options, option", [
+        (["--reference-spp", "2", "--ladder-spp", "2"], "reference_spp (--reference-spp) must be >= 4, got 2"),
+        (["--reference-spp", "16", "--ladder-spp", "4", "--reference-chunk-spp", "1"],
+         "reference_chunk_spp (--reference-chunk-spp) must be >= 4, got 1"),
+        (["--reference-spp", "8", "--ladder-spp", "2", "--reference-chunk-spp", "2"],
+         "reference_chunk_spp (--reference-chunk-spp) must be >= 4, got 2"),
+    ])
+    def test_experiment_too_small_to_measure(self, tmp_path, capsys, options, option):
+        """Ladders scored against references of 1 or 2 spp exited 2 only after rendering everything
+        ("effective_spp: ladder error does not decrease"): refused first, naming the option."""
+        out = tmp_path / "out"
+        t0 = time.perf_counter()
+        assert main(["experiment", *TINY_EXPERIMENT, *options, "--out", str(out)]) == 2
+        assert option in one_line(capsys)
+        assert not out.exists() and time.perf_counter() - t0 < 10
+
+    def test_native_backend_runs_moving_objects(self, tmp_path, capsys, monkeypatch):
+        """STEREOREPRO_BACKEND=native on the scene with moving objects (motion vectors): the native kernels read
+        them, so the run completes (it was a RuntimeError traceback when native refused motion)."""
+        pytest.importorskip("stereorepro._core")
+        monkeypatch.setenv("STEREOREPRO_BACKEND", "native")
+        out = tmp_path / "out"
+        assert main(["experiment", *TINY_EXPERIMENT, "--scene", "living_room_moving_objects", "--frames", "2",
+                     "--no-flip", "--no-ssim", "--out", str(out)]) == 0
+        assert (out / "results.json").is_file()
+
+    def test_shared_scenes_missing_are_unavailable(self, capsys, monkeypatch, tmp_path):
+        """With STEREOREPRO_SHARED_SCENES naming no folder, ``scenes --all`` lists the shared_* scenes as
+        unavailable (they were listed as available, and ``render`` then failed)."""
+        monkeypatch.setenv("STEREOREPRO_SHARED_SCENES", str(tmp_path / "nonexistent"))
+        assert main(["scenes", "--all"]) == 0
+        shared = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("shared_")]
+        assert shared and all("unavailable: mesh not found" in ln for ln in shared), shared
+
+
 def _disk_full_at_fsync(monkeypatch):
     """Every file write fails as on a full disk (at the sync before the atomic rename)."""
     def full(path, directory=False):

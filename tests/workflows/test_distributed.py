@@ -13,6 +13,7 @@ import pytest
 
 pytest.importorskip("distributed")
 
+from stereorepro.errors import StereoreproError  # noqa: E402
 from stereorepro.workflows.experiment import ExperimentConfig, RenderCache, run_experiment  # noqa: E402
 from stereorepro.workflows.experiment import distributed as dist  # noqa: E402
 from stereorepro.workflows.experiment.inputs import RenderSpec, eye_tasks  # noqa: E402
@@ -128,16 +129,21 @@ class TestDistributed:
         monkeypatch.setattr(dist, "_own_code", lambda: "f" * 16)  # this client differs from its workers
         with pytest.raises(RuntimeError, match="worker tcp://.* runs renderer code .* this client ffff"):
             run_experiment(ExperimentConfig(out=str(tmp_path / "o"), scheduler="local:1", **SMALL))
+        assert not (tmp_path / "o").exists()  # the workers are checked before anything is created
 
     def test_no_scheduler_there(self, tmp_path, monkeypatch, capsys):
+        """An unreachable scheduler: one line, exit 2, and no folder created (--out and --out/cache were left
+        behind, empty)."""
         from stereorepro.cli import main
 
         monkeypatch.setattr(dist, "CONNECT_TIMEOUT", "1s")
-        with pytest.raises(dist.ClusterError, match="cannot reach the Dask scheduler"):
-            run_experiment(ExperimentConfig(out=str(tmp_path), scheduler=f"tcp://127.0.0.1:{_free_port()}",
+        with pytest.raises(dist.ClusterError, match="cannot reach the Dask scheduler") as info:
+            run_experiment(ExperimentConfig(out=str(tmp_path / "o"), scheduler=f"tcp://127.0.0.1:{_free_port()}",
                                             **SMALL))
+        assert isinstance(info.value, StereoreproError) and list(tmp_path.iterdir()) == []
         addr = f"tcp://127.0.0.1:{_free_port()}"
         rc = main(["experiment", "--scene", "living_room", "--out", str(tmp_path / "cli"), "--scheduler", addr,
                    "--frames", "1", "--resolution", "32x18", "--reference-spp", "4", "--ladder-spp", "2"])
         err = capsys.readouterr().err.strip().splitlines()
         assert rc == 2 and len(err) == 1 and "cannot reach the Dask scheduler" in err[0]
+        assert list(tmp_path.iterdir()) == []

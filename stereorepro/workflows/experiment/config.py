@@ -6,15 +6,24 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+from ..._checks import check_backend_env, check_resolution
 from ...camera import DEFAULT_RESOLUTION, Eye
 from ...scenes import THRESHOLD_ROWS
 
 __all__ = ["REFERENCE_OFFSET", "THRESHOLD_ROWS", "LEFT", "RIGHT", "METRICS", "Scheme", "SCHEMES", "MOTION_SCHEMES",
-           "ExperimentConfig", "schemes", "validate_config", "metric_image"]
+           "ExperimentConfig", "schemes", "validate_config", "metric_image", "MIN_REFERENCE_SPP",
+           "EXPERIMENT_BYTES_PER_PIXEL"]
 
 #: First sample index of reference renders (ladders use 0..L-1: disjoint streams).
 REFERENCE_OFFSET = 1 << 24
 LEFT, RIGHT = Eye.LEFT, Eye.RIGHT
+#: The fewest samples of a reference the ladder is scored against (the reference and each chunk prefix): below it the
+#: reference's noise, and the ldr metric's clamp of a noisy sample, make the ladder's error stop decreasing with spp
+#: (a ladder 1..2 against 2 spp, 1..16 against a 1-spp prefix) and effective spp is undefined.
+MIN_REFERENCE_SPP = 4
+#: Peak memory of a run per pixel (both eyes' renders, every scheme's state, the scores and the figures), with a
+#: margin: the estimate of the resolution guard (:func:`stereorepro._checks.check_resolution`).
+EXPERIMENT_BYTES_PER_PIXEL = 2304
 
 #: The experiment's image metrics: ``"ldr"`` scores images clamped to [0, 1], ``"hdr"`` linear radiance.
 METRICS = ("ldr", "hdr")
@@ -73,10 +82,10 @@ class ExperimentConfig:
     frames: int | None = None  #: None = the scene's own frame count
     width: int = DEFAULT_RESOLUTION[0]
     height: int = DEFAULT_RESOLUTION[1]
-    reference_spp: int = 256
+    reference_spp: int = 256  #: >= ladder_spp and >= MIN_REFERENCE_SPP
     ladder_spp: int = 16
     #: Samples per reference chunk (a render task of its own; distributed runs spread the chunks over workers);
-    #: None = one chunk of ``reference_spp``. Must divide ``reference_spp``; see :mod:`.inputs` for how chunking
+    #: None = one chunk of ``reference_spp``. Must divide ``reference_spp``, >= MIN_REFERENCE_SPP; see :mod:`.inputs` for how chunking
     #: enters the reference's value and the cache key.
     reference_chunk_spp: int | None = None
     seed: int = 0
@@ -147,7 +156,8 @@ def validate_config(cfg: ExperimentConfig) -> None:
          f"reference_chunk_spp must be a positive integer dividing reference_spp ({cfg.reference_spp}), "
          f"got {cfg.reference_chunk_spp}")
     need(cfg.scheduler is None or (isinstance(cfg.scheduler, str) and _scheduler_ok(cfg.scheduler)),
-         f"scheduler must be 'local:N' (N >= 1) or 'tcp://HOST:PORT', got {cfg.scheduler!r}")
+         f"scheduler must be 'local:N' (N >= 1) or 'tcp://HOST:PORT' (PORT in 1..65535), got {cfg.scheduler!r}")
+    _check_ladder_noise(cfg)
     need(cfg.frames is None or (is_int(cfg.frames) and cfg.frames >= 1),
          f"frames must be an integer >= 1, got {cfg.frames}")
     need(cfg.workers is None or (is_int(cfg.workers) and cfg.workers >= 1),
@@ -162,6 +172,20 @@ def validate_config(cfg: ExperimentConfig) -> None:
         if value is not None:
             p = Path(value)
             need(not p.exists() or p.is_dir(), f"{name}: {p} exists and is not a directory")
+    check_backend_env()
+    check_resolution(cfg.width, cfg.height, EXPERIMENT_BYTES_PER_PIXEL, "the experiment")
+
+
+def _check_ladder_noise(cfg: ExperimentConfig) -> None:
+    """ValueError naming the option when a reference the ladder is scored against (the reference, and with chunks
+    each power-of-two chunk prefix, the smallest being ``reference_chunk_spp``) has fewer than
+    :data:`MIN_REFERENCE_SPP` samples."""
+    for name, p in (("reference_spp (--reference-spp)", cfg.reference_spp),
+                    ("reference_chunk_spp (--reference-chunk-spp)", cfg.reference_chunk_spp)):
+        if p is not None and p < MIN_REFERENCE_SPP:
+            raise ValueError(f"{name} must be >= {MIN_REFERENCE_SPP}, got {p}: the ladder is scored against a "
+                             f"{p}-spp reference, whose own noise (and, under the ldr metric, the clamp of a noisy "
+                             "sample) keeps the ladder's error from decreasing, and effective spp needs it to")
 
 
 def _scheduler_ok(s: str) -> bool:
@@ -170,5 +194,5 @@ def _scheduler_ok(s: str) -> bool:
         return n.isdigit() and int(n) >= 1
     if s.startswith("tcp://"):
         host, _, port = s[len("tcp://"):].rpartition(":")
-        return bool(host) and port.isdigit()
+        return bool(host) and port.isdigit() and 1 <= int(port) <= 65535
     return False

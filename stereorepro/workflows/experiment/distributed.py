@@ -24,20 +24,22 @@ import functools
 import os
 import socket
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 from ..._extras import require
+from ...errors import StereoreproError
 from .cache import RenderCache, code_version
 from .inputs import (RenderSpec, eye_tasks, gbuffer_task, jitter_gbuffer_task, jitter_sample_task, ladder_task,
                      reference_chunk_task, worker_context)
 
-__all__ = ["render_all", "run_task", "connect", "task_key", "ClusterError", "CONNECT_TIMEOUT"]
+__all__ = ["render_all", "run_task", "connect", "open_cluster", "Cluster", "task_key", "ClusterError",
+           "CONNECT_TIMEOUT"]
 
 #: How long the client waits for a ``tcp://`` scheduler.
 CONNECT_TIMEOUT = "30s"
 
 
-class ClusterError(RuntimeError):
+class ClusterError(StereoreproError, RuntimeError):
     """The cluster cannot run this experiment: the scheduler is unreachable, has no workers, or a worker runs
     other renderer code (the command line reports it in one line, exit code 2)."""
 
@@ -87,18 +89,25 @@ def connect(scheduler: str):
         raise ClusterError(f"cannot reach the Dask scheduler at {scheduler} ({e})") from None
 
 
-def render_all(spec: RenderSpec, frames, scheduler: str, force: bool = False, progress: bool = True,
-               log=print) -> dict:
-    """Render every input of ``frames`` (both eyes) on the cluster ``scheduler`` into ``spec.cache_dir``.
+@dataclass
+class Cluster:
+    """A connected Dask cluster whose workers all run this client's renderer code (:func:`open_cluster`)."""
 
-    Returns what the run's ``results.json`` records under ``"distributed"``: the scheduler, the number of workers
-    and of tasks, how many were already cached, and the wall time.
-    """
-    as_completed = require("distributed", "--scheduler (Dask)").as_completed
-    tqdm = require("tqdm.auto", "the experiment's progress bar", extra="experiment").tqdm
+    scheduler: str
+    client: object
+    local: object | None  #: the LocalCluster started for ``"local:N"``, else None
+    workers: int
 
-    t0 = time.perf_counter()
-    client, cluster = connect(scheduler)
+    def close(self) -> None:
+        self.client.close()
+        if self.local is not None:
+            self.local.close()
+
+
+def open_cluster(scheduler: str) -> Cluster:
+    """Connect to ``scheduler`` and check its workers (at least one, each running this client's renderer code):
+    ClusterError otherwise, with nothing left open. A run opens its cluster before it creates any folder."""
+    client, local = connect(scheduler)
     try:
         versions = client.run(worker_code_version)
         if not versions:
@@ -109,10 +118,31 @@ def render_all(spec: RenderSpec, frames, scheduler: str, force: bool = False, pr
             w, v = next(iter(bad.items()))
             raise ClusterError(f"worker {w} runs renderer code {v}, this client {own}: install the same stereorepro "
                                f"version on every worker ({len(bad)} of {len(versions)} differ)")
-        n_workers = len(versions)
-        if spec.workers is None and cluster is not None:  # share this machine's cores among the local workers
+    except BaseException:
+        Cluster(scheduler, client, local, 0).close()
+        raise
+    return Cluster(scheduler, client, local, len(versions))
+
+
+def render_all(spec: RenderSpec, frames, scheduler: str | Cluster, force: bool = False, progress: bool = True,
+               log=print) -> dict:
+    """Render every input of ``frames`` (both eyes) on the cluster ``scheduler`` (a ``"local:N"`` /
+    ``"tcp://HOST:PORT"`` address, or a :class:`Cluster` from :func:`open_cluster`, closed here) into
+    ``spec.cache_dir``.
+
+    Returns what the run's ``results.json`` records under ``"distributed"``: the scheduler, the number of workers
+    and of tasks, how many were already cached, and the wall time.
+    """
+    as_completed = require("distributed", "--scheduler (Dask)").as_completed
+    tqdm = require("tqdm.auto", "the experiment's progress bar", extra="experiment").tqdm
+
+    t0 = time.perf_counter()
+    cl = scheduler if isinstance(scheduler, Cluster) else open_cluster(scheduler)
+    client, n_workers = cl.client, cl.workers
+    try:
+        if spec.workers is None and cl.local is not None:  # share this machine's cores among the local workers
             spec = replace(spec, workers=max(1, (os.cpu_count() or 1) // n_workers))
-        spec = replace(spec, client_code=own)
+        spec = replace(spec, client_code=_own_code())
         cache = RenderCache(spec.cache_dir, sweep_on_start=False)
         futures, cached = [], 0
         for f in frames:
@@ -137,9 +167,7 @@ def render_all(spec: RenderSpec, frames, scheduler: str, force: bool = False, pr
         wall = time.perf_counter() - t0
         log(f"distributed: {len(futures)} render tasks ({cached} already cached) on {n_workers} workers "
             f"in {wall:.1f} s")
-        return {"scheduler": scheduler, "workers": n_workers, "tasks": len(futures), "cached": cached,
+        return {"scheduler": cl.scheduler, "workers": n_workers, "tasks": len(futures), "cached": cached,
                 "wall_s": wall}
     finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
+        cl.close()

@@ -140,17 +140,36 @@ class _Run:
 
 
 def _start(cfg: ExperimentConfig, log) -> _Run:
-    """Check everything, then create the output folder and the render cache; with ``cfg.scheduler`` every render
-    runs on the cluster first (the frame loop then reads the cache)."""
-    from ...render import PathTracer
-    from ...scenes import load_scene, threshold_scale
+    """Check everything (with ``cfg.scheduler``: connect to the cluster and check its workers), then create the
+    output folder and the render cache; with a cluster every render runs there first (the frame loop then reads the
+    cache)."""
+    from ...scenes import load_scene
 
     validate_config(cfg)
     scene = load_scene(cfg.scene)
     frames = scene.num_frames if cfg.frames is None else int(cfg.frames)
     if not 1 <= frames <= scene.num_frames:
         raise ValueError(f"frames must be in 1..{scene.num_frames} for scene {scene.name!r}, got {frames}")
-    out = Path(cfg.out)  # everything is checked: only now is anything created
+    t_start = time.perf_counter()
+    cluster = None
+    if cfg.scheduler:  # an unreachable or unfit cluster fails here, before anything is created
+        from .distributed import open_cluster
+
+        cluster = open_cluster(cfg.scheduler)
+    try:
+        return _prepare(cfg, log, scene, frames, cluster, t_start)
+    except BaseException:
+        if cluster is not None:
+            cluster.close()
+        raise
+
+
+def _prepare(cfg: ExperimentConfig, log, scene, frames: int, cluster, t_start: float) -> _Run:
+    """:func:`_start` once everything is checked: the output folder, the render cache, a cluster's renders."""
+    from ...render import PathTracer
+    from ...scenes import threshold_scale
+
+    out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     scale = cfg.threshold_scale if cfg.threshold_scale is not None else threshold_scale(cfg.height)
     pos_thr, nrm_thr = scene.thresholds(cfg.height, scale)
@@ -162,13 +181,11 @@ def _start(cfg: ExperimentConfig, log) -> _Run:
         log(f"warning: the render cache needs up to {need / 2**30:.1f} GiB for {frames} frames "
             f"({need / (2 * frames) / 2**20:.0f} MiB per eye and frame) and {cache_dir} has "
             f"{free / 2**30:.1f} GiB free")
-    t_start = time.perf_counter()
     distributed = None
-    if cfg.scheduler:
+    if cluster is not None:
         from .distributed import render_all
 
-        distributed = render_all(spec, range(frames), cfg.scheduler, force=cfg.force, progress=cfg.progress,
-                                 log=log)
+        distributed = render_all(spec, range(frames), cluster, force=cfg.force, progress=cfg.progress, log=log)
         cache = RenderCache(cache_dir, log=log, sweep_on_start=False)  # the entries are made: no recomputing
     ctx = RenderContext(spec, cache=cache, scene=scene, tracer=PathTracer(scene, seed=cfg.seed, workers=cfg.workers))
     return _Run(cfg, scene, frames, out, scale, pos_thr, nrm_thr, cache_dir, spec, ctx,
