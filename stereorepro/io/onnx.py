@@ -28,7 +28,14 @@ __all__ = ["export_onnx", "onnx_input_dims", "symbolic_axes"]
 def symbolic_axes(fields) -> dict[str, dict[int, str]]:
     """``{input name: {axis: symbol}}`` of a module's ``input_fields`` (name and symbolic shape per input, e.g.
     ``Field("src_depth", ("B", "1", "Hp", "Wp"))``): every dimension named by letters stays symbolic, digits are
-    fixed."""
+    fixed.
+
+    Examples:
+        >>> from stereorepro.io.onnx import symbolic_axes
+        >>> from stereorepro.reproject.view import Field
+        >>> symbolic_axes([Field("src_depth", ("B", "1", "Hp", "Wp")), Field("K", ("B", "3", "3"))])
+        {'src_depth': {0: 'B', 2: 'Hp', 3: 'Wp'}, 'K': {0: 'B'}}
+    """
     return {f.name: {axis: dim for axis, dim in enumerate(f.shape) if not dim.isdigit()} for f in fields}
 
 
@@ -98,7 +105,21 @@ def export_onnx(module: nn.Module, path, opset: int = 18, inputs: tuple[Tensor, 
 
 
 def onnx_input_dims(path) -> dict[str, list]:
-    """Input name → list of dims (int for fixed, str for symbolic) of an ONNX file."""
+    """Input name → list of dims (int for fixed, str for symbolic) of an ONNX file.
+
+    Examples:
+        >>> import tempfile, onnx
+        >>> from onnx import TensorProto, helper
+        >>> from stereorepro.io.onnx import onnx_input_dims
+        >>> x = helper.make_tensor_value_info("x", TensorProto.FLOAT, ["B", 3, "H", "W"])
+        >>> y = helper.make_tensor_value_info("y", TensorProto.FLOAT, ["B", 3, "H", "W"])
+        >>> graph = helper.make_graph([helper.make_node("Relu", ["x"], ["y"])], "relu", [x], [y])
+        >>> with tempfile.TemporaryDirectory() as tmp:
+        ...     onnx.save(helper.make_model(graph), f"{tmp}/relu.onnx")
+        ...     dims = onnx_input_dims(f"{tmp}/relu.onnx")
+        >>> dims
+        {'x': ['B', 3, 'H', 'W']}
+    """
     onnx = require("onnx", "onnx_input_dims")
     model = onnx.load(str(path))
     out = {}

@@ -23,7 +23,13 @@ __all__ = ["View", "Thresholds", "Blend", "History", "ReprojectionResult", "Temp
 
 
 class Field(NamedTuple):
-    """One named tensor input: its name and symbolic shape (digits are fixed sizes, letters bind)."""
+    """One named tensor input: its name and symbolic shape (digits are fixed sizes, letters bind).
+
+    Examples:
+        >>> from stereorepro.reproject.view import Field
+        >>> Field("depth", ("B", "1", "H", "W")).renamed("src_", "Hp", "Wp")
+        Field(name='src_depth', shape=('B', '1', 'Hp', 'Wp'))
+    """
 
     name: str
     shape: tuple[str, ...]
@@ -44,7 +50,15 @@ MOTION_FIELDS = (Field("motion", ("B", "2", "H", "W")), Field("motion_world", ("
 
 def view_fields(prefix: str = "", height: str = "H", width: str = "W", motion: bool = False) -> tuple[Field, ...]:
     """The fields of a view as flat inputs named ``prefix + field`` (e.g. ``src_depth``), with the image
-    dimensions called ``height`` / ``width``; the motion fields too with ``motion``."""
+    dimensions called ``height`` / ``width``; the motion fields too with ``motion``.
+
+    Examples:
+        >>> from stereorepro.reproject.view import view_fields
+        >>> [f.name for f in view_fields("dst_", motion=True)]
+        ['dst_depth', 'dst_normal', 'dst_K', 'dst_cam_from_world', 'dst_motion', 'dst_motion_world']
+        >>> view_fields("src_", "Hp", "Wp")[0].shape
+        ('B', '1', 'Hp', 'Wp')
+    """
     fields = VIEW_FIELDS + (MOTION_FIELDS if motion else ())
     return tuple(f.renamed(prefix, height, width) for f in fields)
 
