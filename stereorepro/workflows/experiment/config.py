@@ -30,12 +30,31 @@ METRICS = ("ldr", "hdr")
 
 
 def metric_image(x, metric: str):
-    """The image the metric scores: ``x`` clamped to [0, 1] for ``"ldr"``, ``x`` itself for ``"hdr"``."""
+    """The image the metric scores: ``x`` clamped to [0, 1] for ``"ldr"``, ``x`` itself for ``"hdr"``.
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro.workflows.experiment.config import metric_image
+        >>> x = torch.tensor([-0.5, 0.25, 2.0])
+        >>> metric_image(x, "ldr").tolist(), metric_image(x, "hdr").tolist()
+        ([0.0, 0.25, 1.0], [-0.5, 0.25, 2.0])
+    """
     return x.clamp(0.0, 1.0) if metric == "ldr" else x
 
 
 @dataclass(frozen=True)
 class Scheme:
+    """One measured scheme: its name, which reprojections it uses, the eye it is scored on and its settings.
+
+    Examples:
+        >>> from stereorepro.workflows.experiment.config import SCHEMES, Scheme
+        >>> s = next(s for s in SCHEMES if s.name == "stereo_temporal")
+        >>> s.stereo, s.temporal, s.eye.name, s.alpha, s.paper
+        (True, True, 'LEFT', 0.2, True)
+        >>> isinstance(s, Scheme)
+        True
+    """
+
     name: str
     stereo: bool
     temporal: bool
@@ -75,7 +94,14 @@ SCHEMES = (
 
 @dataclass(frozen=True)
 class ExperimentConfig:
-    """Settings of one experiment run (see ``stereorepro experiment --help``)."""
+    """Settings of one experiment run (see ``stereorepro experiment --help``).
+
+    Examples:
+        >>> from stereorepro.workflows.experiment.config import ExperimentConfig
+        >>> cfg = ExperimentConfig(scene="cornell", out="runs/a", width=8, height=6, frames=2)
+        >>> cfg.width, cfg.height, cfg.reference_spp, cfg.ladder_spp, cfg.metric
+        (8, 6, 256, 16, 'ldr')
+    """
 
     scene: str
     out: str
@@ -126,7 +152,17 @@ MOTION_SCHEMES = (
 
 def schemes(cfg: ExperimentConfig, moving_objects: bool = False) -> list[Scheme]:
     """The paper's schemes and the variants, with alpha variants (temporal, stereo+temporal, blended) for each
-    extra ``cfg.alphas`` weight, and the motion-vector variants when the scene has moving objects."""
+    extra ``cfg.alphas`` weight, and the motion-vector variants when the scene has moving objects.
+
+    Examples:
+        >>> from stereorepro.workflows.experiment.config import ExperimentConfig, schemes
+        >>> cfg = ExperimentConfig(scene="cornell", out="runs/a", alphas=(0.5,))
+        >>> names = [s.name for s in schemes(cfg)]
+        >>> len(names), names[:3], "temporal_alpha0.5" in names
+        (12, ['stereo', 'temporal', 'stereo_temporal'], True)
+        >>> "temporal_mv" in [s.name for s in schemes(cfg, moving_objects=True)]
+        True
+    """
     out = list(SCHEMES) + (list(MOTION_SCHEMES) if moving_objects else [])
     for a in cfg.alphas:
         if abs(a - 0.2) > 1e-12:
@@ -137,7 +173,20 @@ def schemes(cfg: ExperimentConfig, moving_objects: bool = False) -> list[Scheme]
 
 
 def validate_config(cfg: ExperimentConfig) -> None:
-    """ValueError naming the setting and what it expects (the run checks this before it writes anything)."""
+    """ValueError naming the setting and what it expects (the run checks this before it writes anything).
+
+    Examples:
+        >>> import tempfile
+        >>> from stereorepro.workflows.experiment.config import ExperimentConfig, validate_config
+        >>> with tempfile.TemporaryDirectory() as d:
+        ...     print(validate_config(ExperimentConfig(scene="cornell", out=d, width=8, height=6)))
+        None
+        >>> try:
+        ...     validate_config(ExperimentConfig(scene="cornell", out="runs/a", ladder_spp=1))
+        ... except ValueError as e:
+        ...     print(e)
+        ladder_spp must be an integer >= 2, got 1
+    """
     def need(ok: bool, what: str) -> None:
         if not ok:
             raise ValueError(what)
