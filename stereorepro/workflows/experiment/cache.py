@@ -22,7 +22,14 @@ def _sha(data: bytes) -> str:
 
 def code_version() -> str:
     """Hash of the renderer's sources (Python, and the native shading stages when their sources are present):
-    renders are recomputed when the renderer changes."""
+    renders are recomputed when the renderer changes.
+
+    Examples:
+        >>> from stereorepro.workflows.experiment.cache import code_version
+        >>> v = code_version()
+        >>> len(v), v == code_version()
+        (16, True)
+    """
     root = Path(__file__).resolve().parents[2]  # the package
     h = hashlib.sha256(__version__.encode())
     cpp = root.parent / "cpp_ext" / "src"
@@ -41,7 +48,17 @@ def code_version() -> str:
 
 
 def scene_fingerprint(scene) -> str:
-    """Hash of the scene's resolved description and of every file it references (path, size, mtime)."""
+    """Hash of the scene's resolved description and of every file it references (path, size, mtime).
+
+    Examples:
+        >>> from types import SimpleNamespace
+        >>> from stereorepro.workflows.experiment.cache import scene_fingerprint
+        >>> a = SimpleNamespace(name="box", spec={"camera": {"fov": 60}}, source=None)
+        >>> b = SimpleNamespace(name="box", spec={"camera": {"fov": 45}}, source=None)
+        >>> fa, fb = scene_fingerprint(a), scene_fingerprint(b)
+        >>> len(fa), fa == scene_fingerprint(a), fa == fb
+        (16, True, False)
+    """
     h = hashlib.sha256(str(getattr(scene, "name", "")).encode())
     data = getattr(scene, "spec", None)
     h.update(json.dumps(data, sort_keys=True, default=str).encode())
@@ -82,6 +99,18 @@ class RenderCache:
     the same name: one valid entry remains (atomic rename). An
     entry that cannot be read back (zero bytes, truncated, corrupt, missing its metadata) is recomputed and
     rewritten; ``corrupt`` lists those entries' file names and ``log`` (when given) reports each one.
+
+    Examples:
+        >>> import tempfile
+        >>> import numpy as np
+        >>> from stereorepro.workflows.experiment.cache import RenderCache
+        >>> with tempfile.TemporaryDirectory() as d:
+        ...     cache = RenderCache(d)
+        ...     make = lambda: ({"rgb": np.ones((2, 3), np.float32)}, {"spp": 1})
+        ...     data, meta = cache.get_or_make({"frame": 0, "eye": "left"}, make)
+        ...     data, meta = cache.get_or_make({"frame": 0, "eye": "left"}, make)
+        ...     print(data["rgb"].shape, meta["spp"], cache.hits, cache.misses)
+        (2, 3) 1 1 1
     """
 
     def __init__(self, root: Path, force: bool = False, log=None, sweep_on_start: bool = True):
