@@ -89,7 +89,17 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
 
 
 def atomic_write(path: str | os.PathLike, data: bytes | str) -> None:
-    """Write ``data`` (text is UTF-8 encoded) to ``path`` atomically (see :func:`atomic_path`)."""
+    """Write ``data`` (text is UTF-8 encoded) to ``path`` atomically (see :func:`atomic_path`).
+
+    Examples:
+        >>> import tempfile, pathlib
+        >>> from stereorepro.io.atomic import atomic_write
+        >>> with tempfile.TemporaryDirectory() as tmp:
+        ...     d = pathlib.Path(tmp)
+        ...     atomic_write(d / "notes.txt", "hello")
+        ...     print((d / "notes.txt").read_text(), sorted(p.name for p in d.iterdir()))
+        hello ['notes.txt']
+    """
     with atomic_path(path) as tmp:
         tmp.write_bytes(data.encode() if isinstance(data, str) else data)
 
@@ -110,7 +120,18 @@ def sweep(folder: str | os.PathLike) -> list[Path]:
     """Remove the temporary files and staging folders (this module's names only) that processes no longer running
     left in ``folder`` (not recursive); returns what was removed. Temporaries of live processes are left alone,
     so concurrent runs sharing a folder (a render cache) do not disturb each other on one machine. (On a folder
-    shared between machines a process id means nothing elsewhere: sweep from one machine only.)"""
+    shared between machines a process id means nothing elsewhere: sweep from one machine only.)
+
+    Examples:
+        >>> import tempfile, pathlib
+        >>> from stereorepro.io.atomic import sweep
+        >>> with tempfile.TemporaryDirectory() as tmp:
+        ...     d = pathlib.Path(tmp)
+        ...     _ = (d / ".frame.exr.999999999.0123abcd.tmp").write_bytes(b"")  # left by a process that is gone
+        ...     _ = (d / "frame.exr").write_bytes(b"")
+        ...     print([p.name for p in sweep(d)], sorted(p.name for p in d.iterdir()))
+        ['.frame.exr.999999999.0123abcd.tmp'] ['frame.exr']
+    """
     folder = Path(folder)
     removed = []
     if not folder.is_dir():
@@ -182,6 +203,17 @@ def staged_outputs(out: str | os.PathLike, last: Iterable[str] = (),
     (a lock on ``out``), so ``out`` ends with the complete set of the run that finished last. A failing run
     removes only what it created: its staging folder, and ``out`` itself if it created it and nothing else is in
     it (another run's staging folder or files keep it); ``out`` keeps what it had.
+
+    Examples:
+        >>> import tempfile, pathlib
+        >>> from stereorepro.io.atomic import staged_outputs
+        >>> with tempfile.TemporaryDirectory() as tmp:
+        ...     out = pathlib.Path(tmp) / "run"
+        ...     with staged_outputs(out, last=["results.json"]) as stage:
+        ...         _ = (stage / "table.csv").write_text("a,b")
+        ...         _ = (stage / "results.json").write_text("{}")
+        ...     print(sorted(p.name for p in out.iterdir()))
+        ['results.json', 'table.csv']
     """
     out = Path(out)
     created, staging = _own_staging(out)
