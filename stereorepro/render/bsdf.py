@@ -39,6 +39,13 @@ def unit_circle(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     The quadrant ``q = floor(4u)`` is split off exactly, the angle ``a = (4u − q)·π/2`` in [0, π/2) goes through
     Horner polynomials, and the quadrant rotates the result. The native kernels evaluate the same operations in
     the same order (``unit_circle`` in ``cpp_ext/src/shade_tracer.cpp``), so both give the same bits.
+
+    Examples:
+        >>> import numpy as np
+        >>> from stereorepro.render.bsdf import unit_circle
+        >>> c, s = unit_circle(np.array([0.0, 0.25, 0.5, 0.125], np.float32))
+        >>> [round(float(x), 4) + 0.0 for x in c], [round(float(x), 4) + 0.0 for x in s]
+        ([1.0, 0.0, -1.0, 0.7071], [0.0, 1.0, 0.0, 0.7071])
     """
     u = np.asarray(u, np.float32)
     u4 = u * np.float32(4)
@@ -65,7 +72,17 @@ def dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def onb(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Two unit tangents (N, 3) completing unit normals ``n`` (N, 3) to an orthonormal basis (Duff et al. 2017)."""
+    """Two unit tangents (N, 3) completing unit normals ``n`` (N, 3) to an orthonormal basis (Duff et al. 2017).
+
+    Examples:
+        >>> import numpy as np
+        >>> from stereorepro.render.bsdf import onb
+        >>> n = np.array([[0, 0, 1], [0, -1, 0]], np.float32)
+        >>> t, b = onb(n)
+        >>> basis = np.stack([t, b, n], axis=1)  # (N, 3, 3), rows t, b, n
+        >>> bool(np.allclose(basis @ basis.transpose(0, 2, 1), np.eye(3), atol=1e-6))
+        True
+    """
     x, y, z = n[:, 0], n[:, 1], n[:, 2]
     s = np.where(z >= 0, np.float32(1), np.float32(-1)).astype(np.float32)
     a = np.float32(-1) / (s + z)
@@ -76,13 +93,34 @@ def onb(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def to_world(n: np.ndarray, lx: np.ndarray, ly: np.ndarray, lz: np.ndarray) -> np.ndarray:
-    """Local coordinates (each (N,)) in the frame of ``n`` (N, 3) → world vectors (N, 3)."""
+    """Local coordinates (each (N,)) in the frame of ``n`` (N, 3) → world vectors (N, 3).
+
+    Examples:
+        >>> import numpy as np
+        >>> from stereorepro.render.bsdf import to_world
+        >>> n = np.array([[0, 1, 0]], np.float32)
+        >>> one, zero = np.ones(1, np.float32), np.zeros(1, np.float32)
+        >>> to_world(n, zero, zero, one).tolist()
+        [[0.0, 1.0, 0.0]]
+    """
     t, b = onb(n)
     return t * lx[:, None] + b * ly[:, None] + n * lz[:, None]
 
 
 def lambert_sample(n: np.ndarray, u1: np.ndarray, u2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Cosine-weighted directions around ``n`` (N, 3) from uniforms (N,). Returns (wi (N, 3), cos (N,))."""
+    """Cosine-weighted directions around ``n`` (N, 3) from uniforms (N,). Returns (wi (N, 3), cos (N,)).
+
+    Examples:
+        >>> import numpy as np
+        >>> from stereorepro.render.bsdf import lambert_sample
+        >>> rng = np.random.default_rng(0)
+        >>> n = np.tile(np.array([[0, 0, 1]], np.float32), (100, 1))
+        >>> u1, u2 = rng.random(100, dtype=np.float32), rng.random(100, dtype=np.float32)
+        >>> wi, cos = lambert_sample(n, u1, u2)
+        >>> unit = np.allclose(np.linalg.norm(wi, axis=1), 1, atol=1e-5)
+        >>> wi.shape, bool((cos >= 0).all()), bool(np.allclose(wi[:, 2], cos)), bool(unit)
+        ((100, 3), True, True, True)
+    """
     r = np.sqrt(u1)
     cph, sph = unit_circle(u2)
     cz = np.sqrt(np.maximum(np.float32(1) - u1, np.float32(0)))
@@ -90,7 +128,14 @@ def lambert_sample(n: np.ndarray, u1: np.ndarray, u2: np.ndarray) -> tuple[np.nd
 
 
 def lambert_pdf(cos_i: np.ndarray) -> np.ndarray:
-    """Solid-angle pdf of cosine sampling, (N,) → (N,)."""
+    """Solid-angle pdf of cosine sampling, (N,) → (N,).
+
+    Examples:
+        >>> import numpy as np
+        >>> from stereorepro.render.bsdf import lambert_pdf
+        >>> [round(float(p), 4) for p in lambert_pdf(np.array([1.0, 0.5, -0.3], np.float32))]
+        [0.3183, 0.1592, 0.0]
+    """
     return np.maximum(cos_i, np.float32(0)) * _INV_PI
 
 
@@ -107,6 +152,15 @@ def phong_eval(ks: np.ndarray, exponent: np.ndarray, n: np.ndarray, wo: np.ndarr
 
     Returns:
         f_s: (N, 3) BSDF value (without the cosine); pdf_s: (N,) solid-angle pdf of :func:`phong_sample`.
+
+    Examples:
+        >>> import numpy as np
+        >>> from stereorepro.render.bsdf import phong_eval
+        >>> n = np.array([[0, 0, 1]], np.float32)
+        >>> wo = np.array([[0.6, 0, 0.8]], np.float32); mirror = np.array([[-0.6, 0, 0.8]], np.float32)
+        >>> f, pdf = phong_eval(np.full((1, 3), 0.5, np.float32), np.array([10.0], np.float32), n, wo, mirror)
+        >>> f.shape, round(float(f[0, 0]), 4), round(float(pdf[0]), 4)
+        ((1, 3), 0.9549, 1.7507)
     """
     c = np.maximum(dot(_reflect(n, wo), wi), np.float32(0))
     ce = _pow(c, exponent)
@@ -116,7 +170,17 @@ def phong_eval(ks: np.ndarray, exponent: np.ndarray, n: np.ndarray, wo: np.ndarr
 
 def phong_sample(exponent: np.ndarray, n: np.ndarray, wo: np.ndarray, u1: np.ndarray, u2: np.ndarray
                  ) -> np.ndarray:
-    """Directions (N, 3) distributed as ``cos^e`` around the mirror direction of ``wo`` (may fall below the surface)."""
+    """Directions (N, 3) distributed as ``cos^e`` around the mirror direction of ``wo`` (may fall below the surface).
+
+    Examples:
+        >>> import numpy as np
+        >>> from stereorepro.render.bsdf import phong_sample
+        >>> n = np.array([[0, 0, 1]] * 2, np.float32); wo = np.array([[0.6, 0, 0.8]] * 2, np.float32)
+        >>> u1, u2 = np.full(2, 0.5, np.float32), np.array([0.1, 0.7], np.float32)
+        >>> wi = phong_sample(np.full(2, 1e6, np.float32), n, wo, u1, u2)  # a near-mirror lobe
+        >>> [[round(float(x), 2) + 0.0 for x in w] for w in wi]
+        [[-0.6, 0.0, 0.8], [-0.6, 0.0, 0.8]]
+    """
     r = _reflect(n, wo)
     ca = _pow(u1, np.float32(1) / (exponent + 1))
     sa = np.sqrt(np.maximum(np.float32(1) - ca * ca, np.float32(0)))
@@ -125,7 +189,18 @@ def phong_sample(exponent: np.ndarray, n: np.ndarray, wo: np.ndarray, u1: np.nda
 
 
 def mixture_eval(kd, ks, exponent, p_spec, n, wo, wi):
-    """Lambert + glossy: value f (N, 3) and pdf (N,) of :func:`mixture_sample` for directions ``wi`` (N, 3)."""
+    """Lambert + glossy: value f (N, 3) and pdf (N,) of :func:`mixture_sample` for directions ``wi`` (N, 3).
+
+    Examples:
+        >>> import numpy as np
+        >>> from stereorepro.render.bsdf import mixture_eval
+        >>> n = np.array([[0, 0, 1]], np.float32); wo = wi = n
+        >>> kd, ks = np.full((1, 3), 0.5, np.float32), np.zeros((1, 3), np.float32)
+        >>> exponent, p_spec = np.array([10.0], np.float32), np.array([0.0], np.float32)
+        >>> f, pdf, cos_i = mixture_eval(kd, ks, exponent, p_spec, n, wo, wi)
+        >>> round(float(f[0, 0]), 4), round(float(pdf[0]), 4), float(cos_i[0])
+        (0.1592, 0.3183, 1.0)
+    """
     cos_i = dot(n, wi)
     f_s, pdf_s = phong_eval(ks, exponent, n, wo, wi)
     f = kd * _INV_PI + f_s
@@ -142,6 +217,20 @@ def mixture_sample(kd, ks, exponent, p_spec, n, wo, u_lobe, u1, u2):
 
     Returns:
         wi: (N, 3); weight = f cos / pdf: (N, 3), zero for invalid samples; pdf: (N,).
+
+    Examples:
+        >>> import numpy as np
+        >>> from stereorepro.render.bsdf import mixture_sample
+        >>> rng = np.random.default_rng(0)
+        >>> N = 8
+        >>> n = np.tile(np.array([[0, 0, 1]], np.float32), (N, 1))
+        >>> wo = np.tile(np.array([[0.6, 0, 0.8]], np.float32), (N, 1))
+        >>> kd, ks = np.full((N, 3), 0.5, np.float32), np.zeros((N, 3), np.float32)
+        >>> u = [rng.random(N, dtype=np.float32) for _ in range(3)]
+        >>> exponent, p_spec = np.full(N, 10, np.float32), np.zeros(N, np.float32)  # diffuse only
+        >>> wi, weight, pdf = mixture_sample(kd, ks, exponent, p_spec, n, wo, *u)
+        >>> wi.shape, bool(np.allclose(weight, 0.5)), bool((pdf > 0).all())
+        ((8, 3), True, True)
     """
     wi_d, _ = lambert_sample(n, u1, u2)
     spec = u_lobe < p_spec

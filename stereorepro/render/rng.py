@@ -58,7 +58,15 @@ def _fmix(z: np.ndarray) -> np.ndarray:
 
 
 def stream_key(seed: int, frame: int, eye: int) -> int:
-    """Fold (seed, frame, eye) into one 64-bit key (a Python int)."""
+    """Fold (seed, frame, eye) into one 64-bit key (a Python int).
+
+    Examples:
+        >>> from stereorepro.render.rng import stream_key
+        >>> stream_key(0, 0, 0) == stream_key(0, 0, 0), stream_key(0, 0, 0) == stream_key(0, 0, 1)
+        (True, False)
+        >>> 0 <= stream_key(7, 3, 1) < 2 ** 64
+        True
+    """
     h = _fmix_int(0x5EED ^ (int(seed) & _M64))
     h = _combine_int(h, int(frame) & _M64)
     return _combine_int(h, int(eye) & _M64)
@@ -74,6 +82,13 @@ def path_keys(key: int, pixel: np.ndarray, sample: np.ndarray) -> np.ndarray:
 
     Returns:
         (N,) uint64.
+
+    Examples:
+        >>> import numpy as np
+        >>> from stereorepro.render.rng import path_keys, stream_key
+        >>> keys = path_keys(stream_key(0, 0, 0), np.arange(4), np.zeros(4, np.int64))
+        >>> keys.shape, keys.dtype, len(set(keys.tolist()))
+        ((4,), dtype('uint64'), 4)
     """
     with np.errstate(over="ignore"):
         p = pixel.astype(np.uint64) + np.uint64(_C0)
@@ -83,7 +98,16 @@ def path_keys(key: int, pixel: np.ndarray, sample: np.ndarray) -> np.ndarray:
 
 
 def uniform(keys: np.ndarray, dim: int) -> np.ndarray:
-    """Uniform float32 numbers in [0, 1) for dimension ``dim`` of each path key (N,) → (N,)."""
+    """Uniform float32 numbers in [0, 1) for dimension ``dim`` of each path key (N,) → (N,).
+
+    Examples:
+        >>> import numpy as np
+        >>> from stereorepro.render.rng import DIM, path_keys, stream_key, uniform
+        >>> keys = path_keys(stream_key(0, 0, 0), np.arange(1000), np.zeros(1000, np.int64))
+        >>> u = uniform(keys, DIM["jitter_x"])
+        >>> u.dtype, bool((u >= 0).all() and (u < 1).all()), round(float(u.mean()), 1)
+        (dtype('float32'), True, 0.5)
+    """
     d = np.uint64(_fmix_int((int(dim) + _C0) & _M64))
     with np.errstate(over="ignore"):
         bits = _fmix(keys ^ d) >> np.uint64(40)
@@ -91,5 +115,14 @@ def uniform(keys: np.ndarray, dim: int) -> np.ndarray:
 
 
 def uniform2(keys: np.ndarray, dim0: int, dim1: int) -> tuple[np.ndarray, np.ndarray]:
-    """Two uniform dimensions at once, each (N,) float32 in [0, 1)."""
+    """Two uniform dimensions at once, each (N,) float32 in [0, 1).
+
+    Examples:
+        >>> import numpy as np
+        >>> from stereorepro.render.rng import DIM, path_keys, stream_key, uniform, uniform2
+        >>> keys = path_keys(stream_key(0, 0, 0), np.arange(3), np.zeros(3, np.int64))
+        >>> ux, uy = uniform2(keys, DIM["jitter_x"], DIM["jitter_y"])
+        >>> ux.shape, bool(np.array_equal(ux, uniform(keys, DIM["jitter_x"]))), bool(np.array_equal(ux, uy))
+        ((3,), True, False)
+    """
     return uniform(keys, dim0), uniform(keys, dim1)
