@@ -22,6 +22,21 @@ def _fmt(x, nd=2):
 
 
 def tables_markdown(results: dict) -> str:
+    """``tables.md``: Table 1 (discarded pixels, %) and Table 2 (effective spp) of a run's ``results``, then the
+    after-warm-up averages, the reference study and the moving-objects table when ``results`` has them.
+
+    Examples:
+        >>> from stereorepro.workflows.experiment.report import tables_markdown
+        >>> row = {"avg": 4.0, "min": 2.0, "max": 6.0}
+        >>> results = {"scene": "box", "frames": 2, "resolution": "8x6", "reference_spp": 64, "ladder_spp": 16,
+        ...            "table1": {"stereo": row, "temporal": row},
+        ...            "table2": {"stereo": row, "temporal": row, "stereo_temporal": row}}
+        >>> md = tables_markdown(results)
+        >>> md.splitlines()[4]
+        '| stereo | 4.00 | 2.00 | 6.00 |'
+        >>> md.splitlines()[-1]
+        '| box | 4.00 | 2.00 | 6.00 | 4.00 | 2.00 | 6.00 | 4.00 | 2.00 | 6.00 |'
+    """
     t1, t2 = results["table1"], results["table2"]
     lines = [f"**Table 1** — discarded pixels (%), {results['scene']}, {results['frames']} frames, "
              f"{results['resolution']}", "", "| | Avg | Min | Max |", "|---|---:|---:|---:|"]
@@ -74,6 +89,14 @@ def moving_markdown(results: dict) -> str:
 
 
 def cost_markdown(results: dict) -> str:
+    """The time-cost table of ``results["cost"]``: per scheme, ms per frame, effective spp and their ratio.
+
+    Examples:
+        >>> from stereorepro.workflows.experiment.report import cost_markdown
+        >>> cost = [{"scheme": "stereo", "ms": 12.5, "effective_spp": 2.5, "ms_per_effective_spp": 5.0}]
+        >>> print(cost_markdown({"cost": cost}).splitlines()[-1])
+        | stereo | 12.5 | 2.50 | 5.0 |
+    """
     lines = ["| scheme | ms / frame (evaluated eye) | effective spp (avg) | ms per effective spp |",
              "|---|---:|---:|---:|"]
     for r in results["cost"]:
@@ -296,6 +319,24 @@ def _cost_section(results: dict) -> list[str]:
 
 
 def write_frame_exr(root: Path, f: int, eyes: dict, drivers: dict) -> None:
+    """Write frame ``f`` of each eye as ``root/<frame>_<eye>.exr``: the ``stereo_temporal`` driver's colour of that
+    eye (R, G, B), the eye's depth (Z) and normal (N.X, N.Y, N.Z).
+
+    Examples:
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> from types import SimpleNamespace
+        >>> import torch
+        >>> from stereorepro.camera import Eye
+        >>> from stereorepro.workflows.experiment.report import write_frame_exr
+        >>> eye = SimpleNamespace(depth=torch.ones(1, 1, 2, 3), normal=torch.zeros(1, 3, 2, 3))
+        >>> state = SimpleNamespace(color=torch.zeros(1, 3, 2, 3))
+        >>> drivers = {"stereo_temporal": SimpleNamespace(left_state=state, right_state=state)}
+        >>> with tempfile.TemporaryDirectory() as d:
+        ...     write_frame_exr(Path(d), 3, {Eye.LEFT: eye, Eye.RIGHT: eye}, drivers)
+        ...     print(sorted(p.name for p in Path(d).iterdir()))
+        ['0003_left.exr', '0003_right.exr']
+    """
     from ...io.exr import write_exr
 
     root.mkdir(parents=True, exist_ok=True)
