@@ -79,6 +79,13 @@ def native_unsupported(images: Iterable[Tensor], others: Iterable = (), soft: bo
         soft: soft accept tests (torch only).
         motion: motion vectors given (read by the native kernels too; their tensors belong in ``images``).
         channels: value channels carried per pixel (at most :data:`~._constants.NATIVE_MAX_CHANNELS` natively).
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro.reproject.functional import native_unsupported
+        >>> reason = native_unsupported([torch.ones(1, 1, 2, 2, dtype=torch.float64)])
+        >>> "float64 run on torch" in reason
+        True
     """
     images = list(images)
     tensors = images + [x for x in others if isinstance(x, Tensor)]
@@ -113,6 +120,14 @@ def select_backend(backend: str, images: Iterable[Tensor], others: Iterable = ()
       tensor on the CPU, image tensors float32, hard tests, no autograd, and not tracing / exporting / compiling;
     * ``"native"`` runs native and raises RuntimeError saying why when it is not possible;
     * tracing, ONNX export and ``torch.compile`` always use torch, whatever was asked.
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro.reproject.functional import select_backend
+        >>> select_backend("torch", [torch.ones(1, 1, 2, 2)])
+        'torch'
+        >>> select_backend("auto", [torch.ones(1, 1, 2, 2, dtype=torch.float64)])  # float64 images run on torch
+        'torch'
     """
     chosen = _backend.resolve(backend, BACKENDS, lambda: native_unsupported(images, others, soft, motion, channels),
                               reference_only=tracing())
@@ -137,7 +152,13 @@ def _no_extra(op: str, args: tuple, kwargs: dict) -> None:
 
 
 def as_thresholds(thresholds) -> Thresholds:
-    """``thresholds`` as :class:`Thresholds`: a Thresholds, or a ``(position, normal)`` pair (TypeError otherwise)."""
+    """``thresholds`` as :class:`Thresholds`: a Thresholds, or a ``(position, normal)`` pair (TypeError otherwise).
+
+    Examples:
+        >>> from stereorepro.reproject.functional import as_thresholds
+        >>> as_thresholds((0.01, 0.1))
+        Thresholds(position=0.01, normal=0.1, temperature=0.1)
+    """
     if isinstance(thresholds, Thresholds):
         return thresholds
     if isinstance(thresholds, (tuple, list)) and len(thresholds) in (2, 3):
@@ -255,7 +276,19 @@ def warp_values(values: Tensor, src: View, dst: View, thresholds: Thresholds, sa
                 confidence: bool = True) -> ReprojectionResult:
     """:func:`backward_reproject` of arguments the caller has checked; without ``confidence`` the result's
     confidence is None (the native kernel then does not write it). The stereo op, the temporal op and the
-    combined scheme's stereo step call it."""
+    combined scheme's stereo step call it.
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro import Thresholds, View, intrinsics_from_fov
+        >>> from stereorepro.reproject.functional import warp_values
+        >>> depth = torch.full((1, 1, 6, 8), 2.0); normal = torch.zeros(1, 3, 6, 8); normal[:, 2] = -1
+        >>> view = View(depth, normal, intrinsics_from_fov(60.0, 8, 6), torch.eye(4)[None])
+        >>> values = torch.rand(1, 2, 6, 8, generator=torch.Generator().manual_seed(0))
+        >>> out = warp_values(values, view, view, Thresholds(0.01, 0.1), confidence=False)
+        >>> bool(torch.equal(out.values, values)), bool(out.valid.all()), out.confidence is None
+        (True, True, True)
+    """
     if _is_empty(dst.depth):
         return ReprojectionResult(*_empty_outputs(values, dst.depth, confidence))
     images = (values, src.depth, src.normal, dst.depth, dst.normal) + _motion_of(dst)
@@ -549,7 +582,20 @@ def temporal_reproject(
 def reproject_history(current_color: Tensor, view: View, history: History, prev_view: View, thr: Thresholds,
                       blend: Blend, sampling: str = "bilinear", soft: bool = False, backend: str = "auto",
                       return_reason: bool = False) -> TemporalResult:
-    """:func:`temporal_reproject` of arguments the caller has checked."""
+    """:func:`temporal_reproject` of arguments the caller has checked.
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro import Blend, History, Thresholds, View, intrinsics_from_fov
+        >>> from stereorepro.reproject.functional import reproject_history
+        >>> depth = torch.full((1, 1, 6, 8), 2.0); normal = torch.zeros(1, 3, 6, 8); normal[:, 2] = -1
+        >>> view = View(depth, normal, intrinsics_from_fov(60.0, 8, 6), torch.eye(4)[None])
+        >>> first = reproject_history(torch.ones(1, 3, 6, 8), view, History.empty(view), view, Thresholds(0.01, 0.1),
+        ...                           Blend())
+        >>> out = reproject_history(torch.zeros(1, 3, 6, 8), view, first.history, view, Thresholds(0.01, 0.1), Blend())
+        >>> float(out.color.max()), float(out.history_len.max())
+        (0.5, 2.0)
+    """
     if _is_empty(view.depth):
         color, valid, reason = _empty_outputs(current_color, view.depth)
         n = torch.zeros(view.depth.shape, dtype=compute_dtype(*history), device=view.depth.device)
