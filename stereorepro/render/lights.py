@@ -19,7 +19,14 @@ __all__ = ["EmitterTable", "LightSet", "TriangleDistances", "luminance", "point_
 
 
 def luminance(rgb: np.ndarray) -> np.ndarray:
-    """Rec. 709 luminance of (..., 3) → (...)."""
+    """Rec. 709 luminance of (..., 3) → (...).
+
+    Examples:
+        >>> import numpy as np
+        >>> from stereorepro.render.lights import luminance
+        >>> [round(float(x), 4) for x in luminance(np.array([[1.0, 1.0, 1.0], [0.0, 1.0, 0.0]]))]
+        [1.0, 0.7152]
+    """
     rgb = np.asarray(rgb, dtype=np.float64)
     return 0.2126 * rgb[..., 0] + 0.7152 * rgb[..., 1] + 0.0722 * rgb[..., 2]
 
@@ -29,6 +36,16 @@ class EmitterTable:
 
     Args:
         vertices: (V, 3) float32; faces: (F, 3) int32; face_emission: (F, 3) float32 radiance (zeros = not a light).
+
+    Examples:
+        >>> import numpy as np
+        >>> from stereorepro.render.lights import EmitterTable
+        >>> vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32)
+        >>> faces = np.array([[0, 1, 2], [0, 1, 3]], np.int32)
+        >>> emission = np.array([[0, 0, 0], [2, 2, 2]], np.float32)  # only face 1 emits
+        >>> table = EmitterTable(vertices, faces, emission)
+        >>> table.face_index.tolist(), table.area.tolist(), round(float(table.power[0]), 4)
+        ([1], [0.5], 3.1416)
     """
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, face_emission: np.ndarray):
@@ -56,6 +73,19 @@ class LightSet:
     Args:
         emitters: the static :class:`EmitterTable`.
         point_positions: (L, 3) world positions at this frame; point_intensity: (L, 3) radiant intensity (W/sr).
+
+    Examples:
+        >>> import numpy as np
+        >>> from stereorepro.render.lights import EmitterTable, LightSet
+        >>> vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
+        >>> table = EmitterTable(vertices, np.array([[0, 1, 2]], np.int32), np.ones((1, 3), np.float32))
+        >>> lights = LightSet(table, np.array([[0.0, 0.0, 2.0]]), np.full((1, 3), 0.125))
+        >>> [round(float(p), 4) for p in lights.prob]
+        [0.5, 0.5]
+        >>> target, wi, dist, li, pdf = lights.sample(np.zeros((2, 3), np.float32), np.array([0.1, 0.9], np.float32),
+        ...                                          np.full(2, 0.5, np.float32), np.full(2, 0.5, np.float32))
+        >>> [round(float(d), 4) for d in dist], bool(np.isinf(pdf[1]))  # an area light, then the point light
+        ([0.5, 2.0], True)
     """
 
     def __init__(self, emitters: EmitterTable, point_positions: np.ndarray, point_intensity: np.ndarray):
@@ -147,6 +177,16 @@ class TriangleDistances:
 
     Args:
         vertices: (V, 3); faces: (F, 3) int.
+
+    Examples:
+        >>> import numpy as np
+        >>> from stereorepro.render.lights import TriangleDistances
+        >>> tris = TriangleDistances(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]]), np.array([[0, 1, 2]]))
+        >>> above, beside = np.array([0.25, 0.25, 2.0]), np.array([-1.0, 0.0, 0.0])
+        >>> len(tris), tris.squared(above).tolist(), tris.squared(beside).tolist()
+        (1, [4.0], [1.0])
+        >>> tris.grouped(np.array([[0.25, 0.25, 2.0]]), np.array([0]), 2).tolist()
+        [[2.0, inf]]
     """
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray):
@@ -218,6 +258,14 @@ def point_mesh_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndar
 
     Returns:
         (L,) float64 distances (``inf`` for an empty mesh).
+
+    Examples:
+        >>> import numpy as np
+        >>> from stereorepro.render.lights import point_mesh_distance
+        >>> vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]])
+        >>> points = np.array([[0.25, 0.25, 3.0], [2.0, 0.0, 0.0]])
+        >>> point_mesh_distance(points, vertices, np.array([[0, 1, 2]])).tolist()
+        [3.0, 1.0]
     """
     P = np.asarray(points, np.float64).reshape(-1, 3)
     Fc = np.asarray(faces, np.int64).reshape(-1, 3)
@@ -258,6 +306,18 @@ def radiance_bound(emission: np.ndarray, albedo: np.ndarray, specular: np.ndarra
 
     Returns:
         ``C`` (a positive float; ``inf`` when a point light touches a surface, i.e. no bound).
+
+    Examples:
+        >>> import numpy as np
+        >>> from stereorepro.render.lights import radiance_bound
+        >>> emission = np.array([[0.0, 0.0, 0.0], [5.0, 5.0, 5.0]])  # material 1 is the (black) emitter
+        >>> albedo = np.array([[0.8, 0.8, 0.8], [0.0, 0.0, 0.0]])
+        >>> no_lights = np.zeros((0, 3))
+        >>> radiance_bound(emission, albedo, np.zeros((2, 3)), np.ones(2), no_lights, np.zeros((0, 2)))
+        5.0
+        >>> c = radiance_bound(emission, albedo, np.zeros((2, 3)), np.ones(2), np.full((1, 3), np.pi), np.array([1.0]))
+        >>> round(c, 4)
+        6.6
     """
     em = np.asarray(emission, np.float64).reshape(-1, 3)
     kd = np.asarray(albedo, np.float64).reshape(-1, 3)
