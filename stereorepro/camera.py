@@ -203,7 +203,16 @@ def invert_rigid(T: Tensor) -> Tensor:
 
 
 def inverse_intrinsics(K: Tensor) -> Tensor:
-    """Closed-form inverse of upper-triangular pinhole intrinsics (B, 3, 3) (skew allowed, K[2] = [0, 0, 1])."""
+    """Closed-form inverse of upper-triangular pinhole intrinsics (B, 3, 3) (skew allowed, K[2] = [0, 0, 1]).
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro import intrinsics_from_fov
+        >>> from stereorepro.camera import inverse_intrinsics
+        >>> K = intrinsics_from_fov(90.0, 4, 2)
+        >>> (inverse_intrinsics(K)[0] + 0.0).tolist(), bool(torch.allclose(inverse_intrinsics(K) @ K, torch.eye(3)))
+        ([[1.0, 0.0, -2.0], [0.0, 1.0, -1.0], [0.0, 0.0, 1.0]], True)
+    """
     return _inverse_intrinsics(K, torch)
 
 
@@ -359,6 +368,17 @@ def rectify_warp(warp: Warp, height: int, width: int, check: bool = True) -> War
         check: raise :class:`~stereorepro.errors.CameraError` when the cameras are not a rectified pair within
             :data:`RECTIFIED_TOLERANCE_PX` pixels of vertical disparity anywhere in the frame (rows) and
             :data:`RECTIFIED_TOLERANCE_REL` of the horizontal disparity (baseline); skipped while tracing.
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro import intrinsics_from_fov
+        >>> from stereorepro.camera import compose_warp, rectify_warp
+        >>> K = intrinsics_from_fov(90.0, 4, 2); src = torch.eye(4)[None]; dst = src.clone(); dst[0, 0, 3] = -0.5
+        >>> warp = compose_warp(K, src, K, dst, torch.float32)
+        >>> P = warp.pixel_src_from_pixel_dst.clone(); P[0, 1, 0] = 1e-7  # rounding of real cameras
+        >>> rect = rectify_warp(warp._replace(pixel_src_from_pixel_dst=P), 2, 4)
+        >>> rect.pixel_src_from_pixel_dst[0, 1:].tolist(), rect.K_src_t.flatten().tolist()
+        ([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], [0.5, 0.0, 0.0])
     """
     M, t, P, kt, Ks_inv = warp
     if check and not tracing():
@@ -631,6 +651,13 @@ def jitter_intrinsics(K: Tensor, dx, dy) -> Tensor:
 
     Raises:
         ValueError: non-finite dx or dy. TypeError: dx or dy not a number.
+
+    Examples:
+        >>> from stereorepro import intrinsics_from_fov
+        >>> from stereorepro.camera import jitter_intrinsics
+        >>> K = intrinsics_from_fov(90.0, 4, 2)
+        >>> K[0, :2, 2].tolist(), jitter_intrinsics(K, 0.25, -0.5)[0, :2, 2].tolist()  # (cx, cy) -> (cx - dx, cy - dy)
+        ([2.0, 1.0], [1.75, 1.5])
     """
     check_shape(K, ["B", "3", "3"], "K")
     check_scalar(dx, "jitter: dx (pixels)", tracing=False)
