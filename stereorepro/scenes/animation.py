@@ -29,7 +29,13 @@ __all__ = ["RigidAnimation", "parse_animations", "quat_from_axis_angle", "quat_t
 
 
 def quat_from_axis_angle(axis, angle_deg: float) -> np.ndarray:
-    """Unit quaternion (w, x, y, z) of a rotation by ``angle_deg`` degrees about ``axis``."""
+    """Unit quaternion (w, x, y, z) of a rotation by ``angle_deg`` degrees about ``axis``.
+
+    Examples:
+        >>> from stereorepro.scenes.animation import quat_from_axis_angle
+        >>> [round(float(c), 4) for c in quat_from_axis_angle([0, 0, 2], 90.0)]
+        [0.7071, 0.0, 0.0, 0.7071]
+    """
     a = np.asarray(axis, np.float64)
     n = float(np.linalg.norm(a))
     if angle_deg == 0.0:
@@ -41,7 +47,15 @@ def quat_from_axis_angle(axis, angle_deg: float) -> np.ndarray:
 
 
 def slerp(q0: np.ndarray, q1: np.ndarray, u: float) -> np.ndarray:
-    """Spherical linear interpolation of unit quaternions (the shorter arc), ``u`` in [0, 1]."""
+    """Spherical linear interpolation of unit quaternions (the shorter arc), ``u`` in [0, 1].
+
+    Examples:
+        >>> import numpy as np
+        >>> from stereorepro.scenes.animation import quat_from_axis_angle, slerp
+        >>> q = slerp(quat_from_axis_angle([0, 1, 0], 0.0), quat_from_axis_angle([0, 1, 0], 90.0), 0.5)
+        >>> bool(np.allclose(q, quat_from_axis_angle([0, 1, 0], 45.0)))
+        True
+    """
     d = float(np.dot(q0, q1))
     if d < 0.0:
         q1, d = -q1, -d
@@ -53,7 +67,15 @@ def slerp(q0: np.ndarray, q1: np.ndarray, u: float) -> np.ndarray:
 
 
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """(3, 3) rotation matrix of a unit quaternion (w, x, y, z)."""
+    """(3, 3) rotation matrix of a unit quaternion (w, x, y, z).
+
+    Examples:
+        >>> import numpy as np
+        >>> from stereorepro.scenes.animation import quat_from_axis_angle, quat_to_matrix
+        >>> R = quat_to_matrix(quat_from_axis_angle([0, 0, 1], 90.0))
+        >>> (R @ np.array([1.0, 0.0, 0.0])).round(6).tolist()
+        [0.0, 1.0, 0.0]
+    """
     w, x, y, z = q
     return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
                      [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
@@ -69,6 +91,14 @@ class RigidAnimation:
         frames: (K,) int keyframe frame indices, increasing.
         translate: (K, 3); rotate: (K, 4) unit quaternions (w, x, y, z); scale: (K,).
         pivot: (3,) or None (then the caller passes the object's bounding-box centre).
+
+    Examples:
+        >>> import numpy as np
+        >>> from stereorepro.scenes.animation import RigidAnimation, quat_from_axis_angle
+        >>> anim = RigidAnimation(("mover",), np.array([0, 10]), np.array([[0.0, 0, 0], [2.0, 0, 0]]),
+        ...                   np.array([quat_from_axis_angle([0, 1, 0], 0.0)] * 2), np.ones(2))
+        >>> anim.materials, anim.world_from_rest(5, pivot=np.zeros(3))[:3, 3].tolist()
+        (('mover',), [1.0, 0.0, 0.0])
     """
 
     materials: tuple
@@ -104,6 +134,16 @@ def parse_animations(data: dict, file: str, materials: list, num_frames: int) ->
 
     Raises:
         SceneError: naming the file and the key.
+
+    Examples:
+        >>> from types import SimpleNamespace
+        >>> from stereorepro.scenes.animation import parse_animations
+        >>> materials = [SimpleNamespace(name="mover", emission=(0.0, 0.0, 0.0))]
+        >>> data = {"effects": ["moving_objects"], "animations": [{"materials": ["mover"], "frames": [0, 4],
+        ...                                                     "translate": [[0, 0, 0], [0, 1, 0]]}]}
+        >>> anims = parse_animations(data, "demo.toml", materials, num_frames=5)
+        >>> len(anims), anims[0].frames.tolist(), anims[0].translate[1].tolist()
+        (1, [0, 4], [0.0, 1.0, 0.0])
     """
     effects = set(data.get("effects", []))
     entries = data.get("animations", [])
