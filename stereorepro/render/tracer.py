@@ -105,7 +105,13 @@ ENV_VAR = _backend.ENV_VAR
 
 
 def native_available() -> bool:
-    """True when ``stereorepro._core`` is importable and has the tracer kernels."""
+    """True when ``stereorepro._core`` is importable and has the tracer kernels.
+
+    Examples:
+        >>> from stereorepro.render.tracer import native_available
+        >>> isinstance(native_available(), bool)
+        True
+    """
     return _core is not None and hasattr(_core, "TracerShader") and hasattr(_core, "tracer_generate")
 
 
@@ -113,7 +119,18 @@ def resolve_backend(backend: str = "auto") -> str:
     """``"numpy"`` or ``"native"`` for a requested tracer backend, by the package's one backend rule
     (:mod:`stereorepro._backend`: ``STEREOREPRO_BACKEND`` overrides the argument; ``"torch"`` and ``"reference"``
     name the reference path, which for the tracer is numpy). Raises ValueError for an unknown name and
-    RuntimeError when ``"native"`` is asked for but ``_core`` lacks the kernels."""
+    RuntimeError when ``"native"`` is asked for but ``_core`` lacks the kernels.
+
+    Examples:
+        >>> from stereorepro.render.tracer import resolve_backend
+        >>> resolve_backend("auto") in ("numpy", "native")
+        True
+        >>> try:
+        ...     resolve_backend("cuda")
+        ... except ValueError as e:
+        ...     print(type(e).__name__)
+        ParameterError
+    """
     why = "stereorepro._core with the tracer kernels is not built or not importable"
     chosen = _backend.resolve(backend, BACKENDS, lambda: None if native_available() else why, who="PathTracer: ")
     return "native" if chosen == "native" else "numpy"
@@ -184,6 +201,12 @@ def ray_epsilon(vertices: np.ndarray) -> float:
 
     ``2e-5 * bbox diagonal`` covers the intersection error (relative to the ray length) and ``4e-7 * max |coord|``
     (about 3 float32 ulps) covers the rounding of positions far from the origin.
+
+    Examples:
+        >>> import numpy as np
+        >>> from stereorepro.render.tracer import ray_epsilon
+        >>> f"{ray_epsilon(np.array([[0.0, 0.0, 0.0], [3.0, 4.0, 0.0]])):.2e}"
+        '1.02e-04'
     """
     v = np.asarray(vertices, np.float64)
     lo, hi = v.min(0), v.max(0)
