@@ -182,6 +182,17 @@ def warp_history(module: TemporalReprojection, state: EyeState, depth: Tensor, n
         history_len: (B, 1, H, W) its warped sample count (0 where discarded).
         valid: (B, 1, H, W) bool, where the history was kept.
         reason: (B, 1, H, W) uint8 :class:`~stereorepro.Reason`.
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro import TemporalReprojection, intrinsics_from_fov
+        >>> from stereorepro.accumulate import EyeState, warp_history
+        >>> depth = torch.full((1, 1, 6, 8), 2.0); normal = torch.zeros(1, 3, 6, 8); normal[:, 2] = -1
+        >>> camera = (depth, normal, intrinsics_from_fov(60.0, 8, 6), torch.eye(4)[None])
+        >>> state = EyeState(torch.full((1, 3, 6, 8), 0.5), torch.full((1, 1, 6, 8), 3.0), *camera)
+        >>> color, length, valid, reason = warp_history(TemporalReprojection(0.03, 0.2), state, *camera)  # camera still
+        >>> float(color.max()), float(length.max()), bool(valid.all()), int(reason.max())
+        (0.5, 3.0, True, 0)
     """
     check_reprojection_inputs(state.color, state.depth, state.normal, state.K, state.cam_from_world, depth, normal,
                               K, cam_from_world, TEMPORAL_NAMES)
@@ -255,6 +266,18 @@ def blend_histories(traced_color: Tensor, stereo_color: Tensor, stereo_len: Tens
 
     Differentiable in the colours, counts, ``alpha`` and ``stereo_weight`` (``min`` has a kink at
     ``n = 1/alpha − 1``).
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro.accumulate import blend_histories
+        >>> ones = torch.ones(1, 1, 1, 2); yes, no = ones > 0, ones < 0
+        >>> traced, stereo, own = torch.zeros(1, 3, 1, 2), torch.ones(1, 3, 1, 2), torch.zeros(1, 3, 1, 2)
+        >>> color, length = blend_histories(traced, stereo, 2 * ones, yes, own, 2 * ones, no, stereo_weight=1.0)
+        >>> color[0, 0].tolist(), length[0, 0].tolist()  # only the stereo history is valid: taken as it is
+        ([[1.0, 1.0]], [[2.0, 2.0]])
+        >>> color, length = blend_histories(traced, stereo, 2 * ones, yes, own, 2 * ones, yes, stereo_weight=1.0)
+        >>> color[0, 0].tolist(), length[0, 0].tolist()  # both valid, equal counts: their mean, counts added
+        ([[0.5, 0.5]], [[4.0, 4.0]])
     """
     if not tracing():
         bind = check_shape(traced_color, ["B", "C", "H", "W"], "traced_color")
