@@ -51,6 +51,13 @@ class RenderSpec:
 
     ``base_key`` is the JSON of the cache key's common part (scene fingerprint, renderer code, seed, resolution),
     computed once by the client so that every worker files its entries under the same keys.
+
+    Examples:
+        >>> from stereorepro.workflows.experiment.inputs import RenderSpec
+        >>> spec = RenderSpec("living_room", 8, 6, seed=0, ladder_spp=2, reference_spp=4, reference_chunk_spp=2,
+        ...                   base_key="{}", cache_dir="cache")
+        >>> spec.chunks, spec.jitter
+        (2, False)
     """
 
     scene: str
@@ -80,7 +87,24 @@ class RenderSpec:
 
 def spec_for(cfg, scene, cache_dir: Path) -> RenderSpec:
     """The :class:`RenderSpec` of an :class:`~.config.ExperimentConfig` on a loaded scene: its cache key's common
-    part (scene fingerprint, renderer version — ``cfg.renderer_version`` or the current one —, seed, resolution)."""
+    part (scene fingerprint, renderer version — ``cfg.renderer_version`` or the current one —, seed, resolution).
+
+    Examples:
+        >>> import tempfile
+        >>> from stereorepro.scenes import load_scene
+        >>> from stereorepro.workflows.experiment.config import ExperimentConfig
+        >>> from stereorepro.workflows.experiment.inputs import RenderContext, spec_for
+        >>> tmp = tempfile.TemporaryDirectory()
+        >>> cfg = ExperimentConfig(scene="living_room", out=tmp.name, width=8, height=6, ladder_spp=2,
+        ...                        reference_spp=4, reference_chunk_spp=2)
+        >>> scene = load_scene(cfg.scene)
+        >>> ctx = RenderContext(spec_for(cfg, scene, tmp.name), scene=scene)
+        >>> import json
+        >>> spec = ctx.spec
+        >>> spec.width, spec.height, spec.chunks, spec.moving, sorted(json.loads(spec.base_key))
+        (8, 6, 2, False, ['code', 'h', 'scene', 'seed', 'w'])
+        >>> tmp.cleanup()
+    """
     from .cache import code_version, scene_fingerprint
 
     code = cfg.renderer_version or code_version()
@@ -95,7 +119,15 @@ def spec_for(cfg, scene, cache_dir: Path) -> RenderSpec:
 
 def reference_prefixes(spec: RenderSpec) -> list[int]:
     """Reference sample counts every ladder is scored against: the chunk size times 1, 2, 4, ... below the
-    reference's count, and the reference's count itself (a free reference-spp study on every chunked run)."""
+    reference's count, and the reference's count itself (a free reference-spp study on every chunked run).
+
+    Examples:
+        >>> from stereorepro.workflows.experiment.inputs import RenderSpec, reference_prefixes
+        >>> spec = RenderSpec("living_room", 8, 6, seed=0, ladder_spp=2, reference_spp=4, reference_chunk_spp=2,
+        ...                   base_key="{}", cache_dir="cache")
+        >>> reference_prefixes(spec)
+        [2, 4]
+    """
     out, n = [], 1
     while n < spec.chunks:
         out.append(n * spec.reference_chunk_spp)
@@ -105,7 +137,22 @@ def reference_prefixes(spec: RenderSpec) -> list[int]:
 
 @dataclass
 class RenderContext:
-    """A spec with the objects that render it: the scene, its tracer and the cache (built lazily)."""
+    """A spec with the objects that render it: the scene, its tracer and the cache (built lazily).
+
+    Examples:
+        >>> import tempfile
+        >>> from stereorepro.scenes import load_scene
+        >>> from stereorepro.workflows.experiment.config import ExperimentConfig
+        >>> from stereorepro.workflows.experiment.inputs import RenderContext, spec_for
+        >>> tmp = tempfile.TemporaryDirectory()
+        >>> cfg = ExperimentConfig(scene="living_room", out=tmp.name, width=8, height=6, ladder_spp=2,
+        ...                        reference_spp=4, reference_chunk_spp=2)
+        >>> scene = load_scene(cfg.scene)
+        >>> ctx = RenderContext(spec_for(cfg, scene, tmp.name), scene=scene)
+        >>> type(ctx.scene).__name__, type(ctx.tracer).__name__, ctx.key(3, 1)["frame"]
+        ('Scene', 'PathTracer', 3)
+        >>> tmp.cleanup()
+    """
 
     spec: RenderSpec
     cache: RenderCache | None = None
@@ -173,7 +220,25 @@ def _gbuffer_entry(ctx: RenderContext, key: dict, frame: int, cam, prev):
 
 
 def gbuffer_task(ctx: RenderContext, frame: int, eye: int):
-    """Ensure the G-buffer entry of (frame, eye) is in the cache; returns (data, meta)."""
+    """Ensure the G-buffer entry of (frame, eye) is in the cache; returns (data, meta).
+
+    Examples:
+        >>> import tempfile
+        >>> from stereorepro.scenes import load_scene
+        >>> from stereorepro.workflows.experiment.config import ExperimentConfig
+        >>> from stereorepro.workflows.experiment.inputs import RenderContext, spec_for, gbuffer_task
+        >>> tmp = tempfile.TemporaryDirectory()
+        >>> cfg = ExperimentConfig(scene="living_room", out=tmp.name, width=8, height=6, ladder_spp=2,
+        ...                        reference_spp=4, reference_chunk_spp=2)
+        >>> scene = load_scene(cfg.scene)
+        >>> ctx = RenderContext(spec_for(cfg, scene, tmp.name), scene=scene)
+        >>> data, meta = gbuffer_task(ctx, 0, 0)
+        >>> sorted(data), data["depth"].shape, ctx.cache.misses
+        (['depth', 'normal'], (1, 1, 6, 8), 1)
+        >>> _ = gbuffer_task(ctx, 0, 0); ctx.cache.hits  # the second call reads the entry back
+        1
+        >>> tmp.cleanup()
+    """
     return _gbuffer_entry(ctx, _gbuffer_key(ctx, frame, eye), frame, *ctx.camera(frame, eye))
 
 
@@ -185,14 +250,46 @@ def _jitter_key(ctx, frame: int, eye: int, kind: str) -> dict:
 
 def jitter_gbuffer_task(ctx: RenderContext, frame: int, eye: int):
     """The G-buffer of (frame, eye) through the frame's jittered camera (motion: to the previous frame's jittered
-    camera, so the vectors include the change of jitter); returns (data, meta)."""
+    camera, so the vectors include the change of jitter); returns (data, meta).
+
+    Examples:
+        >>> import tempfile
+        >>> from stereorepro.scenes import load_scene
+        >>> from stereorepro.workflows.experiment.config import ExperimentConfig
+        >>> from stereorepro.workflows.experiment.inputs import RenderContext, spec_for, jitter_gbuffer_task
+        >>> tmp = tempfile.TemporaryDirectory()
+        >>> cfg = ExperimentConfig(scene="living_room", out=tmp.name, width=8, height=6, ladder_spp=2,
+        ...                        reference_spp=4, reference_chunk_spp=2)
+        >>> scene = load_scene(cfg.scene)
+        >>> ctx = RenderContext(spec_for(cfg, scene, tmp.name), scene=scene)
+        >>> data, meta = jitter_gbuffer_task(ctx, 1, 0)
+        >>> sorted(data), data["normal"].shape
+        (['depth', 'normal'], (1, 3, 6, 8))
+        >>> tmp.cleanup()
+    """
     return _gbuffer_entry(ctx, _jitter_key(ctx, frame, eye, "gbuffer_jitter"), frame,
                           *ctx.camera(frame, eye, jittered=True))
 
 
 def jitter_sample_task(ctx: RenderContext, frame: int, eye: int):
     """The schemes' 1-spp input of (frame, eye) with jitter: one sample per pixel through the jittered camera's
-    pixel centre (``pixel_sampling="center"``, the G-buffer's own ray), TAA's one sample per frame."""
+    pixel centre (``pixel_sampling="center"``, the G-buffer's own ray), TAA's one sample per frame.
+
+    Examples:
+        >>> import tempfile
+        >>> from stereorepro.scenes import load_scene
+        >>> from stereorepro.workflows.experiment.config import ExperimentConfig
+        >>> from stereorepro.workflows.experiment.inputs import RenderContext, spec_for, jitter_sample_task
+        >>> tmp = tempfile.TemporaryDirectory()
+        >>> cfg = ExperimentConfig(scene="living_room", out=tmp.name, width=8, height=6, ladder_spp=2,
+        ...                        reference_spp=4, reference_chunk_spp=2)
+        >>> scene = load_scene(cfg.scene)
+        >>> ctx = RenderContext(spec_for(cfg, scene, tmp.name), scene=scene)
+        >>> data, meta = jitter_sample_task(ctx, 1, 0)
+        >>> data["radiance"].shape, data["radiance"].dtype
+        ((1, 3, 6, 8), dtype('float32'))
+        >>> tmp.cleanup()
+    """
     cam, _ = ctx.camera(frame, eye, jittered=True)
 
     def make():
@@ -208,7 +305,23 @@ def _chunk_key(ctx: RenderContext, frame: int, eye: int, i: int) -> dict:
 
 
 def reference_chunk_task(ctx: RenderContext, frame: int, eye: int, i: int):
-    """Ensure reference chunk ``i`` of (frame, eye) is in the cache; returns (data, meta)."""
+    """Ensure reference chunk ``i`` of (frame, eye) is in the cache; returns (data, meta).
+
+    Examples:
+        >>> import tempfile
+        >>> from stereorepro.scenes import load_scene
+        >>> from stereorepro.workflows.experiment.config import ExperimentConfig
+        >>> from stereorepro.workflows.experiment.inputs import RenderContext, spec_for, reference_chunk_task
+        >>> tmp = tempfile.TemporaryDirectory()
+        >>> cfg = ExperimentConfig(scene="living_room", out=tmp.name, width=8, height=6, ladder_spp=2,
+        ...                        reference_spp=4, reference_chunk_spp=2)
+        >>> scene = load_scene(cfg.scene)
+        >>> ctx = RenderContext(spec_for(cfg, scene, tmp.name), scene=scene)
+        >>> data, meta = reference_chunk_task(ctx, 0, 0, 1)  # samples [REFERENCE_OFFSET + 2, REFERENCE_OFFSET + 4)
+        >>> sorted(data), data["radiance"].shape
+        (['radiance'], (1, 3, 6, 8))
+        >>> tmp.cleanup()
+    """
     cam, _ = ctx.camera(frame, eye)
     c = ctx.spec.reference_chunk_spp
 
@@ -222,7 +335,23 @@ def reference_chunk_task(ctx: RenderContext, frame: int, eye: int, i: int):
 
 def reference(ctx: RenderContext, frame: int, eye: int, spp: int | None = None) -> tuple[torch.Tensor, float]:
     """The (1, 3, H, W) reference of (frame, eye) at ``spp`` (a multiple of the chunk size; default the run's) and
-    its render time in ms: the mean of its chunk means, summed in chunk order in float64."""
+    its render time in ms: the mean of its chunk means, summed in chunk order in float64.
+
+    Examples:
+        >>> import tempfile
+        >>> from stereorepro.scenes import load_scene
+        >>> from stereorepro.workflows.experiment.config import ExperimentConfig
+        >>> from stereorepro.workflows.experiment.inputs import RenderContext, spec_for, reference
+        >>> tmp = tempfile.TemporaryDirectory()
+        >>> cfg = ExperimentConfig(scene="living_room", out=tmp.name, width=8, height=6, ladder_spp=2,
+        ...                        reference_spp=4, reference_chunk_spp=2)
+        >>> scene = load_scene(cfg.scene)
+        >>> ctx = RenderContext(spec_for(cfg, scene, tmp.name), scene=scene)
+        >>> ref, ms = reference(ctx, 0, 0)  # the mean of the two 2-spp chunks
+        >>> tuple(ref.shape), ref.dtype, tuple(reference(ctx, 0, 0, spp=2)[0].shape)
+        ((1, 3, 6, 8), torch.float32, (1, 3, 6, 8))
+        >>> tmp.cleanup()
+    """
     n = (spp or ctx.spec.reference_spp) // ctx.spec.reference_chunk_spp
     total, ms = None, 0.0
     for i in range(n):
@@ -245,7 +374,23 @@ def ladder_task(ctx: RenderContext, frame: int, eye: int):
     """Ensure the lean ladder entry of (frame, eye) is in the cache (rendering the reference's chunks first when
     they are missing); returns (data, meta). ``data``: ``first`` and ``top`` (1, 3, H, W) float32, ``prefix_spp``
     (P,) and ``rmse_ldr`` / ``rmse_hdr`` (P, L) float64: row p scores rungs 1..L against the reference at
-    ``prefix_spp[p]`` spp."""
+    ``prefix_spp[p]`` spp.
+
+    Examples:
+        >>> import tempfile
+        >>> from stereorepro.scenes import load_scene
+        >>> from stereorepro.workflows.experiment.config import ExperimentConfig
+        >>> from stereorepro.workflows.experiment.inputs import RenderContext, spec_for, ladder_task
+        >>> tmp = tempfile.TemporaryDirectory()
+        >>> cfg = ExperimentConfig(scene="living_room", out=tmp.name, width=8, height=6, ladder_spp=2,
+        ...                        reference_spp=4, reference_chunk_spp=2)
+        >>> scene = load_scene(cfg.scene)
+        >>> ctx = RenderContext(spec_for(cfg, scene, tmp.name), scene=scene)
+        >>> data, meta = ladder_task(ctx, 0, 0)
+        >>> data["top"].shape, data["prefix_spp"].tolist(), data["rmse_ldr"].shape
+        ((1, 3, 6, 8), [2, 4], (2, 2))
+        >>> tmp.cleanup()
+    """
     cam, _ = ctx.camera(frame, eye)
     L = ctx.spec.ladder_spp
 
@@ -311,7 +456,19 @@ class _Scored:
 
 
 def eye_tasks(spec: RenderSpec, frame: int, eye: int) -> list[tuple[str, tuple, dict]]:
-    """The render tasks of one (frame, eye) in dependency order: (function name, args, cache key)."""
+    """The render tasks of one (frame, eye) in dependency order: (function name, args, cache key).
+
+    Examples:
+        >>> from stereorepro.workflows.experiment.inputs import RenderSpec, eye_tasks
+        >>> spec = RenderSpec("living_room", 8, 6, seed=0, ladder_spp=2, reference_spp=4, reference_chunk_spp=2,
+        ...                   base_key="{}", cache_dir="cache")
+        >>> for name, args, _ in eye_tasks(spec, 0, 1):
+        ...     print(name, args)
+        gbuffer_task (0, 1)
+        reference_chunk_task (0, 1, 0)
+        reference_chunk_task (0, 1, 1)
+        ladder_task (0, 1)
+    """
     ctx_free = _KeyOnly(spec)
     tasks = [("gbuffer_task", (frame, eye), _gbuffer_key(ctx_free, frame, eye))]
     tasks += [("reference_chunk_task", (frame, eye, i), _chunk_key(ctx_free, frame, eye, i))
@@ -326,7 +483,15 @@ def eye_tasks(spec: RenderSpec, frame: int, eye: int) -> list[tuple[str, tuple, 
 def estimate_cache_bytes(spec: RenderSpec, frames: int) -> int:
     """Upper estimate of the cache bytes a run of ``frames`` frames writes (both eyes; npz overhead included):
     per eye-frame the G-buffer (depth, normal; motion, world motion and ids for moving objects), the reference's
-    chunks and the lean ladder (two images), all float32."""
+    chunks and the lean ladder (two images), all float32.
+
+    Examples:
+        >>> from stereorepro.workflows.experiment.inputs import RenderSpec, estimate_cache_bytes
+        >>> spec = RenderSpec("living_room", 8, 6, seed=0, ladder_spp=2, reference_spp=4, reference_chunk_spp=2,
+        ...                   base_key="{}", cache_dir="cache")
+        >>> estimate_cache_bytes(spec, frames=1)
+        22528
+    """
     px = spec.width * spec.height
     planes = 1 + 3 + (2 + 3 + 1 if spec.moving else 0) + 3 * spec.chunks + 2 * 3
     return 2 * frames * (4 * px * planes + 8 * 1024)
@@ -334,7 +499,24 @@ def estimate_cache_bytes(spec: RenderSpec, frames: int) -> int:
 
 def cache_footprint(ctx: RenderContext, frames: int) -> dict:
     """Measured bytes of this run's cache entries: total and per eye-frame (what ``--cache-dir`` holds per
-    frame and eye)."""
+    frame and eye).
+
+    Examples:
+        >>> import tempfile
+        >>> from stereorepro.scenes import load_scene
+        >>> from stereorepro.workflows.experiment.config import ExperimentConfig
+        >>> from stereorepro.workflows.experiment.inputs import RenderContext, spec_for, cache_footprint, render_eye
+        >>> tmp = tempfile.TemporaryDirectory()
+        >>> cfg = ExperimentConfig(scene="living_room", out=tmp.name, width=8, height=6, ladder_spp=2,
+        ...                        reference_spp=4, reference_chunk_spp=2)
+        >>> scene = load_scene(cfg.scene)
+        >>> ctx = RenderContext(spec_for(cfg, scene, tmp.name), scene=scene)
+        >>> _ = render_eye(ctx, 0, 0), render_eye(ctx, 0, 1)
+        >>> fp = cache_footprint(ctx, frames=1)
+        >>> fp["bytes"] > 0, fp["bytes_per_eye_frame"] == fp["bytes"] / 2
+        (True, True)
+        >>> tmp.cleanup()
+    """
     total, n = 0, 0
     for f in range(frames):
         for eye in (0, 1):
@@ -359,7 +541,23 @@ class _KeyOnly:
 
 @dataclass
 class EyeData:
-    """One eye's inputs at one frame (all tensors batch 1)."""
+    """One eye's inputs at one frame (all tensors batch 1).
+
+    Examples:
+        >>> import tempfile
+        >>> from stereorepro.scenes import load_scene
+        >>> from stereorepro.workflows.experiment.config import ExperimentConfig
+        >>> from stereorepro.workflows.experiment.inputs import RenderContext, spec_for, EyeData, render_eye
+        >>> tmp = tempfile.TemporaryDirectory()
+        >>> cfg = ExperimentConfig(scene="living_room", out=tmp.name, width=8, height=6, ladder_spp=2,
+        ...                        reference_spp=4, reference_chunk_spp=2)
+        >>> scene = load_scene(cfg.scene)
+        >>> ctx = RenderContext(spec_for(cfg, scene, tmp.name), scene=scene)
+        >>> e = render_eye(ctx, 0, 1)
+        >>> isinstance(e, EyeData), tuple(e.normal.shape), tuple(e.K.shape), e.pixel_sampling
+        (True, (1, 3, 6, 8), (1, 3, 3), 'box')
+        >>> tmp.cleanup()
+    """
 
     depth: torch.Tensor  # (1, 1, H, W)
     normal: torch.Tensor  # (1, 3, H, W)
@@ -384,7 +582,23 @@ class EyeData:
 
 def render_eye(ctx: RenderContext, frame: int, eye: int) -> EyeData:
     """One eye's inputs, from the cache or rendered now (G-buffer, reference chunks, lean ladder; with
-    ``spec.jitter`` the G-buffer and the 1-spp sample of the jittered camera)."""
+    ``spec.jitter`` the G-buffer and the 1-spp sample of the jittered camera).
+
+    Examples:
+        >>> import tempfile
+        >>> from stereorepro.scenes import load_scene
+        >>> from stereorepro.workflows.experiment.config import ExperimentConfig
+        >>> from stereorepro.workflows.experiment.inputs import RenderContext, spec_for, render_eye
+        >>> tmp = tempfile.TemporaryDirectory()
+        >>> cfg = ExperimentConfig(scene="living_room", out=tmp.name, width=8, height=6, ladder_spp=2,
+        ...                        reference_spp=4, reference_chunk_spp=2)
+        >>> scene = load_scene(cfg.scene)
+        >>> ctx = RenderContext(spec_for(cfg, scene, tmp.name), scene=scene)
+        >>> e = render_eye(ctx, 0, 0)
+        >>> tuple(e.depth.shape), tuple(e.sample.shape), e.prefix_spp, len(e.ladder_rmse["ldr"])
+        ((1, 1, 6, 8), (1, 3, 6, 8), [2, 4], 2)
+        >>> tmp.cleanup()
+    """
     jit = ctx.spec.jitter
     cam, _ = ctx.camera(frame, eye, jittered=jit)
     g, gmeta = gbuffer_task(ctx, frame, eye)
