@@ -81,7 +81,13 @@ OTHER_NAMES = tuple(f.name for f in OTHER_FIELDS)
 
 
 def feature_channels(stereo: bool = False) -> int:
-    """C_in of the denoiser: 9, or 13 with ``stereo``."""
+    """C_in of the denoiser: 9, or 13 with ``stereo``.
+
+    Examples:
+        >>> from stereorepro.denoise import feature_channels
+        >>> feature_channels(), feature_channels(stereo=True)
+        (9, 13)
+    """
     return len(FEATURES) + (len(STEREO_FEATURES) if stereo else 0)
 
 
@@ -143,6 +149,16 @@ class DenoiserFeatures(NamedTuple):
         features: (B, 9, H, W), or (B, 13, H, W) with the other eye (:func:`denoise_features`).
         color: (B, 3, H, W) the accumulated colour — the next frame's history colour.
         history_len: (B, 1, H, W) its sample count — the next frame's history length.
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro import History, View, intrinsics_from_fov, reprojection_features
+        >>> depth = torch.full((1, 1, 6, 8), 2.0); normal = torch.zeros(1, 3, 6, 8); normal[:, 2] = -1
+        >>> view = View(depth, normal, intrinsics_from_fov(60.0, 8, 6), torch.eye(4)[None])
+        >>> features, color, history_len = reprojection_features(torch.ones(1, 3, 6, 8), view, History.empty(view), view,
+        ...                                                      (0.01, 0.1))
+        >>> tuple(features.shape), tuple(color.shape), float(history_len.max())
+        ((1, 9, 6, 8), (1, 3, 6, 8), 1.0)
     """
 
     features: Tensor
@@ -157,7 +173,19 @@ class DenoiserFeatures(NamedTuple):
 
 class DenoiseResult(NamedTuple):
     """What :func:`reproject_denoise` returns: ``denoised`` (B, 3, H, W), the denoiser's output, and the new state
-    ``color`` (B, 3, H, W), ``history_len`` (B, 1, H, W) (the plain accumulation, not the denoised frame)."""
+    ``color`` (B, 3, H, W), ``history_len`` (B, 1, H, W) (the plain accumulation, not the denoised frame).
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro import History, View, intrinsics_from_fov, reproject_denoise
+        >>> depth = torch.full((1, 1, 6, 8), 2.0); normal = torch.zeros(1, 3, 6, 8); normal[:, 2] = -1
+        >>> view = View(depth, normal, intrinsics_from_fov(60.0, 8, 6), torch.eye(4)[None])
+        >>> keep_rgb = lambda features: features[:, :3]  # a stand-in denoiser: the accumulated colour as it is
+        >>> denoised, color, history_len = reproject_denoise(torch.ones(1, 3, 6, 8), view, History.empty(view), view,
+        ...                                                  keep_rgb, (0.01, 0.1))
+        >>> tuple(denoised.shape), float(color.min()), float(history_len.max())
+        ((1, 3, 6, 8), 1.0, 1.0)
+    """
 
     denoised: Tensor
     color: Tensor
@@ -503,7 +531,17 @@ def denoiser_example_inputs(module: ReprojectionDenoiser, batch: int = 1, height
                             dtype: torch.dtype = torch.float32, seed: int = 0) -> tuple[Tensor, ...]:
     """Synthetic inputs for ``module``'s forward, in the order of its ``input_names`` (for export and tests):
     :func:`stereorepro._testing.example_inputs`' temporal inputs (a stereo pair with head motion, one eye as the
-    previous frame), and with ``stereo`` the other camera of that pair as the other eye."""
+    previous frame), and with ``stereo`` the other camera of that pair as the other eye.
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro import ReprojectionDenoiser
+        >>> from stereorepro.denoise import denoiser_example_inputs
+        >>> model = ReprojectionDenoiser(torch.nn.Identity(), 0.03, 0.2)
+        >>> inputs = denoiser_example_inputs(model, height=4, width=6)
+        >>> len(inputs) == len(model.input_names), tuple(inputs[0].shape)
+        (True, (1, 3, 4, 6))
+    """
     from ._testing import example_inputs
 
     kw = dict(batch=batch, height=height, width=width, dtype=dtype)
