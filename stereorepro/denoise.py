@@ -155,8 +155,8 @@ class DenoiserFeatures(NamedTuple):
         >>> from stereorepro import History, View, intrinsics_from_fov, reprojection_features
         >>> depth = torch.full((1, 1, 6, 8), 2.0); normal = torch.zeros(1, 3, 6, 8); normal[:, 2] = -1
         >>> view = View(depth, normal, intrinsics_from_fov(60.0, 8, 6), torch.eye(4)[None])
-        >>> features, color, history_len = reprojection_features(torch.ones(1, 3, 6, 8), view, History.empty(view), view,
-        ...                                                      (0.01, 0.1))
+        >>> out = reprojection_features(torch.ones(1, 3, 6, 8), view, History.empty(view), view, (0.01, 0.1))
+        >>> features, color, history_len = out  # or out.features, out.color, out.history_len
         >>> tuple(features.shape), tuple(color.shape), float(history_len.max())
         ((1, 9, 6, 8), (1, 3, 6, 8), 1.0)
     """
