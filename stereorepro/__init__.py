@@ -36,7 +36,8 @@ from .camera import (
     world_motion_from_view_z,
 )
 from .denoise import ReprojectionDenoiser, denoise_features, empty_history, reproject_denoise, reprojection_features
-from .errors import CameraError, SceneError, SequenceError, ShapeError, StereoreproError, UserError
+from .errors import (CameraError, MissingDependencyError, ParameterError, ParameterTypeError, SceneError, SequenceError,
+                     ShapeError, StereoreproError, UserError)
 from .io.onnx import export_onnx
 from .measure.metrics import (
     EFFECTIVE_SPP_FLAGS,
@@ -94,7 +95,8 @@ __all__ = [
     "EFFECTIVE_SPP_FLAGS", "EffectiveSppLadder", "effective_spp", "effective_spp_many", "fit_ladder",
     "ladder_rmse", "mse", "rmse", "ssim", "suggest_reference_spp",
     # errors
-    "StereoreproError", "ShapeError", "CameraError", "SceneError", "SequenceError", "UserError",
+    "StereoreproError", "ParameterError", "ParameterTypeError", "ShapeError", "CameraError", "SceneError",
+    "SequenceError", "UserError", "MissingDependencyError",
     # loaded on first use
     *_LAZY,
 ]

@@ -18,6 +18,8 @@ from __future__ import annotations
 import os
 from typing import Callable
 
+from .errors import ParameterError
+
 __all__ = ["ENV_VAR", "NAMES", "OP_NAMES", "REFERENCE_NAMES", "TRACER_NAMES", "check", "resolve"]
 
 ENV_VAR = "STEREOREPRO_BACKEND"
@@ -34,7 +36,7 @@ TRACER_NAMES = ("auto", "numpy", "native", "torch")
 def check(backend: str, choices: tuple[str, ...], who: str = "") -> str:
     """``backend`` itself when it is one of ``choices``, else ValueError (``who`` prefixes the message)."""
     if backend not in choices:
-        raise ValueError(f"{who}backend must be one of {choices}, got {backend!r}")
+        raise ParameterError(f"{who}backend must be one of {choices}, got {backend!r}")
     return backend
 
 
@@ -62,7 +64,7 @@ def resolve(backend: str, choices: tuple[str, ...], why_not_native: Callable[[],
     env = os.environ.get(ENV_VAR, "").strip().lower()
     if env:
         if env not in NAMES:
-            raise ValueError(f"{ENV_VAR} must be one of {NAMES}, got {env!r}")
+            raise ParameterError(f"{ENV_VAR} must be one of {NAMES}, got {env!r}")
         backend = env
     backend = _canonical(backend)
     if backend == "reference" or reference_only:

@@ -107,3 +107,28 @@ class TestExceptionFamily:
     def test_hierarchy(self):
         assert issubclass(ParameterError, ValueError) and issubclass(ParameterTypeError, TypeError)
         assert not issubclass(ParameterTypeError, ValueError) and not issubclass(ParameterError, TypeError)
+
+
+class TestFamilyAtTheEdges:
+    """The last places that raised plain built-ins or raw torch errors."""
+
+    def test_temporal_blend_shapes(self):
+        n, v = torch.ones(1, 1, H, W), torch.ones(1, 1, H, W, dtype=torch.bool)
+        with pytest.raises(ShapeError, match="temporal_blend: history_color"):
+            sr.temporal_blend(COLOR, COLOR[:, :2], n, v)
+        with pytest.raises(ParameterTypeError, match="confidence"):
+            sr.temporal_blend(COLOR, COLOR, n, v.to(torch.int32))
+
+    def test_backend_names(self, monkeypatch):
+        with pytest.raises(ParameterError, match="backend must be one of"):
+            sr.StereoReprojection(0.1, 0.1, backend="x")
+        monkeypatch.setenv("STEREOREPRO_BACKEND", "bogus")
+        with pytest.raises(ParameterError, match="STEREOREPRO_BACKEND"):
+            sr.stereo_reproject(COLOR, SRC, DST, THR)
+
+    def test_sample_index_range(self):
+        from stereorepro.render.tracer import _check_render_args
+
+        _check_render_args(2, 2 ** 63 - 2, "box")
+        with pytest.raises(ParameterError, match="2\\*\\*63"):
+            _check_render_args(2, 2 ** 63 - 1, "box")

@@ -85,6 +85,7 @@ from torch import Tensor
 from .. import _backend
 from .._extras import require
 from ..camera import PinholeCamera
+from ..errors import ParameterError
 from . import bsdf as _bsdf
 from ._embree import SplitBVH, TriangleBVH
 from .lights import EmitterTable, LightSet, TriangleDistances, luminance, radiance_bound
@@ -238,7 +239,10 @@ def _check_render_args(spp, sample_offset, pixel_sampling) -> None:
     if int(spp) < 1:
         raise ValueError(f"render: spp must be >= 1, got {spp}")
     if int(sample_offset) < 0:
-        raise ValueError(f"render: sample_offset must be >= 0, got {sample_offset}")
+        raise ParameterError(f"render: sample_offset must be >= 0, got {sample_offset}")
+    if int(sample_offset) + int(spp) > 2 ** 63:  # the 64-bit sample index would wrap
+        raise ParameterError(f"render: sample_offset + spp must be at most 2**63 (the 64-bit sample index), got "
+                             f"{int(sample_offset) + int(spp)}")
     if not (isinstance(pixel_sampling, str) and pixel_sampling in PIXEL_SAMPLINGS):
         raise ValueError(f"render: pixel_sampling must be one of {PIXEL_SAMPLINGS}, got {pixel_sampling!r}")
 

@@ -42,8 +42,8 @@ import torch
 from torch import Tensor
 
 from .. import _backend
-from .._checks import (STEREO_NAMES, check_blend, check_device, check_floating, check_motion, check_sampling,
-                       check_shape, check_thresholds, tracing)
+from .._checks import (STEREO_NAMES, check_blend, check_blend_inputs, check_device, check_floating, check_motion,
+                       check_sampling, check_shape, check_thresholds, tracing)
 from ..camera import compose_warp, rectify_warp
 from ..errors import ShapeError
 from . import _fast, _general, _lean, _native
@@ -482,6 +482,7 @@ def temporal_blend(
     """
     if not tracing():
         check_blend(alpha, max_history)
+        check_blend_inputs(current_color, history_color, history_len, confidence)
     wdt = compute_dtype(current_color, history_color)
     cur = current_color.to(wdt)
     hist = history_color.to(wdt)

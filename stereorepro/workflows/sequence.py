@@ -34,6 +34,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .._checks import FLOAT32_MAX
 from ..accumulate import SpatiotemporalReprojection, temporal_step
 from ..errors import SequenceError
 from ..io.atomic import atomic_write, staged_outputs
@@ -155,8 +156,8 @@ def _thresholds(seq: FrameSequence, position_threshold: float | None,
         if v is None:
             raise SequenceError(f"--{name.replace('_', '-')} is required ({seq.root / 'cameras.json'} has no "
                                 f"reprojection.{name})")
-        if not (math.isfinite(v) and v > 0):
-            raise SequenceError(f"{name} must be a positive number, got {v}")
+        if not (math.isfinite(v) and 0 < v <= FLOAT32_MAX):
+            raise SequenceError(f"{name} must be a positive number within float32's range, got {v}")
     return pos, nrm
 
 
