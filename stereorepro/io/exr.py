@@ -36,7 +36,18 @@ _GROUPS = CHANNELS
 
 
 def result_channels(result) -> dict[str, np.ndarray]:
-    """EXR channels (name → (H, W) float32) of a :class:`~stereorepro.render.RenderResult` (B must be 1)."""
+    """EXR channels (name → (H, W) float32) of a :class:`~stereorepro.render.RenderResult` (B must be 1).
+
+    Examples:
+        >>> import types, torch
+        >>> from stereorepro.io.exr import CHANNELS, result_channels
+        >>> fields = dict.fromkeys(CHANNELS, None)  # a RenderResult's image fields: radiance and depth only here
+        >>> fields.update(radiance=torch.ones(1, 3, 2, 4), depth=torch.full((1, 1, 2, 4), 2.0))
+        >>> result = types.SimpleNamespace(**fields)
+        >>> channels = result_channels(result)
+        >>> sorted(channels), channels["Z"].shape, float(channels["Z"][0, 0])
+        (['B', 'G', 'R', 'Z'], (2, 4), 2.0)
+    """
     out = {}
     for field, names in _GROUPS.items():
         t = getattr(result, field)
@@ -182,6 +193,12 @@ class ExrInfo(NamedTuple):
     Attributes:
         channels: channel names of all parts. sizes: each part's (H, W).
         data_window, display_window: ``((x_min, y_min), (x_max, y_max))`` (inclusive), one for all parts.
+
+    Examples:
+        >>> from stereorepro.io.exr import ExrInfo
+        >>> info = ExrInfo(["Z"], [(2, 4)], ((0, 0), (3, 1)), ((0, 0), (3, 1)))  # what exr_info returns for a 4x2 image
+        >>> info.sizes[0], info.data_window == info.display_window
+        ((2, 4), True)
     """
 
     channels: list
@@ -232,6 +249,17 @@ def exr_info(path: str | os.PathLike) -> ExrInfo:
 
     Raises:
         ValueError: not a readable EXR, or a header :func:`read_exr` would refuse.
+
+    Examples:
+        >>> import os, tempfile
+        >>> import numpy as np
+        >>> from stereorepro.io import write_exr
+        >>> from stereorepro.io.exr import exr_info
+        >>> with tempfile.TemporaryDirectory() as d:
+        ...     write_exr(os.path.join(d, "a.exr"), {"Z": np.ones((2, 4), np.float32)})
+        ...     info = exr_info(os.path.join(d, "a.exr"))
+        >>> info.channels, info.sizes, info.data_window
+        (['Z'], [(2, 4)], ((0, 0), (3, 1)))
     """
     OpenEXR = require("OpenEXR", "EXR files")
 
@@ -246,7 +274,19 @@ def exr_info(path: str | os.PathLike) -> ExrInfo:
 
 
 def exr_header(path: str | os.PathLike) -> tuple[list[str], list[tuple[int, int]]]:
-    """Channel names (all parts) and each part's (H, W), from the header alone (:func:`exr_info`)."""
+    """Channel names (all parts) and each part's (H, W), from the header alone (:func:`exr_info`).
+
+    Examples:
+        >>> import os, tempfile
+        >>> import numpy as np
+        >>> from stereorepro.io import write_exr
+        >>> from stereorepro.io.exr import exr_header
+        >>> with tempfile.TemporaryDirectory() as d:
+        ...     write_exr(os.path.join(d, "a.exr"), {"Z": np.ones((2, 4), np.float32), "R": np.zeros((2, 4))})
+        ...     names, sizes = exr_header(os.path.join(d, "a.exr"))
+        >>> sorted(names), sizes
+        (['R', 'Z'], [(2, 4)])
+    """
     info = exr_info(path)
     return info.channels, info.sizes
 
@@ -313,6 +353,19 @@ def channel_size(channels: dict, names, where: str, size: tuple[int, int] | None
 
     Raises:
         SequenceError: naming ``where``, the channel and both sizes.
+
+    Examples:
+        >>> import numpy as np
+        >>> from stereorepro.errors import SequenceError
+        >>> from stereorepro.io.exr import channel_size
+        >>> channels = {"R": np.zeros((2, 4)), "Z": np.zeros((2, 4)), "small": np.zeros((1, 4))}
+        >>> channel_size(channels, ["R", "Z"], "frame.exr")
+        (2, 4)
+        >>> try:
+        ...     channel_size(channels, ["R", "small"], "frame.exr")
+        ... except SequenceError:
+        ...     print("refused")
+        refused
     """
     reference = "the camera"
     for name in names:
@@ -329,7 +382,15 @@ def channel_size(channels: dict, names, where: str, size: tuple[int, int] | None
 
 def exr_to_tensors(channels: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
     """Group channels into (1, C, H, W) float32 tensors: ``radiance``, ``depth``, ``normal``, ``position``,
-    ``motion``, ``motion_world`` (those present with all their channels)."""
+    ``motion``, ``motion_world`` (those present with all their channels).
+
+    Examples:
+        >>> import numpy as np
+        >>> from stereorepro.io.exr import exr_to_tensors
+        >>> channels = {c: np.ones((2, 4), np.float32) for c in ("R", "G", "B", "Z", "N.X")}  # N.Y, N.Z missing
+        >>> {name: tuple(t.shape) for name, t in exr_to_tensors(channels).items()}
+        {'radiance': (1, 3, 2, 4), 'depth': (1, 1, 2, 4)}
+    """
     out = {}
     for field, names in _GROUPS.items():
         if all(n in channels for n in names):
