@@ -212,7 +212,13 @@ def rmse(image: Tensor, reference: Tensor, mask: Tensor | None = None, nonfinite
 
 def flip_available() -> bool:
     """True when NVIDIA's FLIP (``pip install flip-evaluator``; extras ``[flip]`` and ``[experiment]``) is
-    installed."""
+    installed.
+
+    Examples:
+        >>> from stereorepro.measure.metrics import flip_available
+        >>> isinstance(flip_available(), bool)
+        True
+    """
     return available("flip_evaluator")
 
 
@@ -230,6 +236,15 @@ def flip(image: Tensor, reference: Tensor) -> Tensor:
 
     Returns:
         (B,) float64.
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro.measure.metrics import flip, flip_available
+        >>> image = torch.rand(2, 3, 8, 8, generator=torch.Generator().manual_seed(0))
+        >>> # flip needs flip-evaluator; without it, use the value FLIP gives identical images (0)
+        >>> err = flip(image, image) if flip_available() else torch.zeros(2, dtype=torch.float64)
+        >>> err.shape, err.dtype, err.tolist()
+        (torch.Size([2]), torch.float64, [0.0, 0.0])
     """
     _check_pair(image, reference, None, "flip")
     if image.shape[1] != 3:

@@ -87,6 +87,11 @@ def threshold_scale(height: int) -> float:
     slanted surface differs by about half a pixel footprint. Below :data:`THRESHOLD_ROWS` rows a pixel covers more
     of the scene and the threshold grows with it, so that the test keeps its meaning in pixels; at and above it
     the scene's threshold is used as it is (it must not shrink below the geometric tolerance the scene needs).
+
+    Examples:
+        >>> from stereorepro.scenes.loader import threshold_scale
+        >>> threshold_scale(90), threshold_scale(180), threshold_scale(720)
+        (2.0, 1.0, 1.0)
     """
     if not height >= 1:
         raise ValueError(f"height must be >= 1, got {height}")
@@ -104,6 +109,12 @@ def scenes_dir() -> Path:
 
     Raises:
         SceneError: the folder does not exist.
+
+    Examples:
+        >>> from stereorepro.scenes.loader import scenes_dir
+        >>> folder = scenes_dir()
+        >>> folder.is_dir(), (folder / "atrium.toml").is_file()
+        (True, True)
     """
     env = os.environ.get(SCENES_ENV)
     folder = Path(env).expanduser() if env else BUILTIN_DIR
@@ -115,7 +126,14 @@ def scenes_dir() -> Path:
 
 
 def shared_scenes_dir() -> Path:
-    """Folder of the external meshes: ``$STEREOREPRO_SHARED_SCENES`` or ``../shared/scenes`` beside the repo."""
+    """Folder of the external meshes: ``$STEREOREPRO_SHARED_SCENES`` or ``../shared/scenes`` beside the repo.
+
+    Examples:
+        >>> from pathlib import Path
+        >>> from stereorepro.scenes.loader import shared_scenes_dir
+        >>> isinstance(shared_scenes_dir(), Path)
+        True
+    """
     env = os.environ.get(SHARED_ENV)
     if env:
         return Path(env)
@@ -277,6 +295,13 @@ class SceneGeometry:
 
     Attributes:
         vertices: (V, 3) float32 world positions; faces: (F, 3) int32; material_ids: (F,) int32.
+
+    Examples:
+        >>> import numpy as np
+        >>> from stereorepro.scenes.loader import SceneGeometry
+        >>> geo = SceneGeometry(np.zeros((3, 3), np.float32), np.array([[0, 1, 2]], np.int32), np.zeros(1, np.int32))
+        >>> geo.faces.shape, geo.material_ids.tolist()
+        ((1, 3), [0])
     """
 
     vertices: np.ndarray
@@ -311,6 +336,14 @@ class Scene:
         source: the scene file.
         radiance_clamp: ``[render] radiance_clamp``: 0 = "auto" (the renderer derives the limit), else the limit.
         point_light_min_distance: ``[render] point_light_min_distance`` or None (nearest-surface distance).
+
+    Examples:
+        >>> from stereorepro.scenes import load_scene
+        >>> scene = load_scene("atrium")
+        >>> scene.name, scene.num_frames, scene.thresholds(180)
+        ('atrium', 60, (0.15, 0.3))
+        >>> scene.geometry().vertices.dtype
+        dtype('float32')
     """
 
     name: str

@@ -14,7 +14,15 @@ __all__ = ["MeshBuilder", "GENERATORS"]
 
 
 class MeshBuilder:
-    """Accumulates triangles with a material name each."""
+    """Accumulates triangles with a material name each.
+
+    Examples:
+        >>> from stereorepro.scenes.procedural import MeshBuilder
+        >>> b = MeshBuilder().quad([0, 0, 0], [1, 0, 0], [0, 0, 1], "floor").box([0, 0, 0], [1, 1, 1], "crate")
+        >>> verts, faces, ids = b.build(["floor", "crate"])
+        >>> verts.shape, faces.shape, ids.tolist().count(1), sorted(b.material_names)
+        ((12, 3), (14, 3), 12, ['crate', 'floor'])
+    """
 
     def __init__(self):
         self._verts: list[np.ndarray] = []
