@@ -41,7 +41,16 @@ CONNECT_TIMEOUT = "30s"
 
 class ClusterError(StereoreproError, RuntimeError):
     """The cluster cannot run this experiment: the scheduler is unreachable, has no workers, or a worker runs
-    other renderer code (the command line reports it in one line, exit code 2)."""
+    other renderer code (the command line reports it in one line, exit code 2).
+
+    Examples:
+        >>> from stereorepro.workflows.experiment.distributed import ClusterError
+        >>> try:
+        ...     raise ClusterError("no Dask workers are connected to tcp://10.0.0.5:8786")
+        ... except RuntimeError as e:
+        ...     print(type(e).__name__, isinstance(e, RuntimeError))
+        ClusterError True
+    """
 
 _TASKS = {"gbuffer_task": gbuffer_task, "reference_chunk_task": reference_chunk_task, "ladder_task": ladder_task,
           "jitter_gbuffer_task": jitter_gbuffer_task, "jitter_sample_task": jitter_sample_task}
@@ -59,7 +68,25 @@ def worker_code_version() -> str:
 
 def run_task(spec: RenderSpec, name: str, args: tuple, *deps) -> str:
     """Run one render task on this worker (``deps``: the results of the tasks it must follow; unused) and
-    return the name of its cache entry."""
+    return the name of its cache entry.
+
+    Examples:
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> from stereorepro.scenes import load_scene
+        >>> from stereorepro.workflows.experiment.config import ExperimentConfig
+        >>> from stereorepro.workflows.experiment.inputs import spec_for
+        >>> from stereorepro.workflows.experiment.distributed import run_task
+        >>> tmp = tempfile.TemporaryDirectory()
+        >>> cfg = ExperimentConfig(scene="living_room", out=tmp.name, width=8, height=6, ladder_spp=2,
+        ...                        reference_spp=4, reference_chunk_spp=2)
+        >>> spec = spec_for(cfg, load_scene(cfg.scene), tmp.name)
+        >>> run_task(spec, "reference_chunk_task", (0, 1, 0))  # what a Dask worker runs, here in process
+        'reference_chunk_task'
+        >>> len(list(Path(tmp.name).glob("*.npz")))
+        1
+        >>> tmp.cleanup()
+    """
     own = _own_code()
     if spec.client_code and own != spec.client_code:
         raise RuntimeError(f"worker {socket.gethostname()} (pid {os.getpid()}) runs renderer code {own}, the client "
@@ -70,7 +97,17 @@ def run_task(spec: RenderSpec, name: str, args: tuple, *deps) -> str:
 
 
 def task_key(cache: RenderCache, name: str, key: dict) -> str:
-    """The Dask key of a render task: its kind and its cache entry's file name."""
+    """The Dask key of a render task: its kind and its cache entry's file name.
+
+    Examples:
+        >>> import tempfile
+        >>> from stereorepro.workflows.experiment.cache import RenderCache
+        >>> from stereorepro.workflows.experiment.distributed import task_key
+        >>> with tempfile.TemporaryDirectory() as d:
+        ...     k = task_key(RenderCache(d), "gbuffer_task", {"frame": 0, "eye": 1})
+        >>> k.startswith("gbuffer_task-"), len(k) - len("gbuffer_task-")
+        (True, 32)
+    """
     return f"{name}-{cache.path(key).stem}"
 
 
@@ -91,7 +128,14 @@ def connect(scheduler: str):
 
 @dataclass
 class Cluster:
-    """A connected Dask cluster whose workers all run this client's renderer code (:func:`open_cluster`)."""
+    """A connected Dask cluster whose workers all run this client's renderer code (:func:`open_cluster`).
+
+    Examples:
+        >>> from stereorepro.workflows.experiment.distributed import Cluster
+        >>> c = Cluster("tcp://10.0.0.5:8786", client=None, local=None, workers=4)  # normally from open_cluster
+        >>> c.scheduler, c.workers
+        ('tcp://10.0.0.5:8786', 4)
+    """
 
     scheduler: str
     client: object
