@@ -58,6 +58,14 @@ class EyeCamera:
     Attributes:
         K: (1, 3, 3) float64 intrinsics (pixel centres at +0.5).
         cam_from_world: (1, 4, 4) float64 rigid extrinsics (OpenCV axes).
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro import intrinsics_from_fov
+        >>> from stereorepro.io.frames import EyeCamera
+        >>> cam = EyeCamera(intrinsics_from_fov(90.0, 4, 2).double(), torch.eye(4, dtype=torch.float64)[None])
+        >>> tuple(cam.K.shape), tuple(cam.cam_from_world.shape)
+        ((1, 3, 3), (1, 4, 4))
     """
 
     K: Tensor
@@ -73,6 +81,15 @@ class FrameSequence:
         cameras: per frame, eye name → :class:`EyeCamera` (only the eyes that were asked for).
         height, width: the common image size.
         position_threshold, normal_threshold: defaults from ``cameras.json`` (``None`` when absent).
+
+    Examples:
+        >>> import torch
+        >>> from pathlib import Path
+        >>> from stereorepro.io.frames import EyeCamera, FrameSequence
+        >>> cam = EyeCamera(torch.eye(3, dtype=torch.float64)[None], torch.eye(4, dtype=torch.float64)[None])
+        >>> seq = FrameSequence(Path("clip"), cameras=({"left": cam, "right": cam},), height=2, width=4)
+        >>> len(seq), seq.path(0, "right").as_posix()  # the file of frame 0, right eye
+        (1, 'clip/0000_right.exr')
     """
 
     root: Path
@@ -112,6 +129,14 @@ class Frame:
 
     Dict-style access (``frame["color"]``, ``"motion" in frame``, ``frame.get("motion")``), the former return
     type's, still works for one release with a DeprecationWarning; a ``None`` motion reads as an absent key.
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro.io.frames import Frame
+        >>> frame = Frame(torch.zeros(1, 3, 2, 4), torch.full((1, 1, 2, 4), 2.0), torch.zeros(1, 3, 2, 4),
+        ...               torch.eye(3, dtype=torch.float64)[None], torch.eye(4, dtype=torch.float64)[None])
+        >>> tuple(frame.color.shape), frame.motion is None, frame.normal_stats
+        ((1, 3, 2, 4), True, {})
     """
 
     color: Tensor
@@ -324,6 +349,23 @@ def load_sequence(input_dir, eyes: tuple[str, ...] = EYES, source: str = "stereo
 
     Raises:
         SequenceError: naming the file, and the frame and key for ``cameras.json``.
+
+    Examples:
+        >>> import json, os, tempfile
+        >>> import numpy as np
+        >>> from stereorepro.io import write_exr
+        >>> from stereorepro.io.frames import load_sequence
+        >>> camera = {"K": [[2.0, 0, 2], [0, 2.0, 1], [0, 0, 1]], "cam_from_world": np.eye(4).tolist()}
+        >>> exr = {c: np.zeros((2, 4), np.float32) for c in ("R", "G", "B", "N.X", "N.Y")}
+        >>> exr.update({"Z": np.full((2, 4), 2.0, np.float32), "N.Z": np.full((2, 4), -1.0, np.float32)})
+        >>> with tempfile.TemporaryDirectory() as d:
+        ...     with open(os.path.join(d, "cameras.json"), "w") as f:
+        ...         json.dump({"frames": [{"left": camera, "right": camera}]}, f)
+        ...     for eye in ("left", "right"):
+        ...         write_exr(os.path.join(d, f"0000_{eye}.exr"), exr)
+        ...     seq = load_sequence(d)
+        >>> len(seq), (seq.height, seq.width), sorted(str(eye) for eye in seq.cameras[0]), seq.position_threshold
+        (1, (2, 4), ['left', 'right'], None)
     """
     if source not in SOURCES:
         raise SequenceError(f"source must be one of {SOURCES}, got {source!r}")
@@ -390,6 +432,22 @@ def read_frame(seq: FrameSequence, frame: int, eye: str, device=None) -> Frame:
     Returns:
         a :class:`Frame`: colour, depth, normal (non-unit normals renormalised, see :func:`_unit_normals`), the
         eye's camera, and ``motion`` / ``motion_world`` when the file has those channels (``M.*``, ``MW.*``).
+
+    Examples:
+        >>> import json, os, tempfile
+        >>> import numpy as np
+        >>> from stereorepro.io import write_exr
+        >>> from stereorepro.io.frames import load_sequence, read_frame
+        >>> camera = {"K": [[2.0, 0, 2], [0, 2.0, 1], [0, 0, 1]], "cam_from_world": np.eye(4).tolist()}
+        >>> exr = {c: np.zeros((2, 4), np.float32) for c in ("R", "G", "B", "N.X", "N.Y")}
+        >>> exr.update({"Z": np.full((2, 4), 2.0, np.float32), "N.Z": np.full((2, 4), -1.0, np.float32)})
+        >>> with tempfile.TemporaryDirectory() as d:
+        ...     with open(os.path.join(d, "cameras.json"), "w") as f:
+        ...         json.dump({"frames": [{"left": camera}]}, f)
+        ...     write_exr(os.path.join(d, "0000_left.exr"), exr)
+        ...     frame = read_frame(load_sequence(d, eyes=("left",)), 0, "left")
+        >>> tuple(frame.color.shape), float(frame.depth.max()), frame.motion is None, frame.normal_stats["surface"]
+        ((1, 3, 2, 4), 2.0, True, 8)
     """
     from .exr import read_exr
 
