@@ -113,7 +113,17 @@ def task_key(cache: RenderCache, name: str, key: dict) -> str:
 
 def connect(scheduler: str):
     """A Dask client for ``"local:N"`` (a LocalCluster of N single-threaded worker processes, this machine) or
-    ``"tcp://HOST:PORT"`` (a running scheduler); returns (client, cluster or None)."""
+    ``"tcp://HOST:PORT"`` (a running scheduler); returns (client, cluster or None).
+
+    Examples:
+        >>> from stereorepro.workflows.experiment.distributed import connect
+        >>> from distributed import LocalCluster
+        >>> lc = LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0")
+        >>> client, local = connect(lc.scheduler_address)  # a running scheduler (here one in this process)
+        >>> type(client).__name__, local
+        ('Client', None)
+        >>> client.close(); lc.close()
+    """
     distributed = require("distributed", "--scheduler (Dask)")
     Client, LocalCluster = distributed.Client, distributed.LocalCluster
     if scheduler.startswith("local:"):
@@ -150,7 +160,17 @@ class Cluster:
 
 def open_cluster(scheduler: str) -> Cluster:
     """Connect to ``scheduler`` and check its workers (at least one, each running this client's renderer code):
-    ClusterError otherwise, with nothing left open. A run opens its cluster before it creates any folder."""
+    ClusterError otherwise, with nothing left open. A run opens its cluster before it creates any folder.
+
+    Examples:
+        >>> from stereorepro.workflows.experiment.distributed import open_cluster
+        >>> from distributed import LocalCluster
+        >>> lc = LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0")
+        >>> cluster = open_cluster(lc.scheduler_address)
+        >>> cluster.workers, cluster.local
+        (1, None)
+        >>> cluster.close(); lc.close()
+    """
     client, local = connect(scheduler)
     try:
         versions = client.run(worker_code_version)
@@ -176,6 +196,25 @@ def render_all(spec: RenderSpec, frames, scheduler: str | Cluster, force: bool =
 
     Returns what the run's ``results.json`` records under ``"distributed"``: the scheduler, the number of workers
     and of tasks, how many were already cached, and the wall time.
+
+    Examples:
+        >>> import tempfile
+        >>> from distributed import Client
+        >>> from stereorepro.scenes import load_scene
+        >>> from stereorepro.workflows.experiment.config import ExperimentConfig
+        >>> from stereorepro.workflows.experiment.inputs import spec_for
+        >>> from stereorepro.workflows.experiment.distributed import Cluster, render_all
+        >>> tmp = tempfile.TemporaryDirectory()
+        >>> cfg = ExperimentConfig(scene="living_room", out=tmp.name, width=8, height=6, ladder_spp=2,
+        ...                        reference_spp=4, reference_chunk_spp=2)
+        >>> spec = spec_for(cfg, load_scene(cfg.scene), tmp.name)
+        >>> from distributed import LocalCluster
+        >>> lc = LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0")
+        >>> cluster = Cluster("in-process", Client(lc), lc, workers=1)  # closed by render_all
+        >>> r = render_all(spec, range(1), cluster, progress=False, log=lambda message: None)
+        >>> r["workers"], r["tasks"], r["cached"]  # per eye: G-buffer, two reference chunks, ladder
+        (1, 8, 0)
+        >>> tmp.cleanup()
     """
     as_completed = require("distributed", "--scheduler (Dask)").as_completed
     tqdm = require("tqdm.auto", "the experiment's progress bar", extra="experiment").tqdm
