@@ -69,13 +69,33 @@ def _atomic_write(path, text: str) -> None:
 
 
 def file_name(frame_number: int, eye: str) -> str:
-    """Blender's stereo output name for ``render.filepath = "DIR/"``: ``0001_L.exr``."""
+    """Blender's stereo output name for ``render.filepath = "DIR/"``: ``0001_L.exr``.
+
+    Examples:
+        >>> from stereorepro.io.blender import file_name
+        >>> file_name(1, "left"), file_name(12, "right")
+        ('0001_L.exr', '0012_R.exr')
+    """
     return f"{int(frame_number):04d}_{'L' if eye == 'left' else 'R'}.exr"
 
 
 def eye_camera(camera_object, scene, eye: str) -> tuple[np.ndarray, np.ndarray]:
     """(K (3, 3), cam_from_world (4, 4)) float64, ours (OpenCV), of one eye of a Blender camera at the scene's
-    current frame. Works for a mono camera too (``eye`` then only matters with multiview on)."""
+    current frame. Works for a mono camera too (``eye`` then only matters with multiview on).
+
+    Examples:
+        >>> import types
+        >>> import numpy as np
+        >>> from stereorepro.io.blender import eye_camera
+        >>> data = types.SimpleNamespace(type="PERSP", shift_x=0, shift_y=0, sensor_fit="HORIZONTAL", sensor_width=36.0,
+        ...                              lens=18.0)  # stand-ins for Blender's camera object and scene
+        >>> camera = types.SimpleNamespace(name="Camera", data=data, matrix_world=np.eye(4))
+        >>> render = types.SimpleNamespace(pixel_aspect_x=1, pixel_aspect_y=1, resolution_x=4, resolution_y=2,
+        ...                                resolution_percentage=100, use_multiview=False)
+        >>> K, cam_from_world = eye_camera(camera, types.SimpleNamespace(render=render), "left")
+        >>> K.tolist(), np.diag(cam_from_world).tolist()  # f = 18 / 36 * 4 pixels; y and z flipped
+        ([[2.0, 0.0, 2.0], [0.0, 2.0, 1.0], [0.0, 0.0, 1.0]], [1.0, -1.0, -1.0, 1.0])
+    """
     cam = camera_object.data
     if cam.type != "PERSP":
         raise ValueError(f"write_cameras: camera {camera_object.name!r} is {cam.type}, expected PERSP")
@@ -153,6 +173,11 @@ def layer_prefix(names, where: str = "") -> str:
 
     Raises:
         SequenceError: no view-layer prefix (not a multilayer EXR), none or several view layers, or a missing pass.
+
+    Examples:
+        >>> from stereorepro.io.blender import BLENDER_CHANNELS, layer_prefix
+        >>> layer_prefix(["ViewLayer." + c for c in BLENDER_CHANNELS] + ["ViewLayer.Vector.X"])
+        'ViewLayer.'
     """
     from ..errors import SequenceError
 
@@ -181,6 +206,17 @@ def frame_from_channels(channels: dict, where: str = "") -> dict:
     Raises:
         SequenceError: no single view layer with the needed passes (:func:`layer_prefix`), or channels of
         different sizes (naming the channel).
+
+    Examples:
+        >>> import numpy as np
+        >>> from stereorepro.io.blender import BLENDER_CHANNELS, frame_from_channels
+        >>> channels = {"ViewLayer." + c: np.zeros((2, 4), np.float32) for c in BLENDER_CHANNELS}
+        >>> channels["ViewLayer.Depth.Z"][:] = 2.0; channels["ViewLayer.Depth.Z"][0, 0] = 1e10  # one background pixel
+        >>> channels["ViewLayer.Normal.Z"][:] = 1.0
+        >>> channels.update({"ViewLayer.Vector.X": np.ones((2, 4)), "ViewLayer.Vector.Y": np.ones((2, 4))})
+        >>> frame = frame_from_channels(channels, "0001_L.exr")
+        >>> frame["depth"][0, 0, 0].tolist(), frame["motion"][0, :, 1, 1].tolist()  # y up -> y down
+        ([inf, 2.0, 2.0, 2.0], [1.0, -1.0])
     """
     import torch
 
