@@ -139,6 +139,24 @@ def write_cameras(path, scene=None, frames=None, position_threshold: float | Non
 
     Returns:
         the path written (atomically).
+
+    Examples:
+        >>> import json, sys, tempfile, types
+        >>> from unittest import mock
+        >>> import numpy as np
+        >>> from stereorepro.io.blender import write_cameras
+        >>> data = types.SimpleNamespace(type="PERSP", shift_x=0, shift_y=0, sensor_fit="HORIZONTAL", sensor_width=36.0,
+        ...                              lens=18.0)  # stand-ins for Blender's camera and scene
+        >>> render = types.SimpleNamespace(pixel_aspect_x=1, pixel_aspect_y=1, resolution_x=4, resolution_y=2,
+        ...                                resolution_percentage=100, use_multiview=False)
+        >>> camera = types.SimpleNamespace(name="Camera", data=data, matrix_world=np.eye(4))
+        >>> scene = types.SimpleNamespace(camera=camera, render=render, frame_start=1, frame_end=2, frame_current=1,
+        ...                               frame_set=lambda frame: None)
+        >>> with tempfile.TemporaryDirectory() as d, mock.patch.dict(sys.modules, bpy=types.ModuleType("bpy")):
+        ...     path = write_cameras(f"{d}/cameras.json", scene)  # bpy imports; the scene is the one given
+        ...     doc = json.loads(path.read_text())
+        >>> len(doc["frames"]), sorted(doc["frames"][0]), doc["meta"]["frame_numbers"]
+        (2, ['left', 'right'], [1, 2])
     """
     import bpy
 
