@@ -52,7 +52,17 @@ def _stats(xs) -> dict:
 class ExperimentResults:
     """What a run measured: the content of ``results.json``, field by field in its order (:meth:`to_dict`). The
     statistics over frames (``table1``, ``table2``, ...) are ``{"avg", "min", "max", "n", "avg_after_warmup"}``
-    dicts (``avg_after_warmup``: from frame :data:`WARMUP_FRAMES` on)."""
+    dicts (``avg_after_warmup``: from frame :data:`WARMUP_FRAMES` on).
+
+    Examples:
+        >>> from dataclasses import fields
+        >>> from stereorepro.workflows.experiment.run import ExperimentResults
+        >>> empty = {f.name: None for f in fields(ExperimentResults)}
+        >>> r = ExperimentResults(**empty | {"scene": "living_room", "frames": 2, "resolution": "8x6"})
+        >>> d = r.to_dict()
+        >>> d["scene"], d["resolution"], "moving_objects" in d, list(d)[:3]
+        ('living_room', '8x6', False, ['scene', 'effects', 'frames'])
+    """
 
     scene: str
     effects: list  #: the scene's effects, sorted
@@ -96,7 +106,23 @@ class ExperimentResults:
 
 def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
     """Run the experiment and write its outputs into ``cfg.out``. Returns the ``results.json`` content
-    (:meth:`ExperimentResults.to_dict`)."""
+    (:meth:`ExperimentResults.to_dict`).
+
+    Examples:
+        >>> import os, tempfile
+        >>> from stereorepro.workflows.experiment.config import ExperimentConfig
+        >>> from stereorepro.workflows.experiment.run import run_experiment
+        >>> with tempfile.TemporaryDirectory() as d:
+        ...     cfg = ExperimentConfig(scene="living_room", out=d, frames=2, width=8, height=6, ladder_spp=2,
+        ...                            reference_spp=4, flip=False, ssim=False, progress=False)
+        ...     r = run_experiment(cfg, log=lambda message: None)  # a few seconds: most of it the four figures
+        ...     print(sorted(os.listdir(d))[:4])
+        ...     print(sorted(os.listdir(d))[4:])
+        ['cache', 'fig1_discards.png', 'fig3_rmse.png', 'fig4_comparison.png']
+        ['fig_cost.png', 'report.md', 'results.json', 'tables.md']
+        >>> r["frames"], r["resolution"], sorted(r["table2"]), r["table2"]["stereo"]["n"]
+        (2, '8x6', ['stereo', 'stereo_temporal', 'temporal'], 2)
+    """
     needs = ["embreex", "tqdm", "matplotlib"] + ["kornia"] * cfg.ssim + ["OpenEXR"] * cfg.exr
     require_all(needs, "the experiment", "experiment")
     run = _start(cfg, log)
