@@ -74,6 +74,18 @@ def frame_from_channels(channels: dict, camera: PinholeCamera, where: str = "") 
 
     Raises:
         SequenceError: a channel is missing, or one is not of the camera's size (naming it).
+
+    Examples:
+        >>> import numpy as np, torch
+        >>> from stereorepro.camera import PinholeCamera
+        >>> from stereorepro.io.mitsuba import MITSUBA_CHANNELS, frame_from_channels
+        >>> K = torch.tensor([[[2.0, 0, 2], [0, 2.0, 1], [0, 0, 1]]], dtype=torch.float64)
+        >>> camera = PinholeCamera(K, torch.eye(4, dtype=torch.float64)[None], 2, 4)
+        >>> channels = {c: np.zeros((2, 4), np.float32) for c in MITSUBA_CHANNELS}  # a film written with AOVS
+        >>> channels["pp.Z"][:] = 3.0; channels["dd.T"][:] = 3.0; channels["dd.T"][0, 0] = 0.0  # one pixel hits nothing
+        >>> frame = frame_from_channels(channels, camera, "frame.exr")
+        >>> sorted(frame), frame["depth"][0, 0, 0].tolist()
+        (['color', 'depth', 'normal', 'position'], [inf, 3.0, 3.0, 3.0])
     """
     missing = [c for c in MITSUBA_CHANNELS if c not in channels]
     if missing:
