@@ -85,6 +85,18 @@ def diagnose_conventions(seq: FrameSequence, mode: str, eyes: tuple[str, ...], p
         a list of ``{"test": "stereo" | "temporal", "position_pct": given, "suspect": the best hypothesis or None,
         "suspects": those that explain it about as well, "position_pct_if_fixed": float or None, "message": str}``;
         empty when nothing looks wrong.
+
+    Examples:
+        >>> import os, tempfile
+        >>> from stereorepro.workflows.export import export_sequence
+        >>> tmp = tempfile.TemporaryDirectory()
+        >>> src = export_sequence("living_room", 2, 8, 6, os.path.join(tmp.name, "in"))  # 2 frames of 8x6, 1 spp
+        >>> from stereorepro.io.frames import load_sequence
+        >>> from stereorepro.workflows.diagnose import diagnose_conventions
+        >>> seq = load_sequence(src)
+        >>> diagnose_conventions(seq, "both", ("right",), seq.position_threshold, seq.normal_threshold)
+        []
+        >>> tmp.cleanup()
     """
     n = len(seq)
     frames = sorted({min(1, n - 1), n // 2})

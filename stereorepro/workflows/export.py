@@ -41,6 +41,15 @@ def export_sequence(scene, frames, width: int, height: int, out_dir, spp: int = 
 
     Returns:
         ``out_dir`` as a Path.
+
+    Examples:
+        >>> import os, tempfile
+        >>> from stereorepro.workflows.export import export_sequence
+        >>> tmp = tempfile.TemporaryDirectory()
+        >>> src = export_sequence("living_room", 2, 8, 6, os.path.join(tmp.name, "in"))  # 2 frames of 8x6, 1 spp
+        >>> sorted(os.listdir(src))
+        ['0000_left.exr', '0000_right.exr', '0001_left.exr', '0001_right.exr', 'cameras.json']
+        >>> tmp.cleanup()
     """
     from ..io.exr import write_exr
     from ..render import PathTracer

@@ -205,6 +205,19 @@ def reproject_sequence(input_dir, out_dir, mode: str = "both", eye: str = "right
 
     Raises:
         SequenceError: the input is malformed or an option is invalid; nothing was written.
+
+    Examples:
+        >>> import os, tempfile
+        >>> from stereorepro.workflows.export import export_sequence
+        >>> tmp = tempfile.TemporaryDirectory()
+        >>> src = export_sequence("living_room", 2, 8, 6, os.path.join(tmp.name, "in"))  # 2 frames of 8x6, 1 spp
+        >>> from stereorepro.workflows.sequence import reproject_sequence
+        >>> summary = reproject_sequence(src, os.path.join(tmp.name, "out"), mode="both")
+        >>> summary["frames"], summary["width"], summary["height"], summary["position_threshold"]
+        (2, 8, 6, 1.5)
+        >>> sorted(f for f in os.listdir(os.path.join(tmp.name, "out")) if f.startswith("0001"))
+        ['0001_left_reprojected.exr', '0001_right_reprojected.exr']
+        >>> tmp.cleanup()
     """
     _check_options(mode, eye, sampling, alpha)
     eyes = (EYES if eye == "both" else (eye,)) if mode == "temporal" else EYES
