@@ -112,7 +112,24 @@ def _tonemap(x: torch.Tensor) -> np.ndarray:
 
 def write_outputs(out: Path, results: dict, per_frame, keep, cfg) -> None:
     """Write the figures, ``tables.md``, ``report.md`` and ``results.json`` into ``out`` as one set
-    (:func:`~stereorepro.io.atomic.staged_outputs`): all of them or none, ``results.json`` last."""
+    (:func:`~stereorepro.io.atomic.staged_outputs`): all of them or none, ``results.json`` last.
+
+    Examples:
+        >>> import os, tempfile
+        >>> from pathlib import Path
+        >>> from stereorepro.workflows.experiment.config import ExperimentConfig
+        >>> from stereorepro.workflows.experiment.run import run_experiment
+        >>> from stereorepro.workflows.experiment.report import write_outputs
+        >>> tmp = tempfile.TemporaryDirectory()
+        >>> cfg = ExperimentConfig(scene="living_room", out=tmp.name, frames=2, width=8, height=6, ladder_spp=2,
+        ...                        reference_spp=4, flip=False, ssim=False, progress=False)
+        >>> results = run_experiment(cfg, log=lambda message: None)  # a few seconds: renders, scores, figures
+        >>> out = Path(tmp.name) / "again"
+        >>> write_outputs(out, results, results["per_frame"], {}, cfg)  # no kept images: Figures 1 and 4 left out
+        >>> sorted(os.listdir(out))
+        ['fig3_rmse.png', 'fig_cost.png', 'report.md', 'results.json', 'tables.md']
+        >>> tmp.cleanup()
+    """
     with staged_outputs(out, last=["results.json"]) as stage:
         _write_outputs(stage, results, per_frame, keep, cfg)
 
