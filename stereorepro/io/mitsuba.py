@@ -50,7 +50,20 @@ def _mi():
 
 
 def sensor_to_camera(sensor) -> PinholeCamera:
-    """Our :class:`~stereorepro.camera.PinholeCamera` (float64, B = 1) of a Mitsuba ``perspective`` sensor."""
+    """Our :class:`~stereorepro.camera.PinholeCamera` (float64, B = 1) of a Mitsuba ``perspective`` sensor.
+
+    Examples:
+        >>> import mitsuba as mi
+        >>> from stereorepro.io.mitsuba import sensor_to_camera
+        >>> mi.set_variant("scalar_rgb")
+        >>> sensor = mi.load_dict({"type": "perspective", "fov_axis": "x", "fov": 90.0,
+        ...                        "film": {"type": "hdrfilm", "width": 4, "height": 2}})
+        >>> cam = sensor_to_camera(sensor)
+        >>> [[round(v, 9) for v in row] for row in cam.K[0].tolist()], (cam.height, cam.width)
+        ([[2.0, 0.0, 2.0], [0.0, 2.0, 1.0], [0.0, 0.0, 1.0]], (2, 4))
+        >>> cam.cam_from_world[0].diagonal().tolist()  # Mitsuba's x-left, y-up camera -> OpenCV's x-right, y-down
+        [-1.0, -1.0, 1.0, 1.0]
+    """
     mi = _mi()
     params = mi.traverse(sensor)
     for k in ("principal_point_offset_x", "principal_point_offset_y"):
@@ -113,6 +126,21 @@ def render_gbuffer(scene, sensor=None, spp: int = 16, seed: int = 0) -> dict:
     Args:
         scene: a loaded Mitsuba scene. sensor: one of its sensors or another (default: its first).
         spp: samples per pixel of the colour. seed: the sampler seed.
+
+    Examples:
+        >>> import mitsuba as mi
+        >>> from stereorepro.io.mitsuba import render_gbuffer
+        >>> mi.set_variant("scalar_rgb")
+        >>> scene = mi.load_dict({"type": "scene", "integrator": {"type": "path"},
+        ...     "sensor": {"type": "perspective", "fov_axis": "x", "fov": 60.0,
+        ...                "to_world": mi.ScalarTransform4f().look_at([0, 0, -3], [0, 0, 0], [0, 1, 0]),
+        ...                "film": {"type": "hdrfilm", "width": 4, "height": 2}},
+        ...     "wall": {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale(4.0)}, "sky": {"type": "constant"}})
+        >>> frame = render_gbuffer(scene, spp=1)
+        >>> tuple(frame["color"].shape), tuple(frame["depth"].shape)
+        ((1, 3, 2, 4), (1, 1, 2, 4))
+        >>> [round(float(d), 4) for d in frame["depth"][0, 0, 0]]  # camera z of the wall, 3 units ahead
+        [3.0, 3.0, 3.0, 3.0]
     """
     mi = _mi()
     sensor = scene.sensors()[0] if sensor is None else sensor
