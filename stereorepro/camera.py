@@ -1,5 +1,5 @@
 """Cameras and the project's geometric conventions (written once, here; referred to everywhere; the docs page
-``docs/conventions.md`` presents the same conventions with figures and examples).
+``docs/conventions.md`` presents them on the docs site).
 
 Conventions
 -----------
