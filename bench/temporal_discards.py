@@ -64,7 +64,7 @@ def measure(scene_name: str, W: int, H: int, frames: int, k: int) -> dict:
 
     def view(fr: int):
         if fr not in views:
-            cam = scene.stereo_cameras(fr, W, H)[RIGHT]
+            cam = scene.stereo_cameras(fr, W, H)[int(RIGHT)]
             views[fr] = (cam, tracer.gbuffer(cam, fr))
         return views[fr]
 
