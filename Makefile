@@ -64,9 +64,11 @@ test-install:
 docs: $(STAMP)
 	$(VENV)/bin/mkdocs build --strict
 
-# ruff's lint rules of pyproject.toml over the package, the tests, the benchmarks and the examples
+# ruff's lint rules of pyproject.toml and its formatter (check only) over the package, the tests, the benchmarks
+# and the examples; `ruff format stereorepro tests bench examples` applies the format
 lint: $(STAMP)
 	$(VENV)/bin/ruff check stereorepro tests bench examples
+	$(VENV)/bin/ruff format --check stereorepro tests bench examples
 
 test-all: $(STAMP) $(BLENDER_STAMP)
 	$(PY) -m pytest -q $(PYTEST_ARGS)

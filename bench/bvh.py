@@ -72,14 +72,20 @@ class WholeSceneBVH(PathTracer):
 def shared_moving_scene(folder: Path, mover: str):
     path = folder / f"shared_living_room_{mover}.toml"
     base = (scenes_dir() / "shared_living_room.toml").resolve()
-    path.write_text(f'extends = "{base}"\nname = "shared_living_room + moving {mover}"\n'
-                    f'effects = ["moving_objects"]\n{SHARED_MOVERS[mover]}')
+    path.write_text(
+        f'extends = "{base}"\nname = "shared_living_room + moving {mover}"\n'
+        f'effects = ["moving_objects"]\n{SHARED_MOVERS[mover]}'
+    )
     return load_scene(path)
 
 
 #: (scene: built-in name or a key of SHARED_MOVERS, size, spp)
-CASES = [("living_room_moving_objects", "320x180", 1), ("box", "320x180", 1), ("Cushion1", "320x180", 1),
-         ("box", "1280x720", 1)]
+CASES = [
+    ("living_room_moving_objects", "320x180", 1),
+    ("box", "320x180", 1),
+    ("Cushion1", "320x180", 1),
+    ("box", "1280x720", 1),
+]
 WAYS = ("one BVH, rebuilt per frame", "static BVH + moving-faces BVH")
 FIELDS = ("radiance", "depth", "normal", "position", "albedo", "material_id", "object_id")
 
@@ -96,6 +102,7 @@ def measure(scene, W: int, H: int, spp: int, repeats: int, warmup: int) -> dict:
             f = frames[state["i"] % len(frames)]
             r = tr.render(cams[f], f, spp)
             state["out"][name] = r
+
         return fn
 
     def advance():
@@ -111,19 +118,27 @@ def measure(scene, W: int, H: int, spp: int, repeats: int, warmup: int) -> dict:
     geo = time_rounds({n: geometry_fn(tr, frames[0]) for n, tr in tracers.items()}, repeats=repeats, warmup=1)
     split = tracers[WAYS[1]]
     moving = int((split.face_object >= 0).sum())
-    return {"scene": scene.name, "triangles": int(len(split.faces)), "moving_triangles": moving,
-            "resolution": f"{W}x{H}", "spp": spp, "rays": int(sum(state["out"][WAYS[1]].ray_counts.values())),
-            "frames_compared": len(state["identical"]),
-            "frames_identical": int(sum(state["identical"])),
-            "per_frame_ms": {n: _stats(v) for n, v in ts.items()},
-            "geometry_ms": {n: _stats(v) for n, v in geo.items()}}
+    return {
+        "scene": scene.name,
+        "triangles": int(len(split.faces)),
+        "moving_triangles": moving,
+        "resolution": f"{W}x{H}",
+        "spp": spp,
+        "rays": int(sum(state["out"][WAYS[1]].ray_counts.values())),
+        "frames_compared": len(state["identical"]),
+        "frames_identical": int(sum(state["identical"])),
+        "per_frame_ms": {n: _stats(v) for n, v in ts.items()},
+        "geometry_ms": {n: _stats(v) for n, v in geo.items()},
+    }
 
 
 def geometry_fn(tr: PathTracer, frame: int):
     """The geometry stage of ``frame`` alone, built anew at every call."""
+
     def fn():
         tr._geom_cache = None
         tr.geometry(frame)
+
     return fn
 
 
@@ -161,25 +176,37 @@ def main() -> None:
 
 
 def markdown(rec: dict) -> str:
-    md = [f"`{rec['command']}`", "",
-          "Per frame: the frame's geometry (BVH builds included) + one render of one eye with G-buffers. "
-          "Medians (min-max) in ms after warm-up, both ways in alternation on the same frames; identical: radiance, "
-          "G-buffers and ray counts equal byte for byte. Ratio: one BVH / static + moving (> 1: the split is faster). "
-          f"Load average before / after: {rec['load_average_before']:.1f} / {rec['load_average_after']:.1f} on "
-          f"{rec['machine']['cores']} cores (other jobs running: absolute times are inflated, the ratios come from "
-          "alternating rounds).", "",
-          "| scene | triangles (moving) | size, spp | rays | " + " | ".join(WAYS) + " | ratio | geometry only: "
-          + " / ".join(WAYS) + " | identical frames |", "|---|---:|---|---:|---:|---:|---:|---:|---:|"]
+    md = [
+        f"`{rec['command']}`",
+        "",
+        "Per frame: the frame's geometry (BVH builds included) + one render of one eye with G-buffers. "
+        "Medians (min-max) in ms after warm-up, both ways in alternation on the same frames; identical: radiance, "
+        "G-buffers and ray counts equal byte for byte. Ratio: one BVH / static + moving (> 1: the split is faster). "
+        f"Load average before / after: {rec['load_average_before']:.1f} / {rec['load_average_after']:.1f} on "
+        f"{rec['machine']['cores']} cores (other jobs running: absolute times are inflated, the ratios come from "
+        "alternating rounds).",
+        "",
+        "| scene | triangles (moving) | size, spp | rays | "
+        + " | ".join(WAYS)
+        + " | ratio | geometry only: "
+        + " / ".join(WAYS)
+        + " | identical frames |",
+        "|---|---:|---|---:|---:|---:|---:|---:|---:|",
+    ]
     for r in rec["rows"]:
         if "skipped" in r:
             md.append(f"| {r['scene']} | {r['skipped']} ||||||||")
             continue
         p, g = r["per_frame_ms"], r["geometry_ms"]
         cell = [f"{p[w]['median_ms']:.1f} ({p[w]['min_ms']:.1f}-{p[w]['max_ms']:.1f})" for w in WAYS]
-        md.append(f"| `{r['scene']}` | {r['triangles']} ({r['moving_triangles']}) | {r['resolution']}, {r['spp']} | "
-                  f"{r['rays']} | " + " | ".join(cell) + f" | {p[WAYS[0]]['median_ms'] / p[WAYS[1]]['median_ms']:.2f} | "
-                  + " / ".join(f"{g[w]['median_ms']:.1f}" for w in WAYS)
-                  + f" | {r['frames_identical']} of {r['frames_compared']} |")
+        md.append(
+            f"| `{r['scene']}` | {r['triangles']} ({r['moving_triangles']}) | {r['resolution']}, {r['spp']} | "
+            f"{r['rays']} | "
+            + " | ".join(cell)
+            + f" | {p[WAYS[0]]['median_ms'] / p[WAYS[1]]['median_ms']:.2f} | "
+            + " / ".join(f"{g[w]['median_ms']:.1f}" for w in WAYS)
+            + f" | {r['frames_identical']} of {r['frames_compared']} |"
+        )
     return "\n".join(md) + "\n"
 
 

@@ -24,9 +24,17 @@ from stereorepro.workflows.experiment import ExperimentConfig, run_experiment
 def one(scheduler: str | None, frames: int, root: Path) -> tuple[float, dict]:
     out = Path(tempfile.mkdtemp(dir=root))
     w, h = DEFAULTS["resolution"]
-    cfg = ExperimentConfig(scene=DEFAULTS["scene"], out=str(out), frames=frames, width=w, height=h,
-                           reference_spp=DEFAULTS["reference_spp"], ladder_spp=DEFAULTS["ladder_spp"],
-                           progress=False, scheduler=scheduler)
+    cfg = ExperimentConfig(
+        scene=DEFAULTS["scene"],
+        out=str(out),
+        frames=frames,
+        width=w,
+        height=h,
+        reference_spp=DEFAULTS["reference_spp"],
+        ladder_spp=DEFAULTS["ladder_spp"],
+        progress=False,
+        scheduler=scheduler,
+    )
     t0 = time.perf_counter()
     res = run_experiment(cfg, log=lambda *a: None)
     wall = time.perf_counter() - t0
@@ -53,15 +61,28 @@ def main() -> None:
     ratio = med["local_2"] / med["in_process"]
     same = tables["in_process"] == tables["local_2"]
     w, h = DEFAULTS["resolution"]
-    rec = {**header(), "config": {"scene": DEFAULTS["scene"], "frames": args.frames, "resolution": f"{w}x{h}",
-                                  "reference_spp": DEFAULTS["reference_spp"], "ladder_spp": DEFAULTS["ladder_spp"]},
-           "order": order, "wall_s": walls, "median_s": med, "ratio_local2_over_in_process": ratio,
-           "identical_tables": same}
-    md = ("| run | wall s (each) | median s |\n|---|---|---:|\n"
-          + "".join(f"| {k} | {', '.join(f'{x:.1f}' for x in v)} | {med[k]:.1f} |\n" for k, v in walls.items())
-          + f"\nLocalCluster(2) / in process: **{ratio:.2f}×**; identical tables: {same}. "
-          f"Demo config ({DEFAULTS['scene']}, {args.frames} frames, {w}×{h}, reference {DEFAULTS['reference_spp']} "
-          f"spp, ladder {DEFAULTS['ladder_spp']}), each run from an empty cache, order {' '.join(order)}.\n")
+    rec = {
+        **header(),
+        "config": {
+            "scene": DEFAULTS["scene"],
+            "frames": args.frames,
+            "resolution": f"{w}x{h}",
+            "reference_spp": DEFAULTS["reference_spp"],
+            "ladder_spp": DEFAULTS["ladder_spp"],
+        },
+        "order": order,
+        "wall_s": walls,
+        "median_s": med,
+        "ratio_local2_over_in_process": ratio,
+        "identical_tables": same,
+    }
+    md = (
+        "| run | wall s (each) | median s |\n|---|---|---:|\n"
+        + "".join(f"| {k} | {', '.join(f'{x:.1f}' for x in v)} | {med[k]:.1f} |\n" for k, v in walls.items())
+        + f"\nLocalCluster(2) / in process: **{ratio:.2f}×**; identical tables: {same}. "
+        f"Demo config ({DEFAULTS['scene']}, {args.frames} frames, {w}×{h}, reference {DEFAULTS['reference_spp']} "
+        f"spp, ladder {DEFAULTS['ladder_spp']}), each run from an empty cache, order {' '.join(order)}.\n"
+    )
     save("dask_overhead", rec, md)
     print(md)
 

@@ -43,8 +43,12 @@ HIST_BINS = (("hist 1 (lost)", 1, 1), ("hist 2-4", 2, 4), ("hist 5-9", 5, 9), ("
 def regions(ref: torch.Tensor, surface: torch.Tensor, hist: torch.Tensor, reason: torch.Tensor | None) -> dict:
     lum = ref.mean(1, keepdim=True)
     sat = (ref >= 1.0).any(1, keepdim=True)
-    out = {"saturated (ref >= 1)": sat, "bright (0.3-1)": ~sat & (lum >= 0.3), "mid (0.05-0.3)": (lum >= 0.05)
-           & (lum < 0.3) & ~sat, "dark (< 0.05)": lum < 0.05}
+    out = {
+        "saturated (ref >= 1)": sat,
+        "bright (0.3-1)": ~sat & (lum >= 0.3),
+        "mid (0.05-0.3)": (lum >= 0.05) & (lum < 0.3) & ~sat,
+        "dark (< 0.05)": lum < 0.05,
+    }
     edges = edge_mask(ref.clamp(0, 1))
     out["edges (top 5 % contrast)"] = edges
     out["not edges"] = ~edges
@@ -71,14 +75,26 @@ def main() -> None:
     ap.add_argument("--cache-dir", default=str(RESULTS.parent / ".cache"))
     ap.add_argument("--renderer-version", default=None)
     ap.add_argument("--figure-frame", type=int, default=None, help="default: the last frame")
-    ap.add_argument("--normal-scale", type=float, default=1.0,
-                    help="multiply the scene's normal threshold (what looser tests would keep)")
+    ap.add_argument(
+        "--normal-scale",
+        type=float,
+        default=1.0,
+        help="multiply the scene's normal threshold (what looser tests would keep)",
+    )
     ap.add_argument("--position-scale", type=float, default=1.0, help="multiply the scene's position threshold")
     args = ap.parse_args()
     W, H = (int(v) for v in args.resolution.split("x"))
-    cfg = ExperimentConfig(scene=args.scene, out=".", frames=args.frames, width=W, height=H,
-                           reference_spp=args.reference_spp, ladder_spp=args.ladder_spp,
-                           reference_chunk_spp=args.reference_chunk_spp, renderer_version=args.renderer_version)
+    cfg = ExperimentConfig(
+        scene=args.scene,
+        out=".",
+        frames=args.frames,
+        width=W,
+        height=H,
+        reference_spp=args.reference_spp,
+        ladder_spp=args.ladder_spp,
+        reference_chunk_spp=args.reference_chunk_spp,
+        renderer_version=args.renderer_version,
+    )
     scene = load_scene(args.scene)
     ctx = RenderContext(spec_for(cfg, scene, Path(args.cache_dir)), scene=scene)
     pos_thr, nrm_thr = scene.thresholds(H, threshold_scale(H))
@@ -116,20 +132,27 @@ def main() -> None:
             hist = drv[a].right_state.history_len
             reg = regions(R.reference, surface, hist, drv[a].right_reason)
             if f == fig_frame and a == alphas[0]:
-                fig = {"se": se[0, 0].numpy(), "hist": hist[0, 0].numpy(), "ref": ref[0].permute(1, 2, 0).numpy(),
-                       "sat": reg["saturated (ref >= 1)"][0, 0].numpy(), "edges": reg["edges (top 5 % contrast)"][0, 0]
-                       .numpy(), "out": metric_image(out, "ldr")[0].permute(1, 2, 0).numpy()}
+                fig = {
+                    "se": se[0, 0].numpy(),
+                    "hist": hist[0, 0].numpy(),
+                    "ref": ref[0].permute(1, 2, 0).numpy(),
+                    "sat": reg["saturated (ref >= 1)"][0, 0].numpy(),
+                    "edges": reg["edges (top 5 % contrast)"][0, 0].numpy(),
+                    "out": metric_image(out, "ldr")[0].permute(1, 2, 0).numpy(),
+                }
                 fig_shares = error_shares(se, reg, se_b)
                 fig_conc = error_concentration(se)
             if f < WARMUP_FRAMES:
                 continue
             conc[a].append(error_concentration(se))
             every = torch.ones_like(surface)
-            for name, m in {"all pixels": every, **reg,
-                            "all but saturated": ~reg["saturated (ref >= 1)"],
-                            "all but edges": ~reg["edges (top 5 % contrast)"],
-                            "all but saturated and edges": ~reg["saturated (ref >= 1)"]
-                            & ~reg["edges (top 5 % contrast)"]}.items():
+            for name, m in {
+                "all pixels": every,
+                **reg,
+                "all but saturated": ~reg["saturated (ref >= 1)"],
+                "all but edges": ~reg["edges (top 5 % contrast)"],
+                "all but saturated and edges": ~reg["saturated (ref >= 1)"] & ~reg["edges (top 5 % contrast)"],
+            }.items():
                 add(a, name, m, se, se_b, se1, seL)
         print(f"frame {f}", flush=True)
 
@@ -139,29 +162,49 @@ def main() -> None:
         total = acc[a]["all pixels"]["se"]
         for name, d in acc[a].items():
             n = max(d["n"], 1)
-            rows[name] = {"pixels_pct": 100.0 * d["n"] / acc[a]["all pixels"]["n"],
-                          "se_share_pct": 100.0 * d["se"] / total if total else None,
-                          "bias_pct_of_region": 100.0 * d["bias"] / d["se"] if d["se"] else None,
-                          "effective_spp_two_rung": two_rung_spp(d["se"] / n, d["se1"] / n, d["seL"] / n, L)}
-        report[str(a)] = {"regions": rows, "concentration": {k: float(np.mean([c[k] for c in conc[a]]))
-                                                             for k in conc[a][0]}}
-    rec = {**header(), "scene": args.scene, "resolution": f"{W}x{H}", "frames": args.frames,
-           "thresholds": {"position": pos_thr, "normal": nrm_thr},
-           "after_warmup_from": WARMUP_FRAMES, "reference_spp": args.reference_spp, "ladder_spp": L,
-           "alphas": report, "figure_frame": {"frame": fig_frame, "regions": fig_shares, "concentration": fig_conc}}
-    lines = [f"Error anatomy of the temporal scheme, {args.scene} {W}×{H}, frames {WARMUP_FRAMES}..{args.frames - 1} "
-             f"(LDR squared error; reference {args.reference_spp} spp; two-rung ladder 1 and {L} spp; thresholds: "
-             f"position {pos_thr:g}, normal {nrm_thr:g})", ""]
+            rows[name] = {
+                "pixels_pct": 100.0 * d["n"] / acc[a]["all pixels"]["n"],
+                "se_share_pct": 100.0 * d["se"] / total if total else None,
+                "bias_pct_of_region": 100.0 * d["bias"] / d["se"] if d["se"] else None,
+                "effective_spp_two_rung": two_rung_spp(d["se"] / n, d["se1"] / n, d["seL"] / n, L),
+            }
+        report[str(a)] = {
+            "regions": rows,
+            "concentration": {k: float(np.mean([c[k] for c in conc[a]])) for k in conc[a][0]},
+        }
+    rec = {
+        **header(),
+        "scene": args.scene,
+        "resolution": f"{W}x{H}",
+        "frames": args.frames,
+        "thresholds": {"position": pos_thr, "normal": nrm_thr},
+        "after_warmup_from": WARMUP_FRAMES,
+        "reference_spp": args.reference_spp,
+        "ladder_spp": L,
+        "alphas": report,
+        "figure_frame": {"frame": fig_frame, "regions": fig_shares, "concentration": fig_conc},
+    }
+    lines = [
+        f"Error anatomy of the temporal scheme, {args.scene} {W}×{H}, frames {WARMUP_FRAMES}..{args.frames - 1} "
+        f"(LDR squared error; reference {args.reference_spp} spp; two-rung ladder 1 and {L} spp; thresholds: "
+        f"position {pos_thr:g}, normal {nrm_thr:g})",
+        "",
+    ]
     for a in alphas:
         r = report[str(a)]
-        lines += [f"**alpha = {a}**: the worst 1 % of pixels hold {r['concentration']['top_1pct']:.0f} % of the "
-                  f"squared error, the worst 5 % {r['concentration']['top_5pct']:.0f} %", "",
-                  "| region | pixels % | share of squared error % | bias % of its error | effective spp |",
-                  "|---|---:|---:|---:|---:|"]
+        lines += [
+            f"**alpha = {a}**: the worst 1 % of pixels hold {r['concentration']['top_1pct']:.0f} % of the "
+            f"squared error, the worst 5 % {r['concentration']['top_5pct']:.0f} %",
+            "",
+            "| region | pixels % | share of squared error % | bias % of its error | effective spp |",
+            "|---|---:|---:|---:|---:|",
+        ]
         for name, v in r["regions"].items():
             e, b = v["effective_spp_two_rung"], v["bias_pct_of_region"]
-            lines.append(f"| {name} | {v['pixels_pct']:.1f} | {v['se_share_pct']:.1f} | "
-                         f"{'–' if b is None else f'{b:.0f}'} | {'–' if e is None else f'{e:.1f}'} |")
+            lines.append(
+                f"| {name} | {v['pixels_pct']:.1f} | {v['se_share_pct']:.1f} | "
+                f"{'–' if b is None else f'{b:.0f}'} | {'–' if e is None else f'{e:.1f}'} |"
+            )
         lines.append("")
     name = f"error_anatomy_{args.scene}_{W}x{H}"
     if args.normal_scale != 1.0 or args.position_scale != 1.0:

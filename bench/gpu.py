@@ -62,11 +62,20 @@ def no_cuda_reason() -> str | None:
 
 def gpu_info() -> dict:
     p = torch.cuda.get_device_properties(0)
-    info = {"name": p.name, "memory_gib": round(p.total_memory / 2**30, 1), "capability": f"{p.major}.{p.minor}",
-            "count": torch.cuda.device_count(), "torch_cuda": torch.version.cuda}
+    info = {
+        "name": p.name,
+        "memory_gib": round(p.total_memory / 2**30, 1),
+        "capability": f"{p.major}.{p.minor}",
+        "count": torch.cuda.device_count(),
+        "torch_cuda": torch.version.cuda,
+    }
     try:
-        out = subprocess.run(["nvidia-smi", "--query-gpu=driver_version", "--format=csv,noheader"],
-                             capture_output=True, text=True, timeout=20)
+        out = subprocess.run(
+            ["nvidia-smi", "--query-gpu=driver_version", "--format=csv,noheader"],
+            capture_output=True,
+            text=True,
+            timeout=20,
+        )
         info["driver"] = out.stdout.strip().splitlines()[0] if out.returncode == 0 and out.stdout.strip() else None
     except (OSError, subprocess.TimeoutExpired):
         info["driver"] = None
@@ -89,10 +98,16 @@ def run_tests(timeout_s: float) -> dict:
     summary = lines[-1] if lines else ""
     counts = {k: int(n) for n, k in re.findall(r"(\d+) (passed|failed|skipped|errors?|deselected)", summary)}
     ok = rc == 0 or rc == 5 and not counts.get("failed")  # 5: nothing selected (no cuda-parametrised tests)
-    return {"command": shlex.join(["python", *cmd[1:]]), "returncode": rc, "timed_out": timed_out,
-            "ok": bool(ok and not timed_out),
-            "summary": summary, "counts": counts, "seconds": time.perf_counter() - t0,
-            "failures": [ln for ln in lines if ln.startswith(("FAILED", "ERROR"))][:20]}
+    return {
+        "command": shlex.join(["python", *cmd[1:]]),
+        "returncode": rc,
+        "timed_out": timed_out,
+        "ok": bool(ok and not timed_out),
+        "summary": summary,
+        "counts": counts,
+        "seconds": time.perf_counter() - t0,
+        "failures": [ln for ln in lines if ln.startswith(("FAILED", "ERROR"))][:20],
+    }
 
 
 # --------------------------------------------------------------------------------------------------- timing
@@ -102,7 +117,7 @@ def case_inputs(width: int, height: int) -> dict:
     both = SimpleNamespace(input_names=st_names + tp_names)  # one call: both ops see the same cameras and scene
     moving = example_inputs(both, height=height, width=width, head_motion=True)
     parallel = example_inputs(StereoReprojection(**THRESHOLDS), height=height, width=width, head_motion=False)
-    return {"stereo": parallel, "stereo + head motion": moving[:len(st_names)], "temporal": moving[len(st_names):]}
+    return {"stereo": parallel, "stereo + head motion": moving[: len(st_names)], "temporal": moving[len(st_names) :]}
 
 
 class OrtRunner:
@@ -116,8 +131,10 @@ class OrtRunner:
         self.provider = "CUDAExecutionProvider" if device.type == "cuda" else "CPUExecutionProvider"
         self.version = ort.__version__
         if self.provider not in ort.get_available_providers():
-            raise RuntimeError(f"onnxruntime {ort.__version__} has no {self.provider} (available: "
-                               f"{', '.join(ort.get_available_providers())}); install onnxruntime-gpu for it")
+            raise RuntimeError(
+                f"onnxruntime {ort.__version__} has no {self.provider} (available: "
+                f"{', '.join(ort.get_available_providers())}); install onnxruntime-gpu for it"
+            )
         self.sessions = {}
         for cls in (StereoReprojection, TemporalReprojection):
             path = export_onnx(cls(**THRESHOLDS, backend="torch"), tmp / f"{cls.__name__}.onnx")
@@ -125,8 +142,10 @@ class OrtRunner:
             so.add_session_config_entry("session.intra_op.allow_spinning", "0")
             sess = ort.InferenceSession(str(path), so, providers=[self.provider, "CPUExecutionProvider"])
             if sess.get_providers()[0] != self.provider:
-                raise RuntimeError(f"onnxruntime fell back to {sess.get_providers()} (the {self.provider} "
-                                   f"did not load: CUDA/cuDNN libraries?)")
+                raise RuntimeError(
+                    f"onnxruntime fell back to {sess.get_providers()} (the {self.provider} "
+                    f"did not load: CUDA/cuDNN libraries?)"
+                )
             self.sessions[cls] = sess
 
     def bind(self, cls, inputs: tuple):
@@ -156,16 +175,20 @@ def compare(cls, ref: tuple, got: list) -> dict:
     vg = torch.from_numpy(got[names.index("valid")])
     both = (vr & vg).expand_as(ref[0].cpu())
     diff = (ref[0].cpu().double() - torch.from_numpy(got[0]).double()).abs()[both]
-    return {"max_abs_diff_color": float(diff.max()) if diff.numel() else 0.0,
-            "valid_mismatch_pixels": int((vr != vg).sum())}
+    return {
+        "max_abs_diff_color": float(diff.max()) if diff.numel() else 0.0,
+        "valid_mismatch_pixels": int((vr != vg).sum()),
+    }
 
 
 def bench_size(label: str, W: int, H: int, device: torch.device, args, ort_runner) -> tuple[list, dict]:
     px = W * H
     nbytes = floor_bytes(px)
-    mods = {"stereo": StereoReprojection(**THRESHOLDS, backend="torch"),
-            "stereo + head motion": StereoReprojection(**THRESHOLDS, backend="torch"),
-            "temporal": TemporalReprojection(**THRESHOLDS, backend="torch")}
+    mods = {
+        "stereo": StereoReprojection(**THRESHOLDS, backend="torch"),
+        "stereo + head motion": StereoReprojection(**THRESHOLDS, backend="torch"),
+        "temporal": TemporalReprojection(**THRESHOLDS, backend="torch"),
+    }
     t0 = time.perf_counter()
     cpu_inputs = case_inputs(W, H)
     t_inputs = time.perf_counter() - t0
@@ -185,15 +208,34 @@ def bench_size(label: str, W: int, H: int, device: torch.device, args, ort_runne
         for impl, fns in impls.items():
             group = {("floor", k): f for k, f in floors.items()}
             group.update({("op", op): f for op, f in fns.items()})
-            times = time_interleaved(group, args.repeats, args.warmup,
-                                     torch.cuda.synchronize if device.type == "cuda" else None)
+            times = time_interleaved(
+                group, args.repeats, args.warmup, torch.cuda.synchronize if device.type == "cuda" else None
+            )
             for op in fns:
                 t, fl = times[("op", op)], times[("floor", floor_of[op])]
-                rows.append({"size": label, "resolution": f"{W}x{H}", "op": op, "impl": impl, **t,
-                             "floor_median_ms": fl["median_ms"], "x_floor": t["median_ms"] / fl["median_ms"]})
+                rows.append(
+                    {
+                        "size": label,
+                        "resolution": f"{W}x{H}",
+                        "op": op,
+                        "impl": impl,
+                        **t,
+                        "floor_median_ms": fl["median_ms"],
+                        "x_floor": t["median_ms"] / fl["median_ms"],
+                    }
+                )
             for k in floors:
-                rows.append({"size": label, "resolution": f"{W}x{H}", "op": k, "impl": f"copy floor (with {impl})",
-                             **times[("floor", k)], "x_floor": 1.0, "bytes": nbytes[k]})
+                rows.append(
+                    {
+                        "size": label,
+                        "resolution": f"{W}x{H}",
+                        "op": k,
+                        "impl": f"copy floor (with {impl})",
+                        **times[("floor", k)],
+                        "x_floor": 1.0,
+                        "bytes": nbytes[k],
+                    }
+                )
         agreement = {}
         for op, (run, outputs) in checks.items():
             run()
@@ -210,27 +252,43 @@ def table(rows: list, order: list) -> str:
     for size in order:
         rs = sorted((r for r in rows if r["size"] == size), key=lambda r: (op_rank[r["op"]], "floor" in r["impl"]))
         for r in rs:
-            lines.append(f"| {r['resolution']} | {r['op']} | {r['impl']} | {r['median_ms']:.2f} | {r['min_ms']:.2f} | "
-                         f"{r['x_floor']:.1f} |")
+            lines.append(
+                f"| {r['resolution']} | {r['op']} | {r['impl']} | {r['median_ms']:.2f} | {r['min_ms']:.2f} | "
+                f"{r['x_floor']:.1f} |"
+            )
     return "\n".join(lines) + "\n"
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--device", choices=("cuda", "cpu"), default="cuda",
-                    help="cuda (the check) or cpu (a dry run of the code path)")
+    ap.add_argument(
+        "--device", choices=("cuda", "cpu"), default="cuda", help="cuda (the check) or cpu (a dry run of the code path)"
+    )
     ap.add_argument("--sizes", default="720p,1080p,2160p", help="comma list of 720p, 1080p, 2160p or WxH")
     ap.add_argument("--repeats", type=int, default=15)
     ap.add_argument("--warmup", type=int, default=3)
-    ap.add_argument("--budget-s", type=float, default=270.0,
-                    help="wall-clock budget of the whole run; sizes that would not fit are skipped (noted)")
-    ap.add_argument("--tests", dest="tests", action="store_true", default=None,
-                    help="run the CUDA tests (default: on with --device cuda, off with --device cpu)")
+    ap.add_argument(
+        "--budget-s",
+        type=float,
+        default=270.0,
+        help="wall-clock budget of the whole run; sizes that would not fit are skipped (noted)",
+    )
+    ap.add_argument(
+        "--tests",
+        dest="tests",
+        action="store_true",
+        default=None,
+        help="run the CUDA tests (default: on with --device cuda, off with --device cpu)",
+    )
     ap.add_argument("--no-tests", dest="tests", action="store_false")
     ap.add_argument("--test-timeout-s", type=float, default=150.0)
     ap.add_argument("--no-onnx", action="store_true", help="skip onnxruntime")
-    ap.add_argument("--save", default=None, help="results name under the results folder (default: gpu with "
-                    "--device cuda; nothing is written by a cpu dry run unless this is given)")
+    ap.add_argument(
+        "--save",
+        default=None,
+        help="results name under the results folder (default: gpu with "
+        "--device cuda; nothing is written by a cpu dry run unless this is given)",
+    )
     ap.add_argument("--results-dir", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     try:
@@ -254,16 +312,27 @@ def main(argv=None) -> int:
     notes = []
     if device.type == "cpu":
         notes.append("CPU dry run of the code path (--device cpu): not the GPU check")
-    record = {**header(), "device": str(device), "gpu": gpu_info() if device.type == "cuda" else None,
-              "sizes": [f"{w}x{h}" for _, w, h in sizes], "repeats": args.repeats, "warmup": args.warmup}
+    record = {
+        **header(),
+        "device": str(device),
+        "gpu": gpu_info() if device.type == "cuda" else None,
+        "sizes": [f"{w}x{h}" for _, w, h in sizes],
+        "repeats": args.repeats,
+        "warmup": args.warmup,
+    }
 
     if run_tests_now:
         remaining = args.budget_s - (time.perf_counter() - t_start)
-        print(f"CUDA tests: pytest -q -k cuda -m 'not slow' (timeout {min(args.test_timeout_s, remaining):.0f} s) ...",
-              flush=True)
+        print(
+            f"CUDA tests: pytest -q -k cuda -m 'not slow' (timeout {min(args.test_timeout_s, remaining):.0f} s) ...",
+            flush=True,
+        )
         record["tests"] = tests = run_tests(min(args.test_timeout_s, remaining))
-        print(f"  {tests['summary'] or '(no output)'}{' (TIMED OUT)' if tests['timed_out'] else ''} "
-              f"in {tests['seconds']:.0f} s", flush=True)
+        print(
+            f"  {tests['summary'] or '(no output)'}{' (TIMED OUT)' if tests['timed_out'] else ''} "
+            f"in {tests['seconds']:.0f} s",
+            flush=True,
+        )
         for ln in tests["failures"]:
             print("  " + ln)
     else:
@@ -289,8 +358,10 @@ def main(argv=None) -> int:
         if last is not None:
             projected = last[0] * (W * H) / last[1]
             if elapsed + projected > args.budget_s:
-                notes.append(f"{label} ({W}x{H}) skipped: ~{projected:.0f} s projected, "
-                             f"{args.budget_s - elapsed:.0f} s of the budget left")
+                notes.append(
+                    f"{label} ({W}x{H}) skipped: ~{projected:.0f} s projected, "
+                    f"{args.budget_s - elapsed:.0f} s of the budget left"
+                )
                 print("note: " + notes[-1])
                 continue
         t0 = time.perf_counter()
@@ -307,13 +378,24 @@ def main(argv=None) -> int:
         last = (time.perf_counter() - t0, W * H)
     tmp.cleanup()
 
-    record.update(rows=rows, per_size=per_size, notes=notes, seconds=time.perf_counter() - t_start,
-                  floor_bytes={f"{w}x{h}": floor_bytes(w * h) for _, w, h in sizes})
-    dev = (f"{record['gpu']['name']} ({record['gpu']['memory_gib']} GiB, CUDA {record['gpu']['torch_cuda']}, "
-           f"driver {record['gpu']['driver']})" if record["gpu"] else "CPU")
-    md = (f"Device: {dev}. B=1, float32, median of {args.repeats} after {args.warmup} warm-up rounds, the device "
-          f"synchronised around every call; each implementation timed round-robin with the copy floors (a "
-          f"device-to-device copy of the bytes the op reads and writes), × copy floor against its own run.\n\n")
+    record.update(
+        rows=rows,
+        per_size=per_size,
+        notes=notes,
+        seconds=time.perf_counter() - t_start,
+        floor_bytes={f"{w}x{h}": floor_bytes(w * h) for _, w, h in sizes},
+    )
+    dev = (
+        f"{record['gpu']['name']} ({record['gpu']['memory_gib']} GiB, CUDA {record['gpu']['torch_cuda']}, "
+        f"driver {record['gpu']['driver']})"
+        if record["gpu"]
+        else "CPU"
+    )
+    md = (
+        f"Device: {dev}. B=1, float32, median of {args.repeats} after {args.warmup} warm-up rounds, the device "
+        f"synchronised around every call; each implementation timed round-robin with the copy floors (a "
+        f"device-to-device copy of the bytes the op reads and writes), × copy floor against its own run.\n\n"
+    )
     md += table(rows, done)
     if record["tests"]:
         t = record["tests"]
@@ -322,9 +404,11 @@ def main(argv=None) -> int:
         agree = {s: v["onnxruntime_vs_torch"] for s, v in per_size.items()}
         worst = max((a["max_abs_diff_color"] for s in agree.values() for a in s.values()), default=0.0)
         mism = sum(a["valid_mismatch_pixels"] for s in agree.values() for a in s.values())
-        md += (f"\nonnxruntime {record['onnxruntime']['version']} ({record['onnxruntime']['provider']}) vs torch "
-               f"on the same inputs: max |colour difference| where both kept a pixel {worst:.2e}, valid-mask "
-               f"mismatches {mism} pixels in all.\n")
+        md += (
+            f"\nonnxruntime {record['onnxruntime']['version']} ({record['onnxruntime']['provider']}) vs torch "
+            f"on the same inputs: max |colour difference| where both kept a pixel {worst:.2e}, valid-mask "
+            f"mismatches {mism} pixels in all.\n"
+        )
     if notes:
         md += "\n" + "\n".join(f"* {n}" for n in notes) + "\n"
     print()

@@ -40,17 +40,27 @@ def bvh_costs(W=320, H=180) -> dict:
     d = (wfc[:3, :3] @ np.linalg.inv(K) @ pix).T.astype(np.float32)
     o = np.broadcast_to(wfc[:3, 3].astype(np.float32), d.shape).copy()
     full_bvh, small_bvh = TriangleBVH(v, tr.faces), TriangleBVH(v, moving_faces)
-    t = time_interleaved({
-        "place objects (object_vertices)": lambda: tr.object_vertices(17),
-        "build: whole scene": lambda: TriangleBVH(v, tr.faces),
-        "build: moving faces only": lambda: TriangleBVH(v, moving_faces),
-        "query: primary rays, whole scene": lambda: full_bvh.intersect(o, d),
-        "query: primary rays, moving faces only": lambda: small_bvh.intersect(o, d),
-    }, repeats=9, warmup=2)
+    t = time_interleaved(
+        {
+            "place objects (object_vertices)": lambda: tr.object_vertices(17),
+            "build: whole scene": lambda: TriangleBVH(v, tr.faces),
+            "build: moving faces only": lambda: TriangleBVH(v, moving_faces),
+            "query: primary rays, whole scene": lambda: full_bvh.intersect(o, d),
+            "query: primary rays, moving faces only": lambda: small_bvh.intersect(o, d),
+        },
+        repeats=9,
+        warmup=2,
+    )
     render = time_ms(lambda: tr.render(cam, 17, 1, eye=Eye.RIGHT, gbuffers=False), repeats=5, warmup=1)
-    out = {"scene": scene.name, "triangles": int(len(tr.faces)), "moving_triangles": int(moving.sum()),
-           "static_triangles": int(len(static_faces)), "resolution": f"{W}x{H}", "timings": t,
-           "render_1spp_one_eye": render}
+    out = {
+        "scene": scene.name,
+        "triangles": int(len(tr.faces)),
+        "moving_triangles": int(moving.sum()),
+        "static_triangles": int(len(static_faces)),
+        "resolution": f"{W}x{H}",
+        "timings": t,
+        "render_1spp_one_eye": render,
+    }
     try:  # a real scene's geometry, for scale
         big = load_scene("shared_living_room").geometry()
         out["shared_living_room_triangles"] = int(len(big.faces))
@@ -62,12 +72,14 @@ def bvh_costs(W=320, H=180) -> dict:
 
 def _general_path(fn):
     """``fn`` with the torch fast path switched off (the general path: the reference)."""
+
     def call():
         functional.FAST_PATH = False
         try:
             return fn()
         finally:
             functional.FAST_PATH = True
+
     return call
 
 
@@ -85,10 +97,12 @@ def reprojection_costs() -> dict:
         def step(v, backend):
             return lambda: temporal_reproject(cur, v, hist, prev, thr, backend=backend)
 
-        fns = {"torch fast path, cameras": step(view, "torch"),
-               "torch fast path, motion vectors": step(moving, "torch"),
-               "torch general path, motion vectors": _general_path(step(moving, "torch")),
-               "auto, motion vectors": step(moving, "auto")}
+        fns = {
+            "torch fast path, cameras": step(view, "torch"),
+            "torch fast path, motion vectors": step(moving, "torch"),
+            "torch general path, motion vectors": _general_path(step(moving, "torch")),
+            "auto, motion vectors": step(moving, "auto"),
+        }
         if _native.available():
             fns["native, cameras"] = step(view, "native")
             fns["native, motion vectors"] = step(moving, "native")
@@ -103,19 +117,28 @@ def main() -> None:
     rec["reprojection"] = reprojection_costs()
     b = rec["bvh"]
     t = b["timings"]
-    md = [f"Scene `{b['scene']}`: {b['triangles']} triangles, {b['moving_triangles']} of them moving; "
-          f"{b['resolution']}. Medians of {t['build: whole scene']['repeats']} after warm-up.", "",
-          "| step | ms |", "|---|---:|"]
+    md = [
+        f"Scene `{b['scene']}`: {b['triangles']} triangles, {b['moving_triangles']} of them moving; "
+        f"{b['resolution']}. Medians of {t['build: whole scene']['repeats']} after warm-up.",
+        "",
+        "| step | ms |",
+        "|---|---:|",
+    ]
     for k, v in t.items():
         md.append(f"| {k} | {v['median_ms']:.2f} |")
     md.append(f"| one 1-spp render of one eye (for scale) | {b['render_1spp_one_eye']['median_ms']:.1f} |")
     sl = b.get("shared_living_room_build")
     if isinstance(sl, dict):
-        md.append(f"| build: shared_living_room ({b['shared_living_room_triangles']} triangles) | "
-                  f"{sl['median_ms']:.1f} |")
-    md += ["", "Temporal reprojection, `temporal_reproject` (synthetic scene of `example_inputs`), ms:", "",
-           "| resolution | " + " | ".join(next(iter(rec["reprojection"].values()))) + " |",
-           "|---|" + "---:|" * len(next(iter(rec["reprojection"].values())))]
+        md.append(
+            f"| build: shared_living_room ({b['shared_living_room_triangles']} triangles) | {sl['median_ms']:.1f} |"
+        )
+    md += [
+        "",
+        "Temporal reprojection, `temporal_reproject` (synthetic scene of `example_inputs`), ms:",
+        "",
+        "| resolution | " + " | ".join(next(iter(rec["reprojection"].values()))) + " |",
+        "|---|" + "---:|" * len(next(iter(rec["reprojection"].values()))),
+    ]
     for res, row in rec["reprojection"].items():
         md.append(f"| {res} | " + " | ".join(f"{v['median_ms']:.1f}" for v in row.values()) + " |")
     j, m = save("moving_objects", rec, "\n".join(md) + "\n")

@@ -34,10 +34,16 @@ PAPER_T2 = {
     "Classroom": ((1.60, 1.54, 1.64), (10.83, 1.00, 14.30), (16.50, 1.58, 19.55)),
 }
 PAPER_NAME = {
-    "shared_sponza": "Sponza", "shared_living_room": "Living Room", "shared_classroom": "Classroom",
-    "atrium": "Sponza", "atrium_glossy": "Sponza (Glossy)", "atrium_moving_light": "Sponza (Moving Light)",
-    "living_room": "Living Room", "living_room_glossy": "Living Room (Glossy)",
-    "living_room_moving_light": "Living Room (Moving Light)", "classroom": "Classroom",
+    "shared_sponza": "Sponza",
+    "shared_living_room": "Living Room",
+    "shared_classroom": "Classroom",
+    "atrium": "Sponza",
+    "atrium_glossy": "Sponza (Glossy)",
+    "atrium_moving_light": "Sponza (Moving Light)",
+    "living_room": "Living Room",
+    "living_room_glossy": "Living Room (Glossy)",
+    "living_room_moving_light": "Living Room (Moving Light)",
+    "classroom": "Classroom",
 }
 
 
@@ -55,8 +61,11 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="runs/paper")
     ap.add_argument("--name", default="paper", help="results file name under bench/results/")
     ap.add_argument("--metric", choices=("hdr", "ldr"), default="ldr")
-    ap.add_argument("--reanalyse", action="store_true",
-                    help="reuse each scene's cached renders (renderer version from its results.json), no rendering")
+    ap.add_argument(
+        "--reanalyse",
+        action="store_true",
+        help="reuse each scene's cached renders (renderer version from its results.json), no rendering",
+    )
     ap.add_argument("--analysis-out", default=None, help="write experiment outputs here instead of --out (cache stays)")
     args = ap.parse_args(argv)
     w, h = args.resolution
@@ -69,19 +78,48 @@ def main(argv=None) -> int:
 
             version = json.loads((run_dir / "results.json").read_text())["code"]
         out_dir = Path(args.analysis_out) / scene if args.analysis_out else run_dir
-        cfg = ExperimentConfig(scene=scene, out=str(out_dir), frames=args.frames, width=w, height=h,
-                               reference_spp=args.reference_spp, ladder_spp=args.ladder_spp, metric=args.metric,
-                               renderer_version=version, cache_dir=str(run_dir / "cache"))
+        cfg = ExperimentConfig(
+            scene=scene,
+            out=str(out_dir),
+            frames=args.frames,
+            width=w,
+            height=h,
+            reference_spp=args.reference_spp,
+            ladder_spp=args.ladder_spp,
+            metric=args.metric,
+            renderer_version=version,
+            cache_dir=str(run_dir / "cache"),
+        )
         r = run_experiment(cfg)
-        runs[scene] = {k: r[k] for k in ("table1", "table2", "table2_variants", "thresholds", "frames", "resolution",
-                                          "reference_spp", "ladder_spp", "timing_ms", "cost", "flags", "wall_s",
-                                          "bias", "metric", "code")}
-    lines = [f"Ours: {args.frames} frames at {w}×{h}, reference {args.reference_spp} spp, ladder 1..{args.ladder_spp} "
-             f"spp, {args.metric.upper()} RMSE. Paper: 60 frames at 1280×720, 4096-spp references. "
-             f"Cells: avg [min, max].", "",
-             "| scene (paper row) | stereo discard % ours | paper | temporal discard % ours | paper | "
-             "stereo spp ours | paper | temporal spp ours | paper | stereo+temporal spp ours | paper |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+        runs[scene] = {
+            k: r[k]
+            for k in (
+                "table1",
+                "table2",
+                "table2_variants",
+                "thresholds",
+                "frames",
+                "resolution",
+                "reference_spp",
+                "ladder_spp",
+                "timing_ms",
+                "cost",
+                "flags",
+                "wall_s",
+                "bias",
+                "metric",
+                "code",
+            )
+        }
+    lines = [
+        f"Ours: {args.frames} frames at {w}×{h}, reference {args.reference_spp} spp, ladder 1..{args.ladder_spp} "
+        f"spp, {args.metric.upper()} RMSE. Paper: 60 frames at 1280×720, 4096-spp references. "
+        f"Cells: avg [min, max].",
+        "",
+        "| scene (paper row) | stereo discard % ours | paper | temporal discard % ours | paper | "
+        "stereo spp ours | paper | temporal spp ours | paper | stereo+temporal spp ours | paper |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
     for scene, r in runs.items():
         p = PAPER_NAME.get(scene, "")
         t1 = PAPER_T1.get(p.split(" (")[0], {})
@@ -89,15 +127,19 @@ def main(argv=None) -> int:
         cells = [f"{scene} ({p})"]
         for k in ("stereo", "temporal"):
             o = r["table1"][k]
-            cells += [f"{_t(o['avg'])} [{_t(o['min'])}, {_t(o['max'])}]",
-                      f"{t1[k][0]:.2f}" if k in t1 else "–"]
+            cells += [f"{_t(o['avg'])} [{_t(o['min'])}, {_t(o['max'])}]", f"{t1[k][0]:.2f}" if k in t1 else "–"]
         for i, k in enumerate(("stereo", "temporal", "stereo_temporal")):
             o = r["table2"][k]
             cells += [f"{_t(o['avg'])} [{_t(o['min'])}, {_t(o['max'])}]", f"{t2[i][0]:.2f}" if t2 else "–"]
         lines.append("| " + " | ".join(cells) + " |")
     table = "\n".join(lines) + "\n"
-    record = {**header(), "args": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(args).items()},
-              "runs": runs, "paper_table1": PAPER_T1, "paper_table2": PAPER_T2}
+    record = {
+        **header(),
+        "args": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(args).items()},
+        "runs": runs,
+        "paper_table1": PAPER_T1,
+        "paper_table2": PAPER_T2,
+    }
     save(args.name, record, table)
     print(table)
     return 0

@@ -30,13 +30,18 @@ def _cell(o: dict) -> str:
 
 def tables(runs: dict[str, dict]) -> str:
     any_run = next(iter(runs.values()))
-    lines = [f"Ours: {any_run['frames']} frames at {any_run['resolution']}, reference {any_run['reference_spp']} spp "
-             f"(chunks of {any_run.get('reference_chunk_spp')}), ladder 1..{any_run['ladder_spp']} spp, "
-             f"{any_run['metric'].upper()} RMSE. Cells: average over all frames / average from frame "
-             f"{any_run.get('warmup_frames')} on [min, max]. Paper: 60 frames at 1280×720, 4096-spp references, "
-             "average (max).", "",
-             "**Table 1** — discarded pixels (%)", "",
-             "| scene | stereo, ours | paper | temporal, ours | paper |", "|---|---|---:|---|---:|"]
+    lines = [
+        f"Ours: {any_run['frames']} frames at {any_run['resolution']}, reference {any_run['reference_spp']} spp "
+        f"(chunks of {any_run.get('reference_chunk_spp')}), ladder 1..{any_run['ladder_spp']} spp, "
+        f"{any_run['metric'].upper()} RMSE. Cells: average over all frames / average from frame "
+        f"{any_run.get('warmup_frames')} on [min, max]. Paper: 60 frames at 1280×720, 4096-spp references, "
+        "average (max).",
+        "",
+        "**Table 1** — discarded pixels (%)",
+        "",
+        "| scene | stereo, ours | paper | temporal, ours | paper |",
+        "|---|---|---:|---|---:|",
+    ]
     for scene, r in runs.items():
         t1 = PAPER_T1.get(PAPER_NAME.get(r["scene"], "").split(" (")[0], {})
         cells = [scene]
@@ -44,9 +49,13 @@ def tables(runs: dict[str, dict]) -> str:
             p = t1.get(k)
             cells += [_cell(r["table1"][k]), f"{p[0]:.2f} ({p[2]:.2f})" if p else "–"]
         lines.append("| " + " | ".join(cells) + " |")
-    lines += ["", "**Table 2** — effective spp", "",
-              "| scene | stereo, ours | paper | temporal, ours | paper | stereo+temporal, ours | paper |",
-              "|---|---|---:|---|---:|---|---:|"]
+    lines += [
+        "",
+        "**Table 2** — effective spp",
+        "",
+        "| scene | stereo, ours | paper | temporal, ours | paper | stereo+temporal, ours | paper |",
+        "|---|---|---:|---|---:|---|---:|",
+    ]
     for scene, r in runs.items():
         t2 = PAPER_T2.get(PAPER_NAME.get(r["scene"], ""))
         cells = [scene]
@@ -54,20 +63,37 @@ def tables(runs: dict[str, dict]) -> str:
             cells += [_cell(r["table2"][k]), f"{t2[i][0]:.2f} ({t2[i][2]:.2f})" if t2 else "–"]
         lines.append("| " + " | ".join(cells) + " |")
     names = [k for k in any_run["table2_variants"]]
-    lines += ["", "**Variants** — effective spp, average over all frames / from the warm-up on", "",
-              "| variant | " + " | ".join(runs) + " |", "|---|" + "---|" * len(runs)]
+    lines += [
+        "",
+        "**Variants** — effective spp, average over all frames / from the warm-up on",
+        "",
+        "| variant | " + " | ".join(runs) + " |",
+        "|---|" + "---|" * len(runs),
+    ]
     for k in names:
-        lines.append(f"| {k} | " + " | ".join(
-            f"{_t(r['table2_variants'][k]['avg'])} / {_t(r['table2_variants'][k].get('avg_after_warmup'))}"
-            if k in r["table2_variants"] else "–" for r in runs.values()) + " |")
+        lines.append(
+            f"| {k} | "
+            + " | ".join(
+                f"{_t(r['table2_variants'][k]['avg'])} / {_t(r['table2_variants'][k].get('avg_after_warmup'))}"
+                if k in r["table2_variants"]
+                else "–"
+                for r in runs.values()
+            )
+            + " |"
+        )
     for scene, r in runs.items():
         study = r.get("reference_study")
         if not study:
             continue
         keys = list(next(iter(study.values())))
-        lines += ["", f"**Reference spp, {scene}** ({r['frames']} frames) — effective spp (avg) with the references "
-                  "of fewer samples", "", "| reference spp | " + " | ".join(keys) + " |",
-                  "|---:|" + "---:|" * len(keys)]
+        lines += [
+            "",
+            f"**Reference spp, {scene}** ({r['frames']} frames) — effective spp (avg) with the references "
+            "of fewer samples",
+            "",
+            "| reference spp | " + " | ".join(keys) + " |",
+            "|---:|" + "---:|" * len(keys),
+        ]
         for p, row in study.items():
             lines.append(f"| {p} | " + " | ".join(_t(row[k]["avg"]) for k in keys) + " |")
     return "\n".join(lines) + "\n"
@@ -81,10 +107,31 @@ def main(argv=None) -> int:
     runs = {}
     for d in args.runs:
         r = json.loads((Path(d) / "results.json").read_text())
-        runs[Path(d).name] = {k: r.get(k) for k in ("table1", "table2", "table2_variants", "reference_study", "frames",
-                                                  "resolution", "reference_spp", "reference_chunk_spp", "ladder_spp",
-                                                  "warmup_frames", "metric", "code", "jitter", "cost", "timing_ms",
-                                                  "bias", "cache", "wall_s", "thresholds", "flags")}
+        runs[Path(d).name] = {
+            k: r.get(k)
+            for k in (
+                "table1",
+                "table2",
+                "table2_variants",
+                "reference_study",
+                "frames",
+                "resolution",
+                "reference_spp",
+                "reference_chunk_spp",
+                "ladder_spp",
+                "warmup_frames",
+                "metric",
+                "code",
+                "jitter",
+                "cost",
+                "timing_ms",
+                "bias",
+                "cache",
+                "wall_s",
+                "thresholds",
+                "flags",
+            )
+        }
         runs[Path(d).name].update(path=str(d), scene=r["scene"])
     md = tables(runs)
     save(args.name, {**header(), "runs": runs, "paper_table1": PAPER_T1, "paper_table2": PAPER_T2}, md)

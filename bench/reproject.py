@@ -21,8 +21,15 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _bench_common import (copy_floor, floor_bytes, header, paired_ratio, peak_rss_delta, save,  # noqa: E402
-                     time_interleaved)
+from _bench_common import (
+    copy_floor,
+    floor_bytes,
+    header,
+    paired_ratio,
+    peak_rss_delta,
+    save,  # noqa: E402
+    time_interleaved,
+)
 
 from stereorepro import StereoReprojection, TemporalReprojection, export_onnx  # noqa: E402
 from stereorepro._testing import example_inputs  # noqa: E402
@@ -33,11 +40,13 @@ from stereorepro.reproject import functional  # noqa: E402
 #: (StereoReprojection(rectified=True): two taps per pixel on every backend and in the exported graph); "stereo +
 #: head motion" warps between eyes of different instants (the general case, as temporal reprojection does). The
 #: stereo rows read and write the same bytes.
-CASES = (("stereo", StereoReprojection, {}, False, "stereo"),
-         ("stereo (rectified)", StereoReprojection, {"rectified": True}, False, "stereo"),
-         ("stereo + head motion", StereoReprojection, {}, True, "stereo"),
-         ("temporal", TemporalReprojection, {}, True, "temporal"),
-         ("temporal + motion vectors", TemporalReprojection, {"motion_vectors": True}, True, "temporal"))
+CASES = (
+    ("stereo", StereoReprojection, {}, False, "stereo"),
+    ("stereo (rectified)", StereoReprojection, {"rectified": True}, False, "stereo"),
+    ("stereo + head motion", StereoReprojection, {}, True, "stereo"),
+    ("temporal", TemporalReprojection, {}, True, "temporal"),
+    ("temporal + motion vectors", TemporalReprojection, {"motion_vectors": True}, True, "temporal"),
+)
 
 #: The motion-vector case (example_inputs: the cameras' own motion vectors, zero world motion): timed with
 #: backend="auto" as well, which must pick the native kernels.
@@ -46,11 +55,25 @@ THRESHOLDS = dict(position_threshold=0.05, normal_threshold=0.3)
 
 #: The paired timings: (record key, implementation a, implementation b (the ratio is b / a), table title, column
 #: names of a and b).
-PAIRED = (("paired_onnxruntime_torch", "torch eager", "onnxruntime",
-           "onnxruntime / torch eager, paired (the two called in alternation, {n} rounds after warm-up; the ratio of "
-           "each round):", "torch eager", "onnxruntime"),
-          ("paired_native_fp16_fp32", "native eager", "native fp16",
-           "native float16 / native float32, paired ({n} rounds, as above):", "native fp32", "native fp16"))
+PAIRED = (
+    (
+        "paired_onnxruntime_torch",
+        "torch eager",
+        "onnxruntime",
+        "onnxruntime / torch eager, paired (the two called in alternation, {n} rounds after warm-up; the ratio of "
+        "each round):",
+        "torch eager",
+        "onnxruntime",
+    ),
+    (
+        "paired_native_fp16_fp32",
+        "native eager",
+        "native fp16",
+        "native float16 / native float32, paired ({n} rounds, as above):",
+        "native fp32",
+        "native fp16",
+    ),
+)
 
 
 def ort_session(module, path, lean: bool = True):
@@ -87,15 +110,21 @@ def memory_child(case: str, impl: str, H: int, W: int) -> dict:
         def call():
             return sess.run(None, feed)
     else:
+
         def call():
             with torch.inference_mode():
                 return m(*inp)
+
     peak = peak_rss_delta(call)  # the first call: later ones reuse what the allocators kept
     out = call()
     nbytes = (lambda x: x.nbytes) if impl == "onnxruntime" else (lambda x: x.numel() * x.element_size())
-    return {"case": case, "impl": impl, "peak_bytes": peak,
-            "input_bytes": sum(x.numel() * x.element_size() for x in inp),
-            "output_bytes": sum(nbytes(o) for o in out)}
+    return {
+        "case": case,
+        "impl": impl,
+        "peak_bytes": peak,
+        "input_bytes": sum(x.numel() * x.element_size() for x in inp),
+        "output_bytes": sum(nbytes(o) for o in out),
+    }
 
 
 def memory_rows(H: int, W: int, impls, cases=CASES) -> list[dict]:
@@ -103,18 +132,31 @@ def memory_rows(H: int, W: int, impls, cases=CASES) -> list[dict]:
     rows = []
     for case, *_ in cases:
         for impl in impls:
-            res = subprocess.run([sys.executable, __file__, "--memory-child", case, impl, "--height", str(H),
-                                  "--width", str(W)], capture_output=True, text=True, check=True)
+            res = subprocess.run(
+                [sys.executable, __file__, "--memory-child", case, impl, "--height", str(H), "--width", str(W)],
+                capture_output=True,
+                text=True,
+                check=True,
+            )
             r = json.loads(res.stdout.strip().splitlines()[-1])
             io = r["input_bytes"] + r["output_bytes"]
-            rows.append({**r, "x_inputs_outputs": r["peak_bytes"] / io,
-                         "x_outputs": r["peak_bytes"] / r["output_bytes"]})
+            rows.append(
+                {**r, "x_inputs_outputs": r["peak_bytes"] / io, "x_outputs": r["peak_bytes"] / r["output_bytes"]}
+            )
     return rows
 
 
 #: The images a real-time engine keeps in float16 (RGBA16F colour, normals, history length); depths stay float32.
-HALF_INPUTS = {"src_color", "src_normal", "dst_normal", "current_color", "normal", "history_color", "history_len",
-               "prev_normal"}
+HALF_INPUTS = {
+    "src_color",
+    "src_normal",
+    "dst_normal",
+    "current_color",
+    "normal",
+    "history_color",
+    "history_len",
+    "prev_normal",
+}
 
 
 def motion_check(fns: dict, cases, H: int, W: int, repeats: int) -> dict | None:
@@ -147,8 +189,11 @@ def motion_check(fns: dict, cases, H: int, W: int, repeats: int) -> dict | None:
             ref = TemporalReprojection(**THRESHOLDS, motion_vectors=True, backend="torch")(*inp)
     finally:
         functional.FAST_PATH = saved_fast
-    same = all(g.dtype == r.dtype and torch.equal(g.contiguous().view(-1).view(torch.uint8),
-                                                  r.contiguous().view(-1).view(torch.uint8)) for g, r in zip(got, ref))
+    same = all(
+        g.dtype == r.dtype
+        and torch.equal(g.contiguous().view(-1).view(torch.uint8), r.contiguous().view(-1).view(torch.uint8))
+        for g, r in zip(got, ref)
+    )
     with torch.inference_mode():
         res = paired_ratio(fns[a], fns[b], repeats)
     return {**res, "auto_ran": ran[0] if ran else "torch", "identical_to_torch_general": same}
@@ -175,12 +220,18 @@ def main(argv=None) -> int:
     ap.add_argument("--height", type=int, default=720)
     ap.add_argument("--width", type=int, default=1280)
     ap.add_argument("--repeats", type=int, default=7)
-    ap.add_argument("--paired-repeats", type=int, default=21,
-                    help="rounds of the paired onnxruntime / torch eager timing")
+    ap.add_argument(
+        "--paired-repeats", type=int, default=21, help="rounds of the paired onnxruntime / torch eager timing"
+    )
     ap.add_argument("--no-onnx", action="store_true")
     ap.add_argument("--no-memory", action="store_true")
-    ap.add_argument("--cases", nargs="+", choices=[c[0] for c in CASES], metavar="CASE",
-                    help=f"run only these rows (of {', '.join(repr(c[0]) for c in CASES)})")
+    ap.add_argument(
+        "--cases",
+        nargs="+",
+        choices=[c[0] for c in CASES],
+        metavar="CASE",
+        help=f"run only these rows (of {', '.join(repr(c[0]) for c in CASES)})",
+    )
     ap.add_argument("--name", default="reproject", help="results file name: bench/results/NAME.{json,md}")
     ap.add_argument("--memory-child", nargs=2, metavar=("CASE", "IMPL"), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
@@ -191,8 +242,11 @@ def main(argv=None) -> int:
     px = H * W
     nbytes = floor_bytes(px)  # float32, and float16 colour, normals and history length (HALF_INPUTS)
     cases = CASES if not args.cases else tuple(c for c in CASES if c[0] in args.cases)
-    fns = {(op, "copy floor" + suffix): copy_floor(nbytes[op + suffix])
-           for op in ("stereo", "temporal") for suffix in ("", " fp16")}
+    fns = {
+        (op, "copy floor" + suffix): copy_floor(nbytes[op + suffix])
+        for op in ("stereo", "temporal")
+        for suffix in ("", " fp16")
+    }
     floor_of = {}
     tmp = tempfile.TemporaryDirectory()
     for name, cls, kw, motion, floor in cases:
@@ -222,7 +276,8 @@ def main(argv=None) -> int:
                 src_from_dst = inp["src_cam_from_world"] @ torch.linalg.inv(inp["dst_cam_from_world"])
                 depth = torch.where(torch.isfinite(inp["dst_depth"]), inp["dst_depth"], torch.ones(()))
                 fns[(name, "kornia warp_frame_depth (warp only)")] = (
-                    lambda c=inp["src_color"], d=depth, T=src_from_dst, K=inp["dst_K"]: warp_frame_depth(c, d, T, K))
+                    lambda c=inp["src_color"], d=depth, T=src_from_dst, K=inp["dst_K"]: warp_frame_depth(c, d, T, K)
+                )
             except ImportError:
                 pass
     # Each implementation is timed round-robin with the two copy floors (one call of each per round), so that the
@@ -245,9 +300,15 @@ def main(argv=None) -> int:
             floor_rows[impl] = floors
             for (op, i), t in times.items():
                 if i == impl:
-                    rows.append({"op": op, "impl": impl, **t,
-                                 "x_floor": t["median_ms"] / floors[floor_of[op]]["median_ms"],
-                                 "floor_median_ms": floors[floor_of[op]]["median_ms"]})
+                    rows.append(
+                        {
+                            "op": op,
+                            "impl": impl,
+                            **t,
+                            "x_floor": t["median_ms"] / floors[floor_of[op]]["median_ms"],
+                            "floor_median_ms": floors[floor_of[op]]["median_ms"],
+                        }
+                    )
     tmp.cleanup()
     order = {name: i for i, (name, *_) in enumerate(cases)}
     rows.sort(key=lambda r: (order[r["op"]], impls.index(r["impl"])))
@@ -274,51 +335,91 @@ def main(argv=None) -> int:
         for key, impl_a, impl_b, *_ in PAIRED:
             for name, *_ in cases:
                 if (name, impl_a) in fns and (name, impl_b) in fns:
-                    paired[key].append({"op": name, **paired_ratio(fns[(name, impl_a)], fns[(name, impl_b)],
-                                                                   args.paired_repeats)})
+                    paired[key].append(
+                        {"op": name, **paired_ratio(fns[(name, impl_a)], fns[(name, impl_b)], args.paired_repeats)}
+                    )
     motion = motion_check(fns, cases, H, W, args.paired_repeats)
-    mem = [] if args.no_memory else memory_rows(H, W, ["torch", "native", "onnxruntime"] if not args.no_onnx
-                                                else ["torch", "native"], cases)
-    command = "python bench/reproject.py" + "".join(f" {a}" if a.startswith("-") or " " not in a else f' "{a}"'
-                                                    for a in (argv if argv is not None else sys.argv[1:]))
-    record = {**header(), "command": command, "resolution": f"{W}x{H}", "rows": rows, **paired,
-              "motion_vs_camera": motion, "memory": mem, "floor_bytes": nbytes}
-    lines = ["| op | implementation | median ms | min ms | × copy floor | × torch eager |",
-             "|---|---|---:|---:|---:|---:|"]
+    mem = (
+        []
+        if args.no_memory
+        else memory_rows(H, W, ["torch", "native", "onnxruntime"] if not args.no_onnx else ["torch", "native"], cases)
+    )
+    command = "python bench/reproject.py" + "".join(
+        f" {a}" if a.startswith("-") or " " not in a else f' "{a}"'
+        for a in (argv if argv is not None else sys.argv[1:])
+    )
+    record = {
+        **header(),
+        "command": command,
+        "resolution": f"{W}x{H}",
+        "rows": rows,
+        **paired,
+        "motion_vs_camera": motion,
+        "memory": mem,
+        "floor_bytes": nbytes,
+    }
+    lines = [
+        "| op | implementation | median ms | min ms | × copy floor | × torch eager |",
+        "|---|---|---:|---:|---:|---:|",
+    ]
     for r in rows:
         xt = "" if r["x_torch_eager"] is None else f"{r['x_torch_eager']:.2f}"
-        lines.append(f"| {r['op']} | {r['impl']} | {r['median_ms']:.1f} | {r['min_ms']:.1f} | {r['x_floor']:.1f} "
-                     f"| {xt} |")
+        lines.append(
+            f"| {r['op']} | {r['impl']} | {r['median_ms']:.1f} | {r['min_ms']:.1f} | {r['x_floor']:.1f} | {xt} |"
+        )
     for key, _, _, title, col_a, col_b in PAIRED:
         if paired[key]:
-            lines += ["", title.format(n=args.paired_repeats), "",
-                      f"| op | median | quartiles | min – max | {col_a} ms | {col_b} ms |",
-                      "|---|---:|---:|---:|---:|---:|"]
-            lines += [f"| {r['op']} | **{r['median']:.2f}** | {r['q1']:.2f} – {r['q3']:.2f} | {r['min']:.2f} – "
-                      f"{r['max']:.2f} | {r['a_median_ms']:.1f} | {r['b_median_ms']:.1f} |" for r in paired[key]]
+            lines += [
+                "",
+                title.format(n=args.paired_repeats),
+                "",
+                f"| op | median | quartiles | min – max | {col_a} ms | {col_b} ms |",
+                "|---|---:|---:|---:|---:|---:|",
+            ]
+            lines += [
+                f"| {r['op']} | **{r['median']:.2f}** | {r['q1']:.2f} – {r['q3']:.2f} | {r['min']:.2f} – "
+                f"{r['max']:.2f} | {r['a_median_ms']:.1f} | {r['b_median_ms']:.1f} |"
+                for r in paired[key]
+            ]
     if motion:
-        lines += ["", "Temporal with motion vectors, backend=\"auto\" / native camera-only, paired "
-                  f"({args.paired_repeats} rounds, as above), and auto's outputs against the torch general path's on "
-                  "the same inputs:", "",
-                  "| median | quartiles | min – max | native camera-only ms | auto with motion ms | byte-identical |",
-                  "|---:|---:|---:|---:|---:|---|",
-                  f"| **{motion['median']:.2f}** | {motion['q1']:.2f} – {motion['q3']:.2f} | {motion['min']:.2f} – "
-                  f"{motion['max']:.2f} | {motion['a_median_ms']:.1f} | {motion['b_median_ms']:.1f} | "
-                  f"{motion['identical_to_torch_general']} (auto ran {motion['auto_ran']}) |"]
+        lines += [
+            "",
+            'Temporal with motion vectors, backend="auto" / native camera-only, paired '
+            f"({args.paired_repeats} rounds, as above), and auto's outputs against the torch general path's on "
+            "the same inputs:",
+            "",
+            "| median | quartiles | min – max | native camera-only ms | auto with motion ms | byte-identical |",
+            "|---:|---:|---:|---:|---:|---|",
+            f"| **{motion['median']:.2f}** | {motion['q1']:.2f} – {motion['q3']:.2f} | {motion['min']:.2f} – "
+            f"{motion['max']:.2f} | {motion['a_median_ms']:.1f} | {motion['b_median_ms']:.1f} | "
+            f"{motion['identical_to_torch_general']} (auto ran {motion['auto_ran']}) |",
+        ]
     if mem:
-        lines += ["", "Peak memory of one call (the first, in a fresh process, inputs built and session created: the "
-                  "rise of VmHWM over VmRSS), against the bytes of its inputs and outputs:", "",
-                  "| op | implementation | peak MiB | inputs + outputs MiB | × inputs + outputs | × outputs |",
-                  "|---|---|---:|---:|---:|---:|"]
+        lines += [
+            "",
+            "Peak memory of one call (the first, in a fresh process, inputs built and session created: the "
+            "rise of VmHWM over VmRSS), against the bytes of its inputs and outputs:",
+            "",
+            "| op | implementation | peak MiB | inputs + outputs MiB | × inputs + outputs | × outputs |",
+            "|---|---|---:|---:|---:|---:|",
+        ]
         for r in mem:
-            io = (r["input_bytes"] + r["output_bytes"]) / 2 ** 20
-            lines.append(f"| {r['case']} | {r['impl']} | {r['peak_bytes'] / 2 ** 20:.1f} | {io:.1f} "
-                         f"| {r['x_inputs_outputs']:.2f} | {r['x_outputs']:.2f} |")
-    table = (f"`{command}`\n\n"
-             f"Reprojection at {W}×{H}, B=1, float32 (native fp16: colour, normals and history length float16, "
-             f"depths float32), median of {R} after warm-up; each implementation timed round-robin with the copy "
-             f"floors (one call each per round), × copy floor against the floor of its own run (native fp16: the "
-             f"floor of the bytes it reads and writes).\n\n") + "\n".join(lines) + "\n"
+            io = (r["input_bytes"] + r["output_bytes"]) / 2**20
+            lines.append(
+                f"| {r['case']} | {r['impl']} | {r['peak_bytes'] / 2**20:.1f} | {io:.1f} "
+                f"| {r['x_inputs_outputs']:.2f} | {r['x_outputs']:.2f} |"
+            )
+    table = (
+        (
+            f"`{command}`\n\n"
+            f"Reprojection at {W}×{H}, B=1, float32 (native fp16: colour, normals and history length float16, "
+            f"depths float32), median of {R} after warm-up; each implementation timed round-robin with the copy "
+            f"floors (one call each per round), × copy floor against the floor of its own run (native fp16: the "
+            f"floor of the bytes it reads and writes).\n\n"
+        )
+        + "\n".join(lines)
+        + "\n"
+    )
     j, md = save(args.name, record, table, script="reproject.py")
     print(table)
     print(f"wrote {j} and {md}")

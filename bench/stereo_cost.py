@@ -40,18 +40,29 @@ def main(argv=None) -> int:
     gl = tracer.gbuffer(left, args.frame)
     backend = "native" if native.available() else "torch"
     m = StereoReprojection(*scene.thresholds(H), backend=backend)
-    inputs = (r.radiance, r.depth, r.normal, right.K.float(), right.cam_from_world, gl.depth, gl.normal,
-              left.K.float(), left.cam_from_world)
+    inputs = (
+        r.radiance,
+        r.depth,
+        r.normal,
+        right.K.float(),
+        right.cam_from_world,
+        gl.depth,
+        gl.normal,
+        left.K.float(),
+        left.cam_from_world,
+    )
     with torch.inference_mode():
         _, valid, _ = m(*inputs)
     mask = ~valid[0, 0]
     t = {
         "trace 1 spp, one eye (with G-buffers)": time_ms(
-            lambda: tracer.render(right, args.frame, 1, eye=Eye.RIGHT), R, 1),
+            lambda: tracer.render(right, args.frame, 1, eye=Eye.RIGHT), R, 1
+        ),
         "G-buffer only, one eye": time_ms(lambda: tracer.gbuffer(left, args.frame), R, 1),
         f"reprojection R→L ({backend})": time_ms(lambda: m(*inputs), max(R, 7), 2),
         "trace left discarded pixels only": time_ms(
-            lambda: tracer.render(left, args.frame, 1, eye=Eye.LEFT, pixel_mask=mask, gbuffers=False), R, 1),
+            lambda: tracer.render(left, args.frame, 1, eye=Eye.LEFT, pixel_mask=mask, gbuffers=False), R, 1
+        ),
     }
     ms = {k: v["median_ms"] for k, v in t.items()}
     trace = ms["trace 1 spp, one eye (with G-buffers)"]
@@ -64,19 +75,30 @@ def main(argv=None) -> int:
         "stereo_frame_over_two_traced_eyes": stereo / (2 * trace),
         "stereo_frame_with_left_gbuffer_over_two_traced_eyes": stereo_gb / (2 * trace),
     }
-    lines = [f"`{args.scene}` frame {args.frame} at {W}×{H}, 1 spp, median of {R} after warm-up.", "",
-             "| step | ms |", "|---|---:|"]
+    lines = [
+        f"`{args.scene}` frame {args.frame} at {W}×{H}, 1 spp, median of {R} after warm-up.",
+        "",
+        "| step | ms |",
+        "|---|---:|",
+    ]
     lines += [f"| {k} | {v:.1f} |" for k, v in ms.items()]
-    lines += ["", "| derived | value |", "|---|---:|",
-              f"| left pixels discarded (traced) | {derived['discarded_pct']:.2f} % |",
-              f"| tracing one eye at 1 spp ÷ reprojecting it | {derived['tracing_1spp_over_reprojection']:.0f}× |",
-              f"| stereo frame (right traced + reprojection + left discards) ÷ two traced eyes | "
-              f"{derived['stereo_frame_over_two_traced_eyes']:.3f} |",
-              f"| same, counting the left G-buffer's primary rays too | "
-              f"{derived['stereo_frame_with_left_gbuffer_over_two_traced_eyes']:.3f} |"]
+    lines += [
+        "",
+        "| derived | value |",
+        "|---|---:|",
+        f"| left pixels discarded (traced) | {derived['discarded_pct']:.2f} % |",
+        f"| tracing one eye at 1 spp ÷ reprojecting it | {derived['tracing_1spp_over_reprojection']:.0f}× |",
+        f"| stereo frame (right traced + reprojection + left discards) ÷ two traced eyes | "
+        f"{derived['stereo_frame_over_two_traced_eyes']:.3f} |",
+        f"| same, counting the left G-buffer's primary rays too | "
+        f"{derived['stereo_frame_with_left_gbuffer_over_two_traced_eyes']:.3f} |",
+    ]
     table = "\n".join(lines) + "\n"
-    save("stereo_cost", {**header(), "scene": args.scene, "resolution": f"{W}x{H}", "timings": t, "derived": derived},
-         table)
+    save(
+        "stereo_cost",
+        {**header(), "scene": args.scene, "resolution": f"{W}x{H}", "timings": t, "derived": derived},
+        table,
+    )
     print(table)
     return 0
 

@@ -75,8 +75,11 @@ def measure(scene_name: str, W: int, H: int, frames: int, k: int) -> dict:
         prev, gp = view(prev_f)
         cam, g = view(cur_f)
         _, valid, reason, _ = backward_reproject(
-            torch.zeros(1, 3, H, W), View(gp.depth, gp.normal, prev.K.float(), prev.cam_from_world.double()),
-            View(g.depth, g.normal, cam.K.float(), cam.cam_from_world.double()), (thr_p, thr_n))
+            torch.zeros(1, 3, H, W),
+            View(gp.depth, gp.normal, prev.K.float(), prev.cam_from_world.double()),
+            View(g.depth, g.normal, cam.K.float(), cam.cam_from_world.double()),
+            (thr_p, thr_n),
+        )
         surf = has_surface(g.depth)
         disc = ~valid & surf
         surf_total += int(surf.sum())
@@ -93,11 +96,19 @@ def measure(scene_name: str, W: int, H: int, frames: int, k: int) -> dict:
         flow_mean.append(float(m.mean()))
         flow_p95.append(float(torch.quantile(m[:: max(1, m.numel() // 200_000)], 0.95)))
     pct = lambda n: 100.0 * n / max(surf_total, 1)  # noqa: E731
-    return {"scene": scene_name, "slowdown": k, "pairs": frames - 1, "thresholds": [thr_p, thr_n],
-            "discard_pct": pct(disc_total), "discard_pct_per_frame": per_frame,
-            "by_reason_pct": {r: pct(n) for r, n in counts.items() if n},
-            "translation_per_frame": float(np.mean(trans)), "rotation_deg_per_frame": float(np.mean(rot)),
-            "flow_px720_mean": float(np.mean(flow_mean)), "flow_px720_p95": float(np.mean(flow_p95))}
+    return {
+        "scene": scene_name,
+        "slowdown": k,
+        "pairs": frames - 1,
+        "thresholds": [thr_p, thr_n],
+        "discard_pct": pct(disc_total),
+        "discard_pct_per_frame": per_frame,
+        "by_reason_pct": {r: pct(n) for r, n in counts.items() if n},
+        "translation_per_frame": float(np.mean(trans)),
+        "rotation_deg_per_frame": float(np.mean(rot)),
+        "flow_px720_mean": float(np.mean(flow_mean)),
+        "flow_px720_p95": float(np.mean(flow_p95)),
+    }
 
 
 def main(argv=None) -> int:
@@ -113,21 +124,31 @@ def main(argv=None) -> int:
         for k in args.slowdowns:
             rows.append(measure(name, W, H, args.frames, k))
             r = rows[-1]
-            print(f"{name} 1/{k}: {r['discard_pct']:.2f} % {r['by_reason_pct']} flow {r['flow_px720_mean']:.2f} px",
-                  flush=True)
+            print(
+                f"{name} 1/{k}: {r['discard_pct']:.2f} % {r['by_reason_pct']} flow {r['flow_px720_mean']:.2f} px",
+                flush=True,
+            )
     reasons = sorted({x for r in rows for x in r["by_reason_pct"]}, key=lambda x: int(Reason[x.upper()]))
-    lines = ["| scene | speed | camera per frame | screen motion, 720p px (mean / p95) | temporal discards % "
-             "| paper % | " + " | ".join(reasons) + " |",
-             "|---|---:|---|---|---:|---:|" + "---:|" * len(reasons)]
+    lines = [
+        "| scene | speed | camera per frame | screen motion, 720p px (mean / p95) | temporal discards % "
+        "| paper % | " + " | ".join(reasons) + " |",
+        "|---|---:|---|---|---:|---:|" + "---:|" * len(reasons),
+    ]
     for r in rows:
         paper = PAPER_TEMPORAL.get(r["scene"])
-        lines.append(f"| {r['scene']} | 1/{r['slowdown']} | {100 * r['translation_per_frame']:.1f} cm, "
-                     f"{r['rotation_deg_per_frame']:.2f}° | {r['flow_px720_mean']:.2f} / {r['flow_px720_p95']:.2f} "
-                     f"| {r['discard_pct']:.2f} | {'' if paper is None else paper} | "
-                     + " | ".join(f"{r['by_reason_pct'].get(x, 0.0):.2f}" for x in reasons) + " |")
-    table = (f"Temporal discards of the right eye at {W}×{H}, frames 1..{args.frames - 1} of each scene's path "
-             f"(speed 1/k: the path sampled k times more densely), split by reason (% of surface pixels).\n\n"
-             + "\n".join(lines) + "\n")
+        lines.append(
+            f"| {r['scene']} | 1/{r['slowdown']} | {100 * r['translation_per_frame']:.1f} cm, "
+            f"{r['rotation_deg_per_frame']:.2f}° | {r['flow_px720_mean']:.2f} / {r['flow_px720_p95']:.2f} "
+            f"| {r['discard_pct']:.2f} | {'' if paper is None else paper} | "
+            + " | ".join(f"{r['by_reason_pct'].get(x, 0.0):.2f}" for x in reasons)
+            + " |"
+        )
+    table = (
+        f"Temporal discards of the right eye at {W}×{H}, frames 1..{args.frames - 1} of each scene's path "
+        f"(speed 1/k: the path sampled k times more densely), split by reason (% of surface pixels).\n\n"
+        + "\n".join(lines)
+        + "\n"
+    )
     record = {**header(), "resolution": f"{W}x{H}", "frames": args.frames, "rows": rows}
     j, md = save(f"temporal_discards_{W}x{H}", record, table, script="temporal_discards.py")
     print(table)

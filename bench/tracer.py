@@ -72,8 +72,11 @@ def stage_profile(scene_name, repeats, W=320, H=180):
         total = (time.perf_counter() - t0) / repeats
         st = {k: v / repeats for k, v in tr._stage_times.items()}
         st["other (setup, output tensors)"] = total - sum(st.values())
-        out[be] = {"total_s": total, "stages_s": st,
-                   "intersect_fraction": sum(v for k, v in st.items() if k.startswith("intersect")) / total}
+        out[be] = {
+            "total_s": total,
+            "stages_s": st,
+            "intersect_fraction": sum(v for k, v in st.items() if k.startswith("intersect")) / total,
+        }
     return {"scene": scene_name, "resolution": f"{W}x{H}", "backends": out}
 
 
@@ -95,8 +98,12 @@ def ray_throughput(scene_name, W, H, repeats):
         else:
             t_raw = median_time(lambda: raw.run(o, d, dists=tmax.copy(), query="OCCLUDED"), repeats)
             t_wrap = median_time(lambda: rec.bvh.occluded(o, d, tmax), repeats)
-        kinds[name] = {"rays": len(o), "raw_embreex_mrays_s": len(o) / t_raw / 1e6,
-                       "wrapper_mrays_s": len(o) / t_wrap / 1e6}
+        kinds[name] = {
+            "rays": len(o),
+            "raw_embreex_mrays_s": len(o) / t_raw / 1e6,
+            "wrapper_mrays_s": len(o) / t_wrap / 1e6,
+        }
+
     # raw embreex on 2 threads over halves of the same rays (the best a 2-core tracer could do)
     def raw2():
         def part(args):
@@ -108,6 +115,7 @@ def ray_throughput(scene_name, W, H, repeats):
                     raw.run(o[a:b], d[a:b], output=1)
                 else:
                     raw.run(o[a:b], d[a:b], dists=tmax[a:b].copy(), query="OCCLUDED")
+
         with ThreadPoolExecutor(2) as ex:
             halves = []
             for q, o, d, tmax in rec.calls:
@@ -134,8 +142,14 @@ def ray_throughput(scene_name, W, H, repeats):
             fns[(be, workers)] = lambda trw=trw: trw.render(cam, 0, 1, gbuffers=False)
     times = {k: v["median_ms"] / 1e3 for k, v in time_interleaved(fns, repeats, warmup=1).items()}
     t_raw1, t_raw2 = times["raw1"], times["raw2"]
-    out = {"scene": scene_name, "resolution": f"{W}x{H}", "kinds": kinds, "total_rays": total,
-           "raw_embreex_1thread_mrays_s": total / t_raw1 / 1e6, "raw_embreex_2threads_mrays_s": total / t_raw2 / 1e6}
+    out = {
+        "scene": scene_name,
+        "resolution": f"{W}x{H}",
+        "kinds": kinds,
+        "total_rays": total,
+        "raw_embreex_1thread_mrays_s": total / t_raw1 / 1e6,
+        "raw_embreex_2threads_mrays_s": total / t_raw2 / 1e6,
+    }
     out["raw_speedup_2threads"] = t_raw1 / t_raw2
     out["backends"] = {}
     for be in BACKENDS:
@@ -165,8 +179,11 @@ def frame_times(resolutions, repeats):
                 row[f"{be}_s_radiance_only"] = median_time(lambda: tr.render(cam, 0, 1, gbuffers=False), repeats)
                 row[f"{be}_s_gbuffer_only"] = median_time(lambda: tr.gbuffer(cam, 0), repeats)
             rows.append(row)
-            print(f"  {name:26s} {W}x{H}: " + ", ".join(f"{be} {row[f'{be}_s_per_frame_with_gbuffers']:.3f} s"
-                                                       for be in trs), flush=True)
+            print(
+                f"  {name:26s} {W}x{H}: "
+                + ", ".join(f"{be} {row[f'{be}_s_per_frame_with_gbuffers']:.3f} s" for be in trs),
+                flush=True,
+            )
     return rows
 
 
@@ -180,17 +197,29 @@ def mask_cost(repeats, W=320, H=180, frac=0.03):
             tr = PathTracer(scene, backend=be)
             t_full = median_time(lambda: tr.render(cam, 0, 1, gbuffers=False), repeats)
             t_mask = median_time(lambda: tr.render(cam, 0, 1, gbuffers=False, pixel_mask=mask), repeats)
-            out.append({"scene": name, "backend": be, "resolution": f"{W}x{H}",
-                        "mask_fraction": float(mask.float().mean()), "s_full": t_full, "s_masked": t_mask,
-                        "masked_over_full": t_mask / t_full})
+            out.append(
+                {
+                    "scene": name,
+                    "backend": be,
+                    "resolution": f"{W}x{H}",
+                    "mask_fraction": float(mask.float().mean()),
+                    "s_full": t_full,
+                    "s_masked": t_mask,
+                    "masked_over_full": t_mask / t_full,
+                }
+            )
     return out
 
 
 def effect_costs(repeats, W=320, H=180):
     """What an undeclared effect does not cost: the same geometry with and without the effect."""
     out = []
-    for base, variant in (("atrium", "atrium_glossy"), ("living_room", "living_room_glossy"),
-                          ("atrium", "atrium_moving_light"), ("living_room", "living_room_moving_light")):
+    for base, variant in (
+        ("atrium", "atrium_glossy"),
+        ("living_room", "living_room_glossy"),
+        ("atrium", "atrium_moving_light"),
+        ("living_room", "living_room_moving_light"),
+    ):
         res = {}
         for name in (base, variant):
             scene = load_scene(name)
@@ -200,17 +229,27 @@ def effect_costs(repeats, W=320, H=180):
             def seq():
                 for f, c in enumerate(cams):
                     tr.render(c, f, 1, gbuffers=False)
+
             res[name] = median_time(seq, repeats) / len(cams)
-        out.append({"backend": BACKENDS[-1], "base": base, "variant": variant, "s_per_frame_base": res[base],
-                    "s_per_frame_variant": res[variant], "extra_fraction": res[variant] / res[base] - 1})
+        out.append(
+            {
+                "backend": BACKENDS[-1],
+                "base": base,
+                "variant": variant,
+                "s_per_frame_base": res[base],
+                "s_per_frame_variant": res[variant],
+                "extra_fraction": res[variant] / res[base] - 1,
+            }
+        )
     return out
 
 
 def machine():
     try:
         commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
-        if subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True,
-                          text=True).stdout.strip():
+        if subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True, text=True
+        ).stdout.strip():
             commit += "+dirty"
     except OSError:
         commit = "unknown"
@@ -223,10 +262,18 @@ def machine():
     except OSError:
         pass
     import embreex  # noqa: F401 (version)
-    return {"cpu": cpu, "cores": len(os.sched_getaffinity(0)), "python": platform.python_version(),
-            "numpy": np.__version__, "torch": torch.__version__, "commit": commit, "backends": BACKENDS,
-            "loadavg_start": list(os.getloadavg()),
-            "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
+
+    return {
+        "cpu": cpu,
+        "cores": len(os.sched_getaffinity(0)),
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "torch": torch.__version__,
+        "commit": commit,
+        "backends": BACKENDS,
+        "loadavg_start": list(os.getloadavg()),
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+    }
 
 
 def main():
@@ -241,7 +288,9 @@ def main():
     print("ray throughput ...", flush=True)
     # the ratios are the targets and the machine is noisy: at least RATIO_ROUNDS rounds for their medians
     res["ratio_rounds"] = max(args.repeats, RATIO_ROUNDS)
-    res["throughput"] = [ray_throughput(n, 320, 180, res["ratio_rounds"]) for n in ("atrium", "living_room", "classroom")]
+    res["throughput"] = [
+        ray_throughput(n, 320, 180, res["ratio_rounds"]) for n in ("atrium", "living_room", "classroom")
+    ]
     print("pixel mask ...", flush=True)
     res["pixel_mask"] = mask_cost(args.repeats)
     print("effects ...", flush=True)
@@ -261,67 +310,113 @@ def markdown(res) -> str:
     m = res["machine"]
     bes = m.get("backends", ["numpy"])
     la0, la1 = m.get("loadavg_start", [float("nan")] * 3), m.get("loadavg_end", [float("nan")] * 3)
-    L = ["# Path tracer benchmark (`bench/tracer.py`)", "",
-         f"Machine: {m['cpu']}, {m['cores']} cores; Python {m['python']}, numpy {m['numpy']}, torch {m['torch']}; "
-         f"commit `{m['commit'][:18]}`; {m['date']}. Median of {res['repeats']} runs after a warm-up. "
-         f"Backends: {', '.join(bes)} (bit-identical results). Load average (1/5/15 min) at start "
-         f"{la0[0]:.2f}/{la0[1]:.2f}/{la0[2]:.2f}, at end {la1[0]:.2f}/{la1[1]:.2f}/{la1[2]:.2f}: other processes "
-         "shared the cores, so compare numbers within this run, as ratios.", "",
-         "## Stage profile (1 spp, 320x180, 1 worker; ms per frame)", ""]
+    L = [
+        "# Path tracer benchmark (`bench/tracer.py`)",
+        "",
+        f"Machine: {m['cpu']}, {m['cores']} cores; Python {m['python']}, numpy {m['numpy']}, torch {m['torch']}; "
+        f"commit `{m['commit'][:18]}`; {m['date']}. Median of {res['repeats']} runs after a warm-up. "
+        f"Backends: {', '.join(bes)} (bit-identical results). Load average (1/5/15 min) at start "
+        f"{la0[0]:.2f}/{la0[1]:.2f}/{la0[2]:.2f}, at end {la1[0]:.2f}/{la1[1]:.2f}/{la1[2]:.2f}: other processes "
+        "shared the cores, so compare numbers within this run, as ratios.",
+        "",
+        "## Stage profile (1 spp, 320x180, 1 worker; ms per frame)",
+        "",
+    ]
     names = []
     for r in res.get("stages", []):
         for be in bes:
             for k in r["backends"][be]["stages_s"]:
                 if k not in names:
                     names.append(k)
-    L += ["| scene | backend | total | " + " | ".join(names) + " | intersection share |",
-          "|---|---|---|" + "---|" * len(names) + "---|"]
+    L += [
+        "| scene | backend | total | " + " | ".join(names) + " | intersection share |",
+        "|---|---|---|" + "---|" * len(names) + "---|",
+    ]
     for r in res.get("stages", []):
         for be in bes:
             b = r["backends"][be]
-            L.append(f"| {r['scene']} | {be} | {1e3 * b['total_s']:.1f} | " +
-                     " | ".join(f"{1e3 * b['stages_s'].get(k, 0.0):.1f}" for k in names) +
-                     f" | {100 * b['intersect_fraction']:.0f} % |")
-    L += ["", "## Ray throughput (320x180, 1 spp, identical rays)", "",
-          "| scene | kind | rays | raw embreex Mrays/s | our wrapper Mrays/s |", "|---|---|---|---|---|"]
+            L.append(
+                f"| {r['scene']} | {be} | {1e3 * b['total_s']:.1f} | "
+                + " | ".join(f"{1e3 * b['stages_s'].get(k, 0.0):.1f}" for k in names)
+                + f" | {100 * b['intersect_fraction']:.0f} % |"
+            )
+    L += [
+        "",
+        "## Ray throughput (320x180, 1 spp, identical rays)",
+        "",
+        "| scene | kind | rays | raw embreex Mrays/s | our wrapper Mrays/s |",
+        "|---|---|---|---|---|",
+    ]
     for t in res["throughput"]:
         for k, v in t["kinds"].items():
-            L.append(f"| {t['scene']} | {k} | {v['rays']} | {v['raw_embreex_mrays_s']:.2f} | {v['wrapper_mrays_s']:.2f} |")
-    L += ["", "End to end (all rays of the frame / wall time of `render(gbuffers=False)`), against raw embreex on the "
-          f"same rays (1 thread; 2 threads over halves of each batch); all of a scene's rows timed round-robin, median of "
-          f"{res.get('ratio_rounds', res['repeats'])} rounds:", "",
-          "| scene | backend | raw embreex 1 thr | tracer 1 worker | ratio | raw embreex 2 thr | tracer 2 workers | "
-          "ratio | tracer 2-worker speed-up | raw 2-thread speed-up |", "|---|---|---|---|---|---|---|---|---|---|"]
+            L.append(
+                f"| {t['scene']} | {k} | {v['rays']} | {v['raw_embreex_mrays_s']:.2f} | {v['wrapper_mrays_s']:.2f} |"
+            )
+    L += [
+        "",
+        "End to end (all rays of the frame / wall time of `render(gbuffers=False)`), against raw embreex on the "
+        f"same rays (1 thread; 2 threads over halves of each batch); all of a scene's rows timed round-robin, median of "
+        f"{res.get('ratio_rounds', res['repeats'])} rounds:",
+        "",
+        "| scene | backend | raw embreex 1 thr | tracer 1 worker | ratio | raw embreex 2 thr | tracer 2 workers | "
+        "ratio | tracer 2-worker speed-up | raw 2-thread speed-up |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for t in res["throughput"]:
         for be in bes:
             b = t["backends"][be]
-            L.append(f"| {t['scene']} | {be} | {t['raw_embreex_1thread_mrays_s']:.2f} | {b['tracer_1w_mrays_s']:.2f} | "
-                     f"{b['ratio_tracer1w_vs_raw1']:.2f} | {t['raw_embreex_2threads_mrays_s']:.2f} | "
-                     f"{b['tracer_2w_mrays_s']:.2f} | {b['ratio_tracer2w_vs_raw2']:.2f} | {b['speedup_2w']:.2f}x | "
-                     f"{t['raw_speedup_2threads']:.2f}x |")
-    L += ["", "## Seconds per 1-spp frame (one eye, default workers; G-buffers included / radiance only / "
-          "G-buffer only)", "",
-          "| scene | triangles | resolution | " +
-          " | ".join(f"{be} s/frame | {be} radiance | {be} G-buffer" for be in bes) +
-          " | " + ("native speed-up (s/frame) |" if "native" in bes else ""),
-          "|---|---|---|" + "---|---|---|" * len(bes) + ("---|" if "native" in bes else "")]
+            L.append(
+                f"| {t['scene']} | {be} | {t['raw_embreex_1thread_mrays_s']:.2f} | {b['tracer_1w_mrays_s']:.2f} | "
+                f"{b['ratio_tracer1w_vs_raw1']:.2f} | {t['raw_embreex_2threads_mrays_s']:.2f} | "
+                f"{b['tracer_2w_mrays_s']:.2f} | {b['ratio_tracer2w_vs_raw2']:.2f} | {b['speedup_2w']:.2f}x | "
+                f"{t['raw_speedup_2threads']:.2f}x |"
+            )
+    L += [
+        "",
+        "## Seconds per 1-spp frame (one eye, default workers; G-buffers included / radiance only / G-buffer only)",
+        "",
+        "| scene | triangles | resolution | "
+        + " | ".join(f"{be} s/frame | {be} radiance | {be} G-buffer" for be in bes)
+        + " | "
+        + ("native speed-up (s/frame) |" if "native" in bes else ""),
+        "|---|---|---|" + "---|---|---|" * len(bes) + ("---|" if "native" in bes else ""),
+    ]
     for r in res["frames"]:
-        cells = " | ".join(f"{r[f'{be}_s_per_frame_with_gbuffers']:.3f} | {r[f'{be}_s_radiance_only']:.3f} | "
-                           f"{r.get(f'{be}_s_gbuffer_only', r.get('s_gbuffer_only', float('nan'))):.3f}"
-                           for be in bes)
-        sp = (f" {r['numpy_s_per_frame_with_gbuffers'] / r['native_s_per_frame_with_gbuffers']:.2f}x |"
-              if "native" in bes else "")
+        cells = " | ".join(
+            f"{r[f'{be}_s_per_frame_with_gbuffers']:.3f} | {r[f'{be}_s_radiance_only']:.3f} | "
+            f"{r.get(f'{be}_s_gbuffer_only', r.get('s_gbuffer_only', float('nan'))):.3f}"
+            for be in bes
+        )
+        sp = (
+            f" {r['numpy_s_per_frame_with_gbuffers'] / r['native_s_per_frame_with_gbuffers']:.2f}x |"
+            if "native" in bes
+            else ""
+        )
         L.append(f"| {r['scene']} | {r['triangles']} | {r['resolution']} | {cells} |{sp}")
-    L += ["", "## pixel_mask at 3 % of the pixels (320x180, 1 spp, radiance only)", "",
-          "| scene | backend | full s | masked s | masked/full |", "|---|---|---|---|---|"]
+    L += [
+        "",
+        "## pixel_mask at 3 % of the pixels (320x180, 1 spp, radiance only)",
+        "",
+        "| scene | backend | full s | masked s | masked/full |",
+        "|---|---|---|---|---|",
+    ]
     for r in res["pixel_mask"]:
-        L.append(f"| {r['scene']} | {r.get('backend', 'numpy')} | {r['s_full']:.4f} | {r['s_masked']:.4f} | "
-                 f"{r['masked_over_full']:.3f} |")
-    L += ["", "## What an undeclared effect does not cost (320x180, 1 spp, mean of 4 frames)", "",
-          "| backend | base | variant | s/frame base | s/frame variant | extra |", "|---|---|---|---|---|---|"]
+        L.append(
+            f"| {r['scene']} | {r.get('backend', 'numpy')} | {r['s_full']:.4f} | {r['s_masked']:.4f} | "
+            f"{r['masked_over_full']:.3f} |"
+        )
+    L += [
+        "",
+        "## What an undeclared effect does not cost (320x180, 1 spp, mean of 4 frames)",
+        "",
+        "| backend | base | variant | s/frame base | s/frame variant | extra |",
+        "|---|---|---|---|---|---|",
+    ]
     for r in res["effects"]:
-        L.append(f"| {r.get('backend', 'numpy')} | {r['base']} | {r['variant']} | {r['s_per_frame_base']:.4f} | "
-                 f"{r['s_per_frame_variant']:.4f} | {100 * r['extra_fraction']:+.1f} % |")
+        L.append(
+            f"| {r.get('backend', 'numpy')} | {r['base']} | {r['variant']} | {r['s_per_frame_base']:.4f} | "
+            f"{r['s_per_frame_variant']:.4f} | {100 * r['extra_fraction']:+.1f} % |"
+        )
     return "\n".join(L) + "\n"
 
 

@@ -35,8 +35,15 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
-from stereorepro import (PathTracer, TemporalReprojection, effective_spp_many, ladder_rmse, load_scene, rmse,
-                         temporal_step)
+from stereorepro import (
+    PathTracer,
+    TemporalReprojection,
+    effective_spp_many,
+    ladder_rmse,
+    load_scene,
+    rmse,
+    temporal_step,
+)
 from stereorepro.camera import Eye
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -79,8 +86,11 @@ def render_clip(scene_name: str, frames: range, s: Settings, ladder: bool, seed:
         out["albedo"].append(r.albedo)
         out["K"].append(cam.K)
         out["T"].append(cam.cam_from_world)
-        out["reference"].append(tracer.render(cam, f, s.reference_spp, sample_offset=REFERENCE_OFFSET, eye=Eye.RIGHT,
-                                              gbuffers=False).radiance)
+        out["reference"].append(
+            tracer.render(
+                cam, f, s.reference_spp, sample_offset=REFERENCE_OFFSET, eye=Eye.RIGHT, gbuffers=False
+            ).radiance
+        )
         if ladder:  # prefixes of the input's own sample stream: rung n = mean of samples 0..n-1
             total, rungs = r.radiance.double(), [r.radiance]
             for k in range(1, s.ladder_spp):
@@ -105,7 +115,7 @@ def accumulate(clip: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
     state = None
     with torch.no_grad():
         for i in range(clip["color"].shape[0]):
-            cur = [clip[k][i:i + 1] for k in ("color", "depth", "normal", "K", "T")]
+            cur = [clip[k][i : i + 1] for k in ("color", "depth", "normal", "K", "T")]
             state, valid, _ = temporal_step(m, state, *cur)
             colors.append(state.color)
             valids.append(valid.float())
@@ -124,8 +134,12 @@ def features(clip: dict[str, Tensor], reprojected: bool) -> Tensor:
 
 # ------------------------------------------------------------------------------------------- model
 def _block(cin: int, cout: int) -> nn.Sequential:
-    return nn.Sequential(nn.Conv2d(cin, cout, 3, padding=1), nn.ReLU(inplace=True),
-                         nn.Conv2d(cout, cout, 3, padding=1), nn.ReLU(inplace=True))
+    return nn.Sequential(
+        nn.Conv2d(cin, cout, 3, padding=1),
+        nn.ReLU(inplace=True),
+        nn.Conv2d(cout, cout, 3, padding=1),
+        nn.ReLU(inplace=True),
+    )
 
 
 class UNet(nn.Module):
@@ -196,8 +210,10 @@ def _run(s: Settings, args) -> dict:
 
     train_clips, test_clips = [], []
     for name in s.scenes:
-        for frames, ladder, bucket in ((range(*s.train_frames), False, train_clips),
-                                       (range(*s.test_frames), True, test_clips)):
+        for frames, ladder, bucket in (
+            (range(*s.train_frames), False, train_clips),
+            (range(*s.test_frames), True, test_clips),
+        ):
             clip = render_clip(name, frames, s, ladder, seed=args.seed)
             clip["accumulated"], clip["valid"], clip["history_len"] = accumulate(clip)
             clip["scene"] = name
@@ -208,40 +224,59 @@ def _run(s: Settings, args) -> dict:
         return torch.cat([c[key][lo:] for c in clips])
 
     target = cat(train_clips, "reference")
-    results: dict = {"example": "denoiser_preprocess", "smoke": bool(args.smoke), "scenes": list(s.scenes),
-                     "width": s.width, "height": s.height, "train_frames": list(s.train_frames),
-                     "test_frames": list(s.test_frames), "warmup": s.warmup, "reference_spp": s.reference_spp,
-                     "ladder_spp": s.ladder_spp, "steps": s.steps, "batch": s.batch, "seed": args.seed,
-                     "methods": {}}
+    results: dict = {
+        "example": "denoiser_preprocess",
+        "smoke": bool(args.smoke),
+        "scenes": list(s.scenes),
+        "width": s.width,
+        "height": s.height,
+        "train_frames": list(s.train_frames),
+        "test_frames": list(s.test_frames),
+        "warmup": s.warmup,
+        "reference_spp": s.reference_spp,
+        "ladder_spp": s.ladder_spp,
+        "steps": s.steps,
+        "batch": s.batch,
+        "seed": args.seed,
+        "methods": {},
+    }
     models = {}
     for label, reproj in (("unet_plain", False), ("unet_reprojected", True)):
         x = torch.cat([features(c, reproj) for c in train_clips])
         model, last_loss, secs = train(x, target, s, args.seed)
         models[label] = (model, reproj)
-        results["methods"][label] = {"input_channels": x.shape[1], "final_train_loss": last_loss,
-                                     "train_seconds": secs,
-                                     "parameters": sum(p.numel() for p in model.parameters())}
+        results["methods"][label] = {
+            "input_channels": x.shape[1],
+            "final_train_loss": last_loss,
+            "train_seconds": secs,
+            "parameters": sum(p.numel() for p in model.parameters()),
+        }
 
     # held-out evaluation: per-frame RMSE and effective spp against each frame's own ladder
     ladder_spp = torch.arange(1, s.ladder_spp + 1, dtype=torch.float64)
     ref = cat(test_clips, "reference", s.warmup)
-    ladders = torch.cat([c["ladder"][:, s.warmup:] for c in test_clips], 1)  # NxFx3xHxW
+    ladders = torch.cat([c["ladder"][:, s.warmup :] for c in test_clips], 1)  # NxFx3xHxW
     ladder = ladder_rmse(ladders, ref)  # FxN
-    outputs = {"input_1spp": cat(test_clips, "color", s.warmup),
-               "accumulated": cat(test_clips, "accumulated", s.warmup)}
+    outputs = {
+        "input_1spp": cat(test_clips, "color", s.warmup),
+        "accumulated": cat(test_clips, "accumulated", s.warmup),
+    }
     with torch.no_grad():
         for label, (model, reproj) in models.items():
-            outputs[label] = torch.cat([model(features(c, reproj)[s.warmup:]) for c in test_clips])
+            outputs[label] = torch.cat([model(features(c, reproj)[s.warmup :]) for c in test_clips])
     for label, img in outputs.items():
         r = rmse(img, ref)
         spp, flags = effective_spp_many(r, ladder_spp, ladder)
         finite = spp[torch.isfinite(spp)]
         rec = results["methods"].setdefault(label, {})
-        rec.update(rmse_mean=float(r.mean()), rmse_per_frame=r.tolist(),
-                   effective_spp_median=float(spp.median()),
-                   effective_spp_mean_finite=float(finite.mean()) if finite.numel() else None,
-                   effective_spp_per_frame=[x if math.isfinite(x) else None for x in spp.tolist()],
-                   flags={f: flags.count(f) for f in sorted(set(flags))})
+        rec.update(
+            rmse_mean=float(r.mean()),
+            rmse_per_frame=r.tolist(),
+            effective_spp_median=float(spp.median()),
+            effective_spp_mean_finite=float(finite.mean()) if finite.numel() else None,
+            effective_spp_per_frame=[x if math.isfinite(x) else None for x in spp.tolist()],
+            flags={f: flags.count(f) for f in sorted(set(flags))},
+        )
     results["held_out_frames"] = int(ref.shape[0])
     results["discard_pct_held_out"] = float(100 * (1 - cat(test_clips, "valid", s.warmup).mean()))
     results["seconds"] = {"render": t_render, "total": time.perf_counter() - t_start}
@@ -249,8 +284,10 @@ def _run(s: Settings, args) -> dict:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "denoiser_preprocess.json").write_text(json.dumps(results, indent=1))
-    print(f"denoiser_preprocess: {', '.join(s.scenes)} at {s.width}x{s.height}; {results['held_out_frames']} "
-          f"held-out frames; {s.steps} steps per model; ladder 1..{s.ladder_spp} spp, reference {s.reference_spp} spp")
+    print(
+        f"denoiser_preprocess: {', '.join(s.scenes)} at {s.width}x{s.height}; {results['held_out_frames']} "
+        f"held-out frames; {s.steps} steps per model; ladder 1..{s.ladder_spp} spp, reference {s.reference_spp} spp"
+    )
     print(f"  {'method':18s} {'RMSE':>9s} {'eff. spp (median)':>18s}  flags")
     for label, rec in results["methods"].items():
         print(f"  {label:18s} {rec['rmse_mean']:9.4f} {rec['effective_spp_median']:18.2f}  {rec['flags']}")

@@ -29,15 +29,35 @@ def scene_dict(to_world, x_fov: float, width: int, height: int, aov: bool, spp: 
     return {
         "type": "scene",
         "integrator": {"type": "aov", "aovs": AOVS, "img": integ} if aov else integ,
-        "sensor": {"type": "perspective", "fov_axis": "x", "fov": x_fov, "to_world": to_world,
-                   "sampler": ({"type": "stratified", "sample_count": 1, "jitter": False} if aov
-                               else {"type": "independent", "sample_count": spp}),
-                   "film": {"type": "hdrfilm", "width": width, "height": height, "rfilter": {"type": "box"},
-                            "pixel_format": "rgb", "component_format": "float32"}},
-        "cube": {"type": "cube", "to_world": mi.ScalarTransform4f().translate([0.0, 0.5, 0.0]).scale(0.5),
-                 "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.7, 0.3, 0.2]}}},
-        "floor": {"type": "rectangle", "to_world": mi.ScalarTransform4f().rotate([1.0, 0.0, 0.0], -90.0).scale(4.0),
-                  "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.5, 0.5, 0.5]}}},
+        "sensor": {
+            "type": "perspective",
+            "fov_axis": "x",
+            "fov": x_fov,
+            "to_world": to_world,
+            "sampler": (
+                {"type": "stratified", "sample_count": 1, "jitter": False}
+                if aov
+                else {"type": "independent", "sample_count": spp}
+            ),
+            "film": {
+                "type": "hdrfilm",
+                "width": width,
+                "height": height,
+                "rfilter": {"type": "box"},
+                "pixel_format": "rgb",
+                "component_format": "float32",
+            },
+        },
+        "cube": {
+            "type": "cube",
+            "to_world": mi.ScalarTransform4f().translate([0.0, 0.5, 0.0]).scale(0.5),
+            "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.7, 0.3, 0.2]}},
+        },
+        "floor": {
+            "type": "rectangle",
+            "to_world": mi.ScalarTransform4f().rotate([1.0, 0.0, 0.0], -90.0).scale(4.0),
+            "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.5, 0.5, 0.5]}},
+        },
         "light": {"type": "point", "position": [1.0, 2.5, -1.0], "intensity": {"type": "rgb", "value": 6.0}},
         "sky": {"type": "constant", "radiance": {"type": "rgb", "value": 0.2}},
     }
@@ -78,22 +98,39 @@ def main(argv=None) -> dict:
             mi.render(scene, spp=1)
             path = d / f"{i:04d}_{eye}.exr"
             scene.sensors()[0].film().bitmap().write(str(path))  # Mitsuba's own film: R,G,B, dd.T, nn.*, pp.*
-            noisy = np.array(mi.render(mi.load_dict(scene_dict(to_world, x_fov, W, H, aov=False, spp=1)), spp=1,
-                                       seed=2 * i + int(eye)), np.float32)
+            noisy = np.array(
+                mi.render(
+                    mi.load_dict(scene_dict(to_world, x_fov, W, H, aov=False, spp=1)), spp=1, seed=2 * i + int(eye)
+                ),
+                np.float32,
+            )
             ch = read_exr(path)
             ch.update(R=noisy[..., 0], G=noisy[..., 1], B=noisy[..., 2])
             write_exr(path, ch)
             ours = sensor_to_camera(scene.sensors()[0])  # the cameras.json entry, from the sensor itself
             rec[eye] = {"K": ours.K[0].tolist(), "cam_from_world": ours.cam_from_world[0].tolist()}
         records.append(rec)
-    (d / "cameras.json").write_text(json.dumps({"frames": records, "reprojection": {
-        "position_threshold": 0.03 * max(1.0, 180 / H), "normal_threshold": 0.25}}, indent=1))
-    code = cli(["reproject", "--from", "mitsuba", "--input", str(d), "--out", str(out / "reprojected"),
-                "--mode", "both"])
+    (d / "cameras.json").write_text(
+        json.dumps(
+            {
+                "frames": records,
+                "reprojection": {"position_threshold": 0.03 * max(1.0, 180 / H), "normal_threshold": 0.25},
+            },
+            indent=1,
+        )
+    )
+    code = cli(
+        ["reproject", "--from", "mitsuba", "--input", str(d), "--out", str(out / "reprojected"), "--mode", "both"]
+    )
     summary = json.loads((out / "reprojected" / "summary.json").read_text())
-    result = {"exit_code": code, "mean_surface_discard_pct": summary["mean_surface_discard_pct"],
-              "mean_discard_pct": summary["mean_discard_pct"], "warnings": summary["warnings"],
-              "frames": frames, "resolution": f"{W}x{H}"}
+    result = {
+        "exit_code": code,
+        "mean_surface_discard_pct": summary["mean_surface_discard_pct"],
+        "mean_discard_pct": summary["mean_discard_pct"],
+        "warnings": summary["warnings"],
+        "frames": frames,
+        "resolution": f"{W}x{H}",
+    }
     (out / "mitsuba_stereo.json").write_text(json.dumps(result, indent=1))
     print(json.dumps(result, indent=1))
     return result

@@ -85,26 +85,66 @@ def run_scene(name: str, W: int, H: int, frames: int, n_eval: int, ref_spp: int,
         if k < frames - n_eval:
             continue
         per_eye = {
-            "left": (left_cam, Eye.LEFT, L.radiance, {
-                "1 spp": L.radiance, "OIDN(1 spp)": dL, "stereo+temporal": st,
-                "OIDN(stereo+temporal)": oidn(st, L.albedo, L.normal, t_oidn), "OIDN, then stereo+temporal": then}),
-            "right": (right_cam, Eye.RIGHT, R.radiance, {
-                "1 spp": R.radiance, "OIDN(1 spp)": dR, "temporal": tr_right,
-                "OIDN(temporal)": oidn(tr_right, R.albedo, R.normal, t_oidn), "OIDN, then temporal": then_right})}
-        rows.append({"frame": f, **{eye: score(tracer, cam, f, key, one, images, ref_spp)
-                                    for eye, (cam, key, one, images) in per_eye.items()}})
+            "left": (
+                left_cam,
+                Eye.LEFT,
+                L.radiance,
+                {
+                    "1 spp": L.radiance,
+                    "OIDN(1 spp)": dL,
+                    "stereo+temporal": st,
+                    "OIDN(stereo+temporal)": oidn(st, L.albedo, L.normal, t_oidn),
+                    "OIDN, then stereo+temporal": then,
+                },
+            ),
+            "right": (
+                right_cam,
+                Eye.RIGHT,
+                R.radiance,
+                {
+                    "1 spp": R.radiance,
+                    "OIDN(1 spp)": dR,
+                    "temporal": tr_right,
+                    "OIDN(temporal)": oidn(tr_right, R.albedo, R.normal, t_oidn),
+                    "OIDN, then temporal": then_right,
+                },
+            ),
+        }
+        rows.append(
+            {
+                "frame": f,
+                **{
+                    eye: score(tracer, cam, f, key, one, images, ref_spp)
+                    for eye, (cam, key, one, images) in per_eye.items()
+                },
+            }
+        )
 
     def summary(eye: str, methods) -> dict:
-        return {m: {"rmse": statistics.mean(r[eye]["methods"][m]["rmse"] for r in rows),
-                    "effective_spp": statistics.mean(r[eye]["methods"][m]["effective_spp"] for r in rows),
-                    "flags": sorted({r[eye]["methods"][m]["flag"] for r in rows})} for m in methods}
+        return {
+            m: {
+                "rmse": statistics.mean(r[eye]["methods"][m]["rmse"] for r in rows),
+                "effective_spp": statistics.mean(r[eye]["methods"][m]["effective_spp"] for r in rows),
+                "flags": sorted({r[eye]["methods"][m]["flag"] for r in rows}),
+            }
+            for m in methods
+        }
 
-    return {"scene": name, "resolution": f"{W}x{H}", "frames": frames, "evaluated_frames": [r["frame"] for r in rows],
-            "reference_spp": ref_spp, "methods": summary("left", METHODS),
-            "methods_right": summary("right", RIGHT_METHODS), "per_frame": rows,
-            "reference_noise_share_of_best_mse": max(r[e]["reference_noise_share_of_best_mse"]
-                                                     for r in rows for e in ("left", "right")),
-            "ms_oidn_median": statistics.median(t_oidn), "ms_reprojection_median": statistics.median(t_rep)}
+    return {
+        "scene": name,
+        "resolution": f"{W}x{H}",
+        "frames": frames,
+        "evaluated_frames": [r["frame"] for r in rows],
+        "reference_spp": ref_spp,
+        "methods": summary("left", METHODS),
+        "methods_right": summary("right", RIGHT_METHODS),
+        "per_frame": rows,
+        "reference_noise_share_of_best_mse": max(
+            r[e]["reference_noise_share_of_best_mse"] for r in rows for e in ("left", "right")
+        ),
+        "ms_oidn_median": statistics.median(t_oidn),
+        "ms_reprojection_median": statistics.median(t_rep),
+    }
 
 
 def score(tracer, cam, f: int, eye, one_spp: torch.Tensor, images: dict, ref_spp: int) -> dict:
@@ -143,15 +183,28 @@ def _cell(v: dict) -> str:
 
 
 def table(results: list[dict]) -> str:
-    lines = ["| scene, eye | 1 spp | OIDN(1 spp) | reprojected | OIDN(reprojected) | OIDN, then reprojected | "
-             "ref. noise / best MSE | OIDN ms | reprojection ms |", "|---|" + "---:|" * 8]
+    lines = [
+        "| scene, eye | 1 spp | OIDN(1 spp) | reprojected | OIDN(reprojected) | OIDN, then reprojected | "
+        "ref. noise / best MSE | OIDN ms | reprojection ms |",
+        "|---|" + "---:|" * 8,
+    ]
     for r in results:
-        for eye, key, methods in (("left: stereo+temporal", "methods", METHODS),
-                                  ("right: temporal", "methods_right", RIGHT_METHODS)):
+        for eye, key, methods in (
+            ("left: stereo+temporal", "methods", METHODS),
+            ("right: temporal", "methods_right", RIGHT_METHODS),
+        ):
             cells = [_cell(r[key][m]) for m in methods]
-            lines.append(f"| {r['scene']}, {eye} | " + " | ".join(cells) + " | "
-                         + (f"{100 * r['reference_noise_share_of_best_mse']:.1f} % | {r['ms_oidn_median']:.0f} | "
-                            f"{r['ms_reprojection_median']:.0f} |" if key == "methods" else " | | |"))
+            lines.append(
+                f"| {r['scene']}, {eye} | "
+                + " | ".join(cells)
+                + " | "
+                + (
+                    f"{100 * r['reference_noise_share_of_best_mse']:.1f} % | {r['ms_oidn_median']:.0f} | "
+                    f"{r['ms_reprojection_median']:.0f} |"
+                    if key == "methods"
+                    else " | | |"
+                )
+            )
     return "\n".join(lines) + "\n"
 
 

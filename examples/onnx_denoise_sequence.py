@@ -82,9 +82,13 @@ def run_onnxruntime(model_path, seq_npz, out_path, threads: int = 2) -> dict:
         np.savez(f, **{k: np.stack(v) for k, v in outs.items()}, ms_per_frame=np.asarray(ms))
     torch_loaded = "torch" in sys.modules
     assert not torch_loaded, "the onnxruntime process imported torch"
-    return {"ms_per_frame": ms, "torch_in_process": torch_loaded,
-            "stereorepro_in_process": "stereorepro" in sys.modules, "onnxruntime": ort.__version__,
-            "threads": threads}
+    return {
+        "ms_per_frame": ms,
+        "torch_in_process": torch_loaded,
+        "stereorepro_in_process": "stereorepro" in sys.modules,
+        "onnxruntime": ort.__version__,
+        "threads": threads,
+    }
 
 
 # ------------------------------------------------------------------------------------ torch side
@@ -155,16 +159,22 @@ def train_denoiser(model, clip: dict, steps: int, batch: int, crop: int, lr: flo
             idx = torch.randint(0, x.shape[0], (batch,), generator=g).tolist()
             ys = torch.randint(0, H - ch + 1, (batch,), generator=g).tolist()
             xs = torch.randint(0, W - cw + 1, (batch,), generator=g).tolist()
-            xb = torch.stack([x[i, :, y:y + ch, u:u + cw] for i, y, u in zip(idx, ys, xs)])
-            tb = torch.stack([target[i, :, y:y + ch, u:u + cw] for i, y, u in zip(idx, ys, xs)])
+            xb = torch.stack([x[i, :, y : y + ch, u : u + cw] for i, y, u in zip(idx, ys, xs)])
+            tb = torch.stack([target[i, :, y : y + ch, u : u + cw] for i, y, u in zip(idx, ys, xs)])
             loss = (torch.log1p(net(xb)) - torch.log1p(tb.clamp_min(0))).pow(2).mean()
             opt.zero_grad()
             loss.backward()
             opt.step()
             sched.step()
         net.eval()
-    return {"steps": steps, "batch": batch, "crop": [ch, cw], "lr": lr, "final_loss": float(loss.detach()),
-            "seconds": time.perf_counter() - t0}
+    return {
+        "steps": steps,
+        "batch": batch,
+        "crop": [ch, cw],
+        "lr": lr,
+        "final_loss": float(loss.detach()),
+        "seconds": time.perf_counter() - t0,
+    }
 
 
 def _expm1_symbolic(g, x):
@@ -194,8 +204,7 @@ def main(argv=None) -> dict:
     p.add_argument("--smoke", action="store_true", help="tiny run for CI: 64x36, 4 frames, 10 steps")
     p.add_argument("--out", default="runs/onnx_denoise", help="output directory")
     p.add_argument("--scene", default="living_room")
-    p.add_argument("--steps", type=int, default=None, help="training steps (0: untrained U-Net; default 300, "
-                   "smoke 10)")
+    p.add_argument("--steps", type=int, default=None, help="training steps (0: untrained U-Net; default 300, smoke 10)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--ort-only", nargs=4, metavar=("MODEL", "SEQ", "OUT", "THREADS"), help=argparse.SUPPRESS)
     args = p.parse_args(argv)
@@ -249,8 +258,20 @@ def _run(args) -> dict:
     threads = torch.get_num_threads()
     ort_path = out / "onnxruntime_outputs.npz"
     with atomic_path(ort_path) as tmp:
-        proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--ort-only", str(model_path),
-                               str(seq_path), str(tmp), str(threads)], capture_output=True, text=True, timeout=600)
+        proc = subprocess.run(
+            [
+                sys.executable,
+                str(Path(__file__).resolve()),
+                "--ort-only",
+                str(model_path),
+                str(seq_path),
+                str(tmp),
+                str(threads),
+            ],
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
         if proc.returncode != 0:
             raise RuntimeError(f"onnxruntime process failed:\n{proc.stderr[-3000:]}")
     ort_info = json.loads(proc.stdout.strip().splitlines()[-1])
@@ -267,34 +288,58 @@ def _run(args) -> dict:
         return float(rmse(img[:, 0].double(), seq["reference"][:, 0].double()).mean())
 
     res = {
-        "example": "onnx_denoise_sequence", "smoke": bool(args.smoke), "scene": scene.name,
-        "frames": len(test_frames), "width": W, "height": H, "position_threshold": pos, "normal_threshold": nrm,
-        "features": list(FEATURES), "denoiser": f"examples/denoiser_preprocess.py UNet(in_channels="
+        "example": "onnx_denoise_sequence",
+        "smoke": bool(args.smoke),
+        "scene": scene.name,
+        "frames": len(test_frames),
+        "width": W,
+        "height": H,
+        "position_threshold": pos,
+        "normal_threshold": nrm,
+        "features": list(FEATURES),
+        "denoiser": f"examples/denoiser_preprocess.py UNet(in_channels="
         f"{feature_channels()}), {sum(p.numel() for p in model.denoiser.parameters())} parameters",
-        "trained": bool(steps), "training": training, "reference_spp": ref_spp,
+        "trained": bool(steps),
+        "training": training,
+        "reference_spp": ref_spp,
         "max_abs_diff": {k: max_diff(k) for k in ref},
         "max_abs_value_denoised": float(ref["denoised"].abs().max()),
         "onnxruntime_torch_in_process": ort_info["torch_in_process"],
         "onnxruntime_stereorepro_in_process": ort_info["stereorepro_in_process"],
-        "ms_per_frame": {"onnxruntime": float(np.median(ort_info["ms_per_frame"])),
-                         "torch": float(np.median(torch_ms))},
+        "ms_per_frame": {
+            "onnxruntime": float(np.median(ort_info["ms_per_frame"])),
+            "torch": float(np.median(torch_ms)),
+        },
         "ms_per_frame_all": {"onnxruntime": ort_info["ms_per_frame"], "torch": torch_ms},
-        "threads": threads, "onnxruntime": ort_info["onnxruntime"], "torch": torch.__version__,
+        "threads": threads,
+        "onnxruntime": ort_info["onnxruntime"],
+        "torch": torch.__version__,
         "torch_reprojection_backend": model.temporal.backend,
-        "rmse_vs_reference": {"input_1spp": rmse_of(seq["current_color"]), "accumulated": rmse_of(ref["color"]),
-                              "denoised": rmse_of(ref["denoised"])},
+        "rmse_vs_reference": {
+            "input_1spp": rmse_of(seq["current_color"]),
+            "accumulated": rmse_of(ref["color"]),
+            "denoised": rmse_of(ref["denoised"]),
+        },
         "seconds": {"render": t_render, "export": t_export, "total": time.perf_counter() - t_start},
     }
     res["max_abs_diff_denoised"] = res["max_abs_diff"]["denoised"]
     atomic_write(out / "onnx_denoise_sequence.json", json.dumps(res, indent=1) + "\n")
     ms = res["ms_per_frame"]
-    print(f"onnx_denoise_sequence: {res['frames']} frames of {scene.name} at {W}x{H}, U-Net "
-          f"{'trained ' + str(steps) + ' steps' if steps else 'untrained'}; one graph (reprojection + U-Net)")
-    print("  max |onnxruntime - torch|: " + ", ".join(f"{k} {v:.2e}" for k, v in res["max_abs_diff"].items())
-          + f"  (onnxruntime process without torch: {not res['onnxruntime_torch_in_process']})")
+    print(
+        f"onnx_denoise_sequence: {res['frames']} frames of {scene.name} at {W}x{H}, U-Net "
+        f"{'trained ' + str(steps) + ' steps' if steps else 'untrained'}; one graph (reprojection + U-Net)"
+    )
+    print(
+        "  max |onnxruntime - torch|: "
+        + ", ".join(f"{k} {v:.2e}" for k, v in res["max_abs_diff"].items())
+        + f"  (onnxruntime process without torch: {not res['onnxruntime_torch_in_process']})"
+    )
     print(f"  ms/frame (median, {threads} threads): onnxruntime {ms['onnxruntime']:.1f}, torch {ms['torch']:.1f}")
-    print("  RMSE vs reference: " + ", ".join(f"{k} {v:.4f}" for k, v in res["rmse_vs_reference"].items())
-          + f"  -> {out / 'onnx_denoise_sequence.json'}")
+    print(
+        "  RMSE vs reference: "
+        + ", ".join(f"{k} {v:.4f}" for k, v in res["rmse_vs_reference"].items())
+        + f"  -> {out / 'onnx_denoise_sequence.json'}"
+    )
     return res
 
 

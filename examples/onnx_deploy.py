@@ -68,28 +68,72 @@ def run_onnxruntime(seq_dir, model_dir, out_npz) -> dict:
         # right eye: temporal accumulation (first frame: its own G-buffer as "previous", history length 0)
         cr, dr, nr, Kr, Tr = _read_eye(seq_dir, i, "right", cams)
         h = hist.get("right") or (cr, np.zeros_like(dr), dr, nr, Kr, Tr)
-        acc_r, n_r, valid_r = temporal.run(None, dict(
-            current_color=cr, depth=dr, normal=nr, K=Kr, cam_from_world=Tr, history_color=h[0], history_len=h[1],
-            prev_depth=h[2], prev_normal=h[3], prev_K=h[4], prev_cam_from_world=h[5]))
+        acc_r, n_r, valid_r = temporal.run(
+            None,
+            dict(
+                current_color=cr,
+                depth=dr,
+                normal=nr,
+                K=Kr,
+                cam_from_world=Tr,
+                history_color=h[0],
+                history_len=h[1],
+                prev_depth=h[2],
+                prev_normal=h[3],
+                prev_K=h[4],
+                prev_cam_from_world=h[5],
+            ),
+        )
         hist["right"] = (acc_r, n_r, dr, nr, Kr, Tr)
         # stereo right -> left (the accumulated colour)
         cl, dl, nl, Kl, Tl = _read_eye(seq_dir, i, "left", cams)
-        s_color, s_valid, s_reason = stereo.run(None, dict(
-            src_color=acc_r, src_depth=dr, src_normal=nr, src_K=Kr, src_cam_from_world=Tr, dst_depth=dl,
-            dst_normal=nl, dst_K=Kl, dst_cam_from_world=Tl))
+        s_color, s_valid, s_reason = stereo.run(
+            None,
+            dict(
+                src_color=acc_r,
+                src_depth=dr,
+                src_normal=nr,
+                src_K=Kr,
+                src_cam_from_world=Tr,
+                dst_depth=dl,
+                dst_normal=nl,
+                dst_K=Kl,
+                dst_cam_from_world=Tl,
+            ),
+        )
         # left eye: traced discards (its own 1-spp colour) accumulated with the left history; kept pixels = stereo.
         # (Unlike SpatiotemporalReprojection, the left history length is the fill's everywhere: the exported stereo
         # module carries colour only.)
         traced = np.where(s_valid, 0.0, cl).astype(np.float32)
         h = hist.get("left") or (traced, np.zeros_like(dl), dl, nl, Kl, Tl)
-        fill, n_l, _ = temporal.run(None, dict(
-            current_color=traced, depth=dl, normal=nl, K=Kl, cam_from_world=Tl, history_color=h[0],
-            history_len=h[1], prev_depth=h[2], prev_normal=h[3], prev_K=h[4], prev_cam_from_world=h[5]))
+        fill, n_l, _ = temporal.run(
+            None,
+            dict(
+                current_color=traced,
+                depth=dl,
+                normal=nl,
+                K=Kl,
+                cam_from_world=Tl,
+                history_color=h[0],
+                history_len=h[1],
+                prev_depth=h[2],
+                prev_normal=h[3],
+                prev_K=h[4],
+                prev_cam_from_world=h[5],
+            ),
+        )
         left = np.where(s_valid, s_color, fill).astype(np.float32)
         hist["left"] = (left, n_l, dl, nl, Kl, Tl)
         ms.append((time.perf_counter() - t0) * 1e3)
-        frame_out.update(right=acc_r, right_len=n_r, right_valid=valid_r, stereo=s_color, stereo_valid=s_valid,
-                         stereo_reason=s_reason, left=left)
+        frame_out.update(
+            right=acc_r,
+            right_len=n_r,
+            right_valid=valid_r,
+            stereo=s_color,
+            stereo_valid=s_valid,
+            stereo_reason=s_reason,
+            left=left,
+        )
         for k, v in frame_out.items():
             outs[f"{i:04d}_{k}"] = v
     np.savez(out_npz, **outs)
@@ -114,23 +158,55 @@ def run_torch(seq_dir, pos: float, nrm: float, alpha: float) -> tuple[dict, list
     with torch.no_grad():
         for i in range(len(seq)):
             t0 = time.perf_counter()
-            R, L = (replace(f, K=f.K.float(), cam_from_world=f.cam_from_world.float())
-                    for f in (read_frame(seq, i, "right"), read_frame(seq, i, "left")))
+            R, L = (
+                replace(f, K=f.K.float(), cam_from_world=f.cam_from_world.float())
+                for f in (read_frame(seq, i, "right"), read_frame(seq, i, "left"))
+            )
             h = hist.get("right") or (R.color, torch.zeros_like(R.depth), R)
-            acc_r, n_r, valid_r = temporal(R.color, R.depth, R.normal, R.K, R.cam_from_world, h[0],
-                                           h[1], h[2].depth, h[2].normal, h[2].K, h[2].cam_from_world)
+            acc_r, n_r, valid_r = temporal(
+                R.color,
+                R.depth,
+                R.normal,
+                R.K,
+                R.cam_from_world,
+                h[0],
+                h[1],
+                h[2].depth,
+                h[2].normal,
+                h[2].K,
+                h[2].cam_from_world,
+            )
             hist["right"] = (acc_r, n_r, R)
-            s_color, s_valid, s_reason = stereo(acc_r, R.depth, R.normal, R.K, R.cam_from_world,
-                                                L.depth, L.normal, L.K, L.cam_from_world)
+            s_color, s_valid, s_reason = stereo(
+                acc_r, R.depth, R.normal, R.K, R.cam_from_world, L.depth, L.normal, L.K, L.cam_from_world
+            )
             traced = torch.where(s_valid, torch.zeros(()), L.color)
             h = hist.get("left") or (traced, torch.zeros_like(L.depth), L)
-            fill, n_l, _ = temporal(traced, L.depth, L.normal, L.K, L.cam_from_world, h[0], h[1],
-                                    h[2].depth, h[2].normal, h[2].K, h[2].cam_from_world)
+            fill, n_l, _ = temporal(
+                traced,
+                L.depth,
+                L.normal,
+                L.K,
+                L.cam_from_world,
+                h[0],
+                h[1],
+                h[2].depth,
+                h[2].normal,
+                h[2].K,
+                h[2].cam_from_world,
+            )
             left = torch.where(s_valid, s_color, fill)
             hist["left"] = (left, n_l, L)
             ms.append((time.perf_counter() - t0) * 1e3)
-            for k, v in dict(right=acc_r, right_len=n_r, right_valid=valid_r, stereo=s_color, stereo_valid=s_valid,
-                             stereo_reason=s_reason, left=left).items():
+            for k, v in dict(
+                right=acc_r,
+                right_len=n_r,
+                right_valid=valid_r,
+                stereo=s_color,
+                stereo_valid=s_valid,
+                stereo_reason=s_reason,
+                left=left,
+            ).items():
                 outs[f"{i:04d}_{k}"] = v.numpy()
     return {k: np.asarray(v) for k, v in outs.items()}, ms
 
@@ -170,8 +246,12 @@ def main(argv=None) -> dict:
     t_export = time.perf_counter() - t0
 
     npz = out / "onnxruntime_outputs.npz"
-    proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--ort-only", str(seq_dir), str(models),
-                           str(npz)], capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(
+        [sys.executable, str(Path(__file__).resolve()), "--ort-only", str(seq_dir), str(models), str(npz)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     if proc.returncode != 0:
         raise RuntimeError(f"onnxruntime process failed:\n{proc.stderr[-2000:]}")
     ort_info = json.loads(proc.stdout.strip().splitlines()[-1])
@@ -180,15 +260,25 @@ def main(argv=None) -> dict:
     ref, torch_ms = run_torch(seq_dir, pos, nrm, alpha)
 
     def max_diff(kind):
-        return max(float(np.abs(ort_out[k].astype(np.float64) - ref[k].astype(np.float64)).max())
-                   for k in ref if k.endswith("_" + kind))
+        return max(
+            float(np.abs(ort_out[k].astype(np.float64) - ref[k].astype(np.float64)).max())
+            for k in ref
+            if k.endswith("_" + kind)
+        )
 
     def mismatches(kind):
         return int(sum(int((ort_out[k] != ref[k]).sum()) for k in ref if k.endswith("_" + kind)))
 
     res = {
-        "example": "onnx_deploy", "smoke": bool(args.smoke), "scene": scene.name, "frames": frames,
-        "width": W, "height": H, "position_threshold": pos, "normal_threshold": nrm, "alpha": alpha,
+        "example": "onnx_deploy",
+        "smoke": bool(args.smoke),
+        "scene": scene.name,
+        "frames": frames,
+        "width": W,
+        "height": H,
+        "position_threshold": pos,
+        "normal_threshold": nrm,
+        "alpha": alpha,
         "max_abs_diff": {k: max_diff(k) for k in ("right", "right_len", "stereo", "left")},
         "mask_mismatch_pixels": {k: mismatches(k) for k in ("right_valid", "stereo_valid", "stereo_reason")},
         "onnxruntime_imported_torch": ort_info["torch_imported"],
@@ -201,8 +291,10 @@ def main(argv=None) -> dict:
     print(f"onnx_deploy: {frames} frames of {scene.name} at {W}x{H}; onnxruntime (no torch in process) vs torch:")
     print("  max |diff|: " + ", ".join(f"{k} {v:.2e}" for k, v in res["max_abs_diff"].items()))
     print(f"  mask/reason mismatches (pixels): {res['mask_mismatch_pixels']}")
-    print(f"  per frame (median): onnxruntime {res['ms_per_frame_onnxruntime']:.1f} ms, "
-          f"torch {res['ms_per_frame_torch']:.1f} ms  -> {out / 'onnx_deploy.json'}")
+    print(
+        f"  per frame (median): onnxruntime {res['ms_per_frame_onnxruntime']:.1f} ms, "
+        f"torch {res['ms_per_frame_torch']:.1f} ms  -> {out / 'onnx_deploy.json'}"
+    )
     return res
 
 

@@ -29,8 +29,15 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from stereorepro import (PathTracer, TemporalReprojection, effective_spp_many, ladder_rmse, load_scene, rmse,
-                         temporal_step)
+from stereorepro import (
+    PathTracer,
+    TemporalReprojection,
+    effective_spp_many,
+    ladder_rmse,
+    load_scene,
+    rmse,
+    temporal_step,
+)
 from stereorepro.camera import Eye
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -64,11 +71,19 @@ def render_clip(scene, frames: range, s: Settings, ladder: bool, seed: int = 0) 
     for f in frames:
         _, cam = scene.stereo_cameras(f, s.width, s.height)
         r = tracer.render(cam, f, 1, sample_offset=0, eye=Eye.RIGHT)
-        for k, v in (("color", r.radiance), ("depth", r.depth), ("normal", r.normal), ("K", cam.K),
-                     ("T", cam.cam_from_world)):
+        for k, v in (
+            ("color", r.radiance),
+            ("depth", r.depth),
+            ("normal", r.normal),
+            ("K", cam.K),
+            ("T", cam.cam_from_world),
+        ):
             out[k].append(v)
-        out["reference"].append(tracer.render(cam, f, s.reference_spp, sample_offset=REFERENCE_OFFSET, eye=Eye.RIGHT,
-                                              gbuffers=False).radiance)
+        out["reference"].append(
+            tracer.render(
+                cam, f, s.reference_spp, sample_offset=REFERENCE_OFFSET, eye=Eye.RIGHT, gbuffers=False
+            ).radiance
+        )
         if ladder:
             total, rungs = r.radiance.double(), [r.radiance]
             for k in range(1, s.ladder_spp):
@@ -87,7 +102,9 @@ def accumulate(module: TemporalReprojection, clip: dict[str, Tensor], lo: int, h
     colors, valids = [], []
     state = None
     for i in range(lo, hi):
-        state, valid, _ = temporal_step(module, state, *[clip[k][i:i + 1] for k in ("color", "depth", "normal", "K", "T")])
+        state, valid, _ = temporal_step(
+            module, state, *[clip[k][i : i + 1] for k in ("color", "depth", "normal", "K", "T")]
+        )
         colors.append(state.color)
         valids.append(valid)
     return torch.cat(colors), torch.cat(valids)
@@ -101,8 +118,11 @@ def main(argv=None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--smoke", action="store_true", help="tiny run for CI (< 60 s)")
     p.add_argument("--out", default="runs/thresholds", help="output directory")
-    p.add_argument("--scene", default="living_room_moving_light",
-                   help="built-in scene (a moving light makes alpha a real trade-off: lag vs noise)")
+    p.add_argument(
+        "--scene",
+        default="living_room_moving_light",
+        help="built-in scene (a moving light makes alpha a real trade-off: lag vs noise)",
+    )
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
     s = SMOKE if args.smoke else FULL
@@ -129,7 +149,7 @@ def _run(s: Settings, args) -> dict:
     for step in range(s.steps):
         lo = int(torch.randint(0, n_train - s.window + 1, (), generator=g))
         color, _ = accumulate(model, train, lo, lo + s.window)
-        loss = rmse(color[1:], train["reference"][lo + 1:lo + s.window]).mean()  # frame 0 has no history
+        loss = rmse(color[1:], train["reference"][lo + 1 : lo + s.window]).mean()  # frame 0 has no history
         opt.zero_grad()
         loss.backward()
         grads_ok = all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
@@ -148,43 +168,63 @@ def _run(s: Settings, args) -> dict:
     # held-out: hard tests at both settings
     ladder_spp = torch.arange(1, s.ladder_spp + 1, dtype=torch.float64)
     F = test["color"].shape[0]
-    ref = test["reference"][s.warmup:]
-    ladder = ladder_rmse(test["ladder"][:, s.warmup:], ref)
-    results: dict = {"example": "train_thresholds", "smoke": bool(args.smoke), "scene": scene.name,
-                     "width": s.width, "height": s.height, "train_frames": list(s.train_frames),
-                     "test_frames": list(s.test_frames), "warmup": s.warmup, "window": s.window,
-                     "steps": s.steps, "lr": s.lr, "reference_spp": s.reference_spp, "ladder_spp": s.ladder_spp,
-                     "seed": args.seed, "hand_set": hand, "learned": learned,
-                     "history": history[:: max(1, s.steps // 20)], "nonfinite_steps": nonfinite,
-                     "held_out": {}}
+    ref = test["reference"][s.warmup :]
+    ladder = ladder_rmse(test["ladder"][:, s.warmup :], ref)
+    results: dict = {
+        "example": "train_thresholds",
+        "smoke": bool(args.smoke),
+        "scene": scene.name,
+        "width": s.width,
+        "height": s.height,
+        "train_frames": list(s.train_frames),
+        "test_frames": list(s.test_frames),
+        "warmup": s.warmup,
+        "window": s.window,
+        "steps": s.steps,
+        "lr": s.lr,
+        "reference_spp": s.reference_spp,
+        "ladder_spp": s.ladder_spp,
+        "seed": args.seed,
+        "hand_set": hand,
+        "learned": learned,
+        "history": history[:: max(1, s.steps // 20)],
+        "nonfinite_steps": nonfinite,
+        "held_out": {},
+    }
     with torch.no_grad():
         for label, v in (("hand_set", hand), ("learned", learned)):
             hard = TemporalReprojection(v["position_threshold"], v["normal_threshold"], v["alpha"], soft=False)
             color, valid = accumulate(hard, test, 0, F)
-            r = rmse(color[s.warmup:], ref)
+            r = rmse(color[s.warmup :], ref)
             spp, flags = effective_spp_many(r, ladder_spp, ladder)
             results["held_out"][label] = {
-                "rmse_mean": float(r.mean()), "effective_spp_median": float(spp.median()),
+                "rmse_mean": float(r.mean()),
+                "effective_spp_median": float(spp.median()),
                 "effective_spp_mean": float(spp[torch.isfinite(spp)].mean()) if torch.isfinite(spp).any() else None,
                 "effective_spp_per_frame": [x if math.isfinite(x) else None for x in spp.tolist()],
-                "discard_pct": float(100 * (1 - valid[s.warmup:].float().mean())),
-                "flags": {f: flags.count(f) for f in sorted(set(flags))}}
-        r1 = rmse(test["color"][s.warmup:], ref)
+                "discard_pct": float(100 * (1 - valid[s.warmup :].float().mean())),
+                "flags": {f: flags.count(f) for f in sorted(set(flags))},
+            }
+        r1 = rmse(test["color"][s.warmup :], ref)
         results["held_out"]["input_1spp"] = {"rmse_mean": float(r1.mean()), "effective_spp_median": 1.0}
     results["seconds"] = {"render": t_render, "train": t_train, "total": time.perf_counter() - t_start}
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "train_thresholds.json").write_text(json.dumps(results, indent=1))
-    print(f"train_thresholds: {scene.name} at {s.width}x{s.height}; {s.steps} Adam steps on frames "
-          f"{s.train_frames[0]}..{s.train_frames[1] - 1}; held-out frames {s.test_frames[0] + s.warmup}.."
-          f"{s.test_frames[1] - 1} (hard tests)")
+    print(
+        f"train_thresholds: {scene.name} at {s.width}x{s.height}; {s.steps} Adam steps on frames "
+        f"{s.train_frames[0]}..{s.train_frames[1] - 1}; held-out frames {s.test_frames[0] + s.warmup}.."
+        f"{s.test_frames[1] - 1} (hard tests)"
+    )
     head = ("pos. thr", "normal thr", "alpha", "RMSE", "eff. spp", "discard")
     print(f"  {'':10s} " + " ".join(f"{h:>{w}s}" for h, w in zip(head, (9, 10, 7, 8, 9, 8))))
     for label in ("hand_set", "learned"):
         v, h = results[label], results["held_out"][label]
-        print(f"  {label:10s} {v['position_threshold']:9.4f} {v['normal_threshold']:10.4f} {v['alpha']:7.3f} "
-              f"{h['rmse_mean']:8.4f} {h['effective_spp_median']:9.2f} {h['discard_pct']:7.1f}%")
+        print(
+            f"  {label:10s} {v['position_threshold']:9.4f} {v['normal_threshold']:10.4f} {v['alpha']:7.3f} "
+            f"{h['rmse_mean']:8.4f} {h['effective_spp_median']:9.2f} {h['discard_pct']:7.1f}%"
+        )
     print(f"  ({results['seconds']['total']:.0f} s) -> {out / 'train_thresholds.json'}")
     return results
 

@@ -36,8 +36,17 @@ from .camera import (
     world_motion_from_view_z,
 )
 from .denoise import ReprojectionDenoiser, denoise_features, empty_history, reproject_denoise, reprojection_features
-from .errors import (CameraError, MissingDependencyError, ParameterError, ParameterTypeError, SceneError, SequenceError,
-                     ShapeError, StereoreproError, UserError)
+from .errors import (
+    CameraError,
+    MissingDependencyError,
+    ParameterError,
+    ParameterTypeError,
+    SceneError,
+    SequenceError,
+    ShapeError,
+    StereoreproError,
+    UserError,
+)
 from .io.onnx import export_onnx
 from .measure.metrics import (
     EFFECTIVE_SPP_FLAGS,
@@ -80,23 +89,70 @@ _LAZY = {
 
 __all__ = [
     # cameras and conventions
-    "DEFAULT_BASELINE", "DEFAULT_RESOLUTION", "Eye", "PinholeCamera", "StereoRig", "Warp", "camera_motion", "world_motion_from_view_z", "compose_warp", "has_surface", "intrinsics_from_fov", "invert_rigid",
-    "look_at", "pixel_centers", "project", "unproject",
+    "DEFAULT_BASELINE",
+    "DEFAULT_RESOLUTION",
+    "Eye",
+    "PinholeCamera",
+    "StereoRig",
+    "Warp",
+    "camera_motion",
+    "world_motion_from_view_z",
+    "compose_warp",
+    "has_surface",
+    "intrinsics_from_fov",
+    "invert_rigid",
+    "look_at",
+    "pixel_centers",
+    "project",
+    "unproject",
     # the data model of the ops: G-buffer views, settings, named results
-    "View", "Thresholds", "Blend", "History", "ReprojectionResult", "TemporalResult",
+    "View",
+    "Thresholds",
+    "Blend",
+    "History",
+    "ReprojectionResult",
+    "TemporalResult",
     # reprojection ops and modules
-    "Reason", "StereoReprojection", "TemporalReprojection", "backward_reproject", "reason_to_rgb",
-    "stereo_reproject", "temporal_blend", "temporal_reproject", "export_onnx",
+    "Reason",
+    "StereoReprojection",
+    "TemporalReprojection",
+    "backward_reproject",
+    "reason_to_rgb",
+    "stereo_reproject",
+    "temporal_blend",
+    "temporal_reproject",
+    "export_onnx",
     # accumulation over a sequence
-    "SpatiotemporalReprojection", "EyeState", "temporal_step",
+    "SpatiotemporalReprojection",
+    "EyeState",
+    "temporal_step",
     # a learned denoiser and its reprojection in one graph
-    "ReprojectionDenoiser", "reproject_denoise", "reprojection_features", "denoise_features", "empty_history",
+    "ReprojectionDenoiser",
+    "reproject_denoise",
+    "reprojection_features",
+    "denoise_features",
+    "empty_history",
     # metrics
-    "EFFECTIVE_SPP_FLAGS", "EffectiveSppLadder", "effective_spp", "effective_spp_many", "fit_ladder",
-    "ladder_rmse", "mse", "rmse", "ssim", "suggest_reference_spp",
+    "EFFECTIVE_SPP_FLAGS",
+    "EffectiveSppLadder",
+    "effective_spp",
+    "effective_spp_many",
+    "fit_ladder",
+    "ladder_rmse",
+    "mse",
+    "rmse",
+    "ssim",
+    "suggest_reference_spp",
     # errors
-    "StereoreproError", "ParameterError", "ParameterTypeError", "ShapeError", "CameraError", "SceneError",
-    "SequenceError", "UserError", "MissingDependencyError",
+    "StereoreproError",
+    "ParameterError",
+    "ParameterTypeError",
+    "ShapeError",
+    "CameraError",
+    "SceneError",
+    "SequenceError",
+    "UserError",
+    "MissingDependencyError",
     # loaded on first use
     *_LAZY,
 ]

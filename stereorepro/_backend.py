@@ -44,8 +44,13 @@ def _canonical(name: str) -> str:
     return "reference" if name in REFERENCE_NAMES else name
 
 
-def resolve(backend: str, choices: tuple[str, ...], why_not_native: Callable[[], str | None], who: str = "",
-            reference_only: bool = False) -> str:
+def resolve(
+    backend: str,
+    choices: tuple[str, ...],
+    why_not_native: Callable[[], str | None],
+    who: str = "",
+    reference_only: bool = False,
+) -> str:
     """Resolve a backend request to ``"reference"`` or ``"native"``.
 
     Args:

@@ -16,11 +16,36 @@ from torch import Tensor
 
 from .errors import CameraError, ParameterError, ParameterTypeError, ShapeError
 
-__all__ = ["check_shape", "check_floating", "check_device", "check_camera", "check_named_camera", "check_same_hw",
-           "check_sampling", "check_reprojection_inputs", "check_camera_values", "check_motion", "check_scalar",
-           "check_thresholds", "check_blend", "check_blend_inputs", "intrinsics_problem", "rigid_problem", "tracing",
-           "ShapeError", "CameraError", "ParameterError", "ParameterTypeError", "SAMPLINGS", "STEREO_NAMES",
-           "TEMPORAL_NAMES", "FLOAT32_MAX", "check_backend_env", "check_resolution", "physical_memory"]
+__all__ = [
+    "check_shape",
+    "check_floating",
+    "check_device",
+    "check_camera",
+    "check_named_camera",
+    "check_same_hw",
+    "check_sampling",
+    "check_reprojection_inputs",
+    "check_camera_values",
+    "check_motion",
+    "check_scalar",
+    "check_thresholds",
+    "check_blend",
+    "check_blend_inputs",
+    "intrinsics_problem",
+    "rigid_problem",
+    "tracing",
+    "ShapeError",
+    "CameraError",
+    "ParameterError",
+    "ParameterTypeError",
+    "SAMPLINGS",
+    "STEREO_NAMES",
+    "TEMPORAL_NAMES",
+    "FLOAT32_MAX",
+    "check_backend_env",
+    "check_resolution",
+    "physical_memory",
+]
 
 #: The largest finite float32: finite scalar parameters beyond it are refused (the ops compute in float32 unless an
 #: input is float64, the native kernels always; ``inf`` is the way to say "no limit").
@@ -30,10 +55,24 @@ FLOAT32_MAX = float(torch.finfo(torch.float32).max)
 SAMPLINGS = ("bilinear", "nearest")
 
 #: Argument names of the reprojection roles, as the stereo and the temporal functions call them.
-STEREO_NAMES = dict(src_values="src_color", src_depth="src_depth", src_normal="src_normal", src="src",
-                    dst_depth="dst_depth", dst_normal="dst_normal", dst="dst")
-TEMPORAL_NAMES = dict(src_values="history_color", src_depth="prev_depth", src_normal="prev_normal", src="prev",
-                      dst_depth="depth", dst_normal="normal", dst="current")
+STEREO_NAMES = dict(
+    src_values="src_color",
+    src_depth="src_depth",
+    src_normal="src_normal",
+    src="src",
+    dst_depth="dst_depth",
+    dst_normal="dst_normal",
+    dst="dst",
+)
+TEMPORAL_NAMES = dict(
+    src_values="history_color",
+    src_depth="prev_depth",
+    src_normal="prev_normal",
+    src="prev",
+    dst_depth="depth",
+    dst_normal="normal",
+    dst="current",
+)
 
 
 def tracing() -> bool:
@@ -68,20 +107,25 @@ def check_shape(x, shape: Sequence[str], name: str, bind: dict | None = None, tr
     if _skip(tracing):
         return bind
     if not isinstance(x, Tensor):
-        raise ParameterTypeError(f"{name}: expected a torch.Tensor of shape ({', '.join(shape)}), "
-                                 f"got {type(x).__name__}")
+        raise ParameterTypeError(
+            f"{name}: expected a torch.Tensor of shape ({', '.join(shape)}), got {type(x).__name__}"
+        )
     if x.dim() != len(shape):
-        raise ShapeError(f"{name}: expected {len(shape)}-D tensor of shape ({', '.join(shape)}), "
-                         f"got {x.dim()}-D with shape {tuple(x.shape)}")
+        raise ShapeError(
+            f"{name}: expected {len(shape)}-D tensor of shape ({', '.join(shape)}), "
+            f"got {x.dim()}-D with shape {tuple(x.shape)}"
+        )
     for i, (want, got) in enumerate(zip(shape, x.shape)):
         if want.isdigit():
             if int(want) != got:
-                raise ShapeError(f"{name}: expected shape ({', '.join(shape)}), got {tuple(x.shape)} "
-                                 f"(dim {i} must be {want})")
+                raise ShapeError(
+                    f"{name}: expected shape ({', '.join(shape)}), got {tuple(x.shape)} (dim {i} must be {want})"
+                )
         else:
             if want in bind and bind[want] != got:
-                raise ShapeError(f"{name}: expected shape ({', '.join(shape)}) with {want}={bind[want]}, "
-                                 f"got {tuple(x.shape)}")
+                raise ShapeError(
+                    f"{name}: expected shape ({', '.join(shape)}) with {want}={bind[want]}, got {tuple(x.shape)}"
+                )
             bind.setdefault(want, got)
     return bind
 
@@ -98,8 +142,9 @@ def check_device(tensors: dict, name: str, tracing: bool | None = None) -> None:
         return
     devices = {k: v.device for k, v in tensors.items() if isinstance(v, Tensor)}
     if len(set(devices.values())) > 1:
-        raise ShapeError(f"{name}: all tensors must be on one device, got "
-                         + ", ".join(f"{k}={d}" for k, d in devices.items()))
+        raise ShapeError(
+            f"{name}: all tensors must be on one device, got " + ", ".join(f"{k}={d}" for k, d in devices.items())
+        )
 
 
 def intrinsics_problem(K: np.ndarray) -> str | None:
@@ -109,8 +154,10 @@ def intrinsics_problem(K: np.ndarray) -> str | None:
     if not np.isfinite(K).all():
         return f"values must be finite, got {K.tolist()}"
     if not (K[0, 0] > 0 and K[1, 1] > 0):
-        return (f"focal lengths must be > 0 (zero is singular, negative is an axis flip), got fx={K[0, 0]:g}, "
-                f"fy={K[1, 1]:g}")
+        return (
+            f"focal lengths must be > 0 (zero is singular, negative is an axis flip), got fx={K[0, 0]:g}, "
+            f"fy={K[1, 1]:g}"
+        )
     if not (K[1, 0] == 0 and K[2, 0] == 0 and K[2, 1] == 0 and K[2, 2] == 1):
         return f"expected pinhole intrinsics [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {K.tolist()}"
     return None
@@ -126,12 +173,16 @@ def rigid_problem(T: np.ndarray, tol: float = 1e-4) -> str | None:
         return f"expected a rigid transform with last row [0, 0, 0, 1], got last row {T[3].tolist()}"
     R = T[:3, :3]
     if np.linalg.det(R) < 0:
-        return ("det(R) = -1: a mirror / axis flip, not a rotation (convert the camera axes to OpenCV's: x right, "
-                "y down, z forward)")
+        return (
+            "det(R) = -1: a mirror / axis flip, not a rotation (convert the camera axes to OpenCV's: x right, "
+            "y down, z forward)"
+        )
     err = float(np.abs(R.T @ R - np.eye(3)).max())
     if not err <= tol:
-        return (f"expected a rigid transform (rotation + translation): the rotation part is scaled or sheared "
-                f"(|R^T R - I| = {err:.3g})")
+        return (
+            f"expected a rigid transform (rotation + translation): the rotation part is scaled or sheared "
+            f"(|R^T R - I| = {err:.3g})"
+        )
     return None
 
 
@@ -157,8 +208,9 @@ def check_camera_values(K: Tensor, cam_from_world: Tensor, name: str, tracing: b
             raise CameraError(f"{name}cam_from_world[{b}]: {problem}")
 
 
-def check_camera(K: Tensor, cam_from_world: Tensor, name: str, bind: dict | None = None,
-                 tracing: bool | None = None) -> dict:
+def check_camera(
+    K: Tensor, cam_from_world: Tensor, name: str, bind: dict | None = None, tracing: bool | None = None
+) -> dict:
     """Shapes (B, 3, 3) and (B, 4, 4), floating dtypes, and the values (:func:`check_camera_values`)."""
     tracing = _skip(tracing)
     bind = check_shape(K, ["B", "3", "3"], f"{name} K", bind, tracing)
@@ -169,8 +221,9 @@ def check_camera(K: Tensor, cam_from_world: Tensor, name: str, bind: dict | None
     return bind
 
 
-def check_named_camera(K: Tensor, cam_from_world: Tensor, op: str, prefix: str = "", bind: dict | None = None,
-                       tracing: bool | None = None) -> dict:
+def check_named_camera(
+    K: Tensor, cam_from_world: Tensor, op: str, prefix: str = "", bind: dict | None = None, tracing: bool | None = None
+) -> dict:
     """:func:`check_camera` for a function whose arguments are called ``{prefix}K`` and ``{prefix}cam_from_world``
     (e.g. ``prev_``): every error reads ``op: prev_K[0]: ...`` / ``op: prev_cam_from_world: expected shape ...``."""
     if _skip(tracing):
@@ -186,8 +239,15 @@ def check_named_camera(K: Tensor, cam_from_world: Tensor, op: str, prefix: str =
     return bind
 
 
-def check_scalar(value, name: str, lo: float = -math.inf, hi: float = math.inf, lo_open: bool = False,
-                 allow_inf: bool = False, tracing: bool | None = None) -> None:
+def check_scalar(
+    value,
+    name: str,
+    lo: float = -math.inf,
+    hi: float = math.inf,
+    lo_open: bool = False,
+    allow_inf: bool = False,
+    tracing: bool | None = None,
+) -> None:
     """ParameterError unless ``value`` (a number or a one-element tensor) is a number in [lo, hi] ((lo, hi] with
     ``lo_open``); NaN is never accepted, ±inf only with ``allow_inf``, finite values only within float32's range
     (:data:`FLOAT32_MAX`: the value becomes a float32 scalar in the ops). ParameterTypeError for what is not a
@@ -197,8 +257,9 @@ def check_scalar(value, name: str, lo: float = -math.inf, hi: float = math.inf, 
     if isinstance(value, Tensor):
         if value.numel() != 1:
             raise ShapeError(f"{name}: expected a number or a one-element tensor, got shape {tuple(value.shape)}")
-        if not (value.is_floating_point() or value.dtype in (torch.int32, torch.int64, torch.int16, torch.int8,
-                                                             torch.uint8)):
+        if not (
+            value.is_floating_point() or value.dtype in (torch.int32, torch.int64, torch.int16, torch.int8, torch.uint8)
+        ):
             raise ParameterTypeError(f"{name}: expected a real number, got a tensor of dtype {value.dtype}")
         v = float(value.detach().reshape(()))
     elif isinstance(value, (int, float)) and not isinstance(value, bool):
@@ -211,12 +272,20 @@ def check_scalar(value, name: str, lo: float = -math.inf, hi: float = math.inf, 
         span = "" if (lo, hi) == (-math.inf, math.inf) else f" in {'(' if lo_open else '['}{lo:g}, {hi:g}]"
         raise ParameterError(f"{name}: expected {kind}{span}, got {v!r}")
     if math.isfinite(v) and abs(v) > FLOAT32_MAX:
-        raise ParameterError(f"{name}: {v!r} is beyond float32's range (|x| <= {FLOAT32_MAX:.7g})"
-                             + ("; pass inf for no limit" if allow_inf else ""))
+        raise ParameterError(
+            f"{name}: {v!r} is beyond float32's range (|x| <= {FLOAT32_MAX:.7g})"
+            + ("; pass inf for no limit" if allow_inf else "")
+        )
 
 
-def check_motion(motion, motion_world, dst_depth: Tensor, name: str = "motion", name_world: str = "motion_world",
-                 tracing: bool | None = None) -> None:
+def check_motion(
+    motion,
+    motion_world,
+    dst_depth: Tensor,
+    name: str = "motion",
+    name_world: str = "motion_world",
+    tracing: bool | None = None,
+) -> None:
     """Motion vectors (B, 2, H, W) and world motion (B, 3, H, W) of the destination ``dst_depth`` (B, 1, H, W):
     floating tensors on its device; ``motion_world`` only with ``motion``."""
     if _skip(tracing):
@@ -253,8 +322,14 @@ def check_blend(alpha, max_history, tracing: bool | None = None) -> None:
     check_scalar(max_history, "max_history", 1.0, allow_inf=True, tracing=False)
 
 
-def check_blend_inputs(current_color: Tensor, history_color: Tensor, history_len: Tensor, confidence: Tensor,
-                       op: str = "temporal_blend", tracing: bool | None = None) -> None:
+def check_blend_inputs(
+    current_color: Tensor,
+    history_color: Tensor,
+    history_len: Tensor,
+    confidence: Tensor,
+    op: str = "temporal_blend",
+    tracing: bool | None = None,
+) -> None:
     """The tensors of a temporal blend: ``current_color`` and ``history_color`` (B, C, H, W) floating,
     ``history_len`` (B, 1, H, W) floating, ``confidence`` (B, 1, H, W) bool or floating, all on one device;
     errors name ``op`` and the argument."""
@@ -267,10 +342,19 @@ def check_blend_inputs(current_color: Tensor, history_color: Tensor, history_len
     for name, t in (("current_color", current_color), ("history_color", history_color), ("history_len", history_len)):
         check_floating(t, f"{op}: {name}", False)
     if not (confidence.dtype == torch.bool or confidence.is_floating_point()):
-        raise ParameterTypeError(f"{op}: confidence: expected a bool mask or floating weights, got dtype "
-                                 f"{confidence.dtype}")
-    check_device({"current_color": current_color, "history_color": history_color, "history_len": history_len,
-                  "confidence": confidence}, op, False)
+        raise ParameterTypeError(
+            f"{op}: confidence: expected a bool mask or floating weights, got dtype {confidence.dtype}"
+        )
+    check_device(
+        {
+            "current_color": current_color,
+            "history_color": history_color,
+            "history_len": history_len,
+            "confidence": confidence,
+        },
+        op,
+        False,
+    )
 
 
 def check_same_hw(a: Tensor, b: Tensor, name_a: str, name_b: str, tracing: bool | None = None) -> None:
@@ -280,8 +364,18 @@ def check_same_hw(a: Tensor, b: Tensor, name_a: str, name_b: str, tracing: bool 
         raise ShapeError(f"{name_a} and {name_b} must have the same H, W: got {tuple(a.shape)} and {tuple(b.shape)}")
 
 
-def check_reprojection_inputs(src_values, src_depth, src_normal, src_K, src_cam_from_world,
-                              dst_depth, dst_normal, dst_K, dst_cam_from_world, names: dict) -> None:
+def check_reprojection_inputs(
+    src_values,
+    src_depth,
+    src_normal,
+    src_K,
+    src_cam_from_world,
+    dst_depth,
+    dst_normal,
+    dst_K,
+    dst_cam_from_world,
+    names: dict,
+) -> None:
     """Boundary checks of a backward reprojection; ``names`` maps roles to the caller's argument names
     (:data:`STEREO_NAMES`, :data:`TEMPORAL_NAMES`) so errors name what the user passed."""
     if tracing():
@@ -290,24 +384,45 @@ def check_reprojection_inputs(src_values, src_depth, src_normal, src_K, src_cam_
     bind_src: dict = {}
     check_shape(src_values, ["B", "C", "H", "W"], names["src_values"], bind_src, tr)
     if src_values.shape[-2] == 0 or src_values.shape[-1] == 0:
-        raise ShapeError(f"{names['src_values']}: the source image needs at least one pixel, got shape "
-                         f"{tuple(src_values.shape)}")
+        raise ShapeError(
+            f"{names['src_values']}: the source image needs at least one pixel, got shape {tuple(src_values.shape)}"
+        )
     check_shape(src_depth, ["B", "1", "H", "W"], names["src_depth"], bind_src, tr)
     check_shape(src_normal, ["B", "3", "H", "W"], names["src_normal"], bind_src, tr)
     bind_b = {"B": bind_src["B"]} if "B" in bind_src else {}
     check_shape(dst_depth, ["B", "1", "H", "W"], names["dst_depth"], dict(bind_b), tr)
-    check_shape(dst_normal, ["B", "3", "H", "W"], names["dst_normal"], {**bind_b, "H": dst_depth.shape[-2],
-                                                                         "W": dst_depth.shape[-1]}, tr)
+    check_shape(
+        dst_normal,
+        ["B", "3", "H", "W"],
+        names["dst_normal"],
+        {**bind_b, "H": dst_depth.shape[-2], "W": dst_depth.shape[-1]},
+        tr,
+    )
     check_camera(src_K, src_cam_from_world, names["src"], dict(bind_b), tr)
     check_camera(dst_K, dst_cam_from_world, names["dst"], dict(bind_b), tr)
-    for role, t in (("src_values", src_values), ("src_depth", src_depth), ("src_normal", src_normal),
-                    ("dst_depth", dst_depth), ("dst_normal", dst_normal)):
+    for role, t in (
+        ("src_values", src_values),
+        ("src_depth", src_depth),
+        ("src_normal", src_normal),
+        ("dst_depth", dst_depth),
+        ("dst_normal", dst_normal),
+    ):
         check_floating(t, names[role], tr)
-    check_device({names["src_values"]: src_values, names["src_depth"]: src_depth,
-                  names["src_normal"]: src_normal, names["src"] + "_K": src_K,
-                  names["src"] + "_cam_from_world": src_cam_from_world, names["dst_depth"]: dst_depth,
-                  names["dst_normal"]: dst_normal, names["dst"] + "_K": dst_K,
-                  names["dst"] + "_cam_from_world": dst_cam_from_world}, "reprojection", tr)
+    check_device(
+        {
+            names["src_values"]: src_values,
+            names["src_depth"]: src_depth,
+            names["src_normal"]: src_normal,
+            names["src"] + "_K": src_K,
+            names["src"] + "_cam_from_world": src_cam_from_world,
+            names["dst_depth"]: dst_depth,
+            names["dst_normal"]: dst_normal,
+            names["dst"] + "_K": dst_K,
+            names["dst"] + "_cam_from_world": dst_cam_from_world,
+        },
+        "reprojection",
+        tr,
+    )
 
 
 def check_backend_env() -> str | None:
@@ -359,6 +474,8 @@ def check_resolution(width: int, height: int, bytes_per_pixel: int, what: str, l
     need = int(width) * int(height) * int(bytes_per_pixel)
     limit = physical_memory() if limit is None else limit
     if limit is not None and need > limit:
-        raise ParameterError(f"{what} at {width}x{height} needs about {_bytes(need)} of memory ({bytes_per_pixel} "
-                             f"bytes per pixel), more than this machine's {_bytes(limit)}: use a smaller resolution")
+        raise ParameterError(
+            f"{what} at {width}x{height} needs about {_bytes(need)} of memory ({bytes_per_pixel} "
+            f"bytes per pixel), more than this machine's {_bytes(limit)}: use a smaller resolution"
+        )
     return need

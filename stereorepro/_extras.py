@@ -74,7 +74,10 @@ def require(module: str, feature: str, extra: str | None = None) -> ModuleType:
         extra = extra or own_extra
         raise MissingDependencyError(
             f"{feature} needs {dist}, which is not installed: pip install 'stereorepro[{extra}]' "
-            f"(or pip install '{dist}')", name=module, extra=extra) from e
+            f"(or pip install '{dist}')",
+            name=module,
+            extra=extra,
+        ) from e
 
 
 def available(module: str) -> bool:
@@ -91,5 +94,6 @@ def require_all(modules: list[str], feature: str, extra: str) -> None:
     missing = [m for m in modules if not available(m)]
     if missing:
         dists = ", ".join(EXTRAS[m.partition(".")[0]][0] for m in missing)
-        raise MissingDependencyError(f"{feature} needs {dists}, not installed: pip install 'stereorepro[{extra}]'",
-                                     name=missing[0], extra=extra)
+        raise MissingDependencyError(
+            f"{feature} needs {dists}, not installed: pip install 'stereorepro[{extra}]'", name=missing[0], extra=extra
+        )

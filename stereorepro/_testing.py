@@ -18,8 +18,17 @@ from torch import Tensor, nn
 
 from .camera import DEFAULT_BASELINE, PinholeCamera, StereoRig, camera_motion, intrinsics_from_fov, look_at
 
-__all__ = ["Plane", "Sphere", "AnalyticScene", "default_scene", "Gbuffer", "raycast", "texture", "camera_pair",
-           "example_inputs"]
+__all__ = [
+    "Plane",
+    "Sphere",
+    "AnalyticScene",
+    "default_scene",
+    "Gbuffer",
+    "raycast",
+    "texture",
+    "camera_pair",
+    "example_inputs",
+]
 
 
 @dataclass(frozen=True)
@@ -51,12 +60,16 @@ def default_scene(origin_offset=(0.0, 0.0, 0.0)) -> AnalyticScene:
     """A floor, a back wall, a side wall and three spheres (occlusions and disocclusions in both eyes)."""
     ox, oy, oz = origin_offset
     return AnalyticScene(
-        planes=(Plane((0.0, 1.0, 0.0), 0.0 + oy, (0.9, 0.8, 0.7)),
-                Plane((0.0, 0.0, 1.0), -6.0 + oz, (0.7, 0.8, 0.9)),
-                Plane((1.0, 0.0, 0.0), -3.0 + ox, (0.8, 0.9, 0.7))),
-        spheres=(Sphere((0.0 + ox, 0.8 + oy, -3.0 + oz), 0.8, (1.0, 0.5, 0.4)),
-                 Sphere((1.3 + ox, 0.4 + oy, -2.0 + oz), 0.4, (0.4, 1.0, 0.5)),
-                 Sphere((-1.2 + ox, 1.5 + oy, -4.0 + oz), 0.6, (0.5, 0.6, 1.0))),
+        planes=(
+            Plane((0.0, 1.0, 0.0), 0.0 + oy, (0.9, 0.8, 0.7)),
+            Plane((0.0, 0.0, 1.0), -6.0 + oz, (0.7, 0.8, 0.9)),
+            Plane((1.0, 0.0, 0.0), -3.0 + ox, (0.8, 0.9, 0.7)),
+        ),
+        spheres=(
+            Sphere((0.0 + ox, 0.8 + oy, -3.0 + oz), 0.8, (1.0, 0.5, 0.4)),
+            Sphere((1.3 + ox, 0.4 + oy, -2.0 + oz), 0.4, (0.4, 1.0, 0.5)),
+            Sphere((-1.2 + ox, 1.5 + oy, -4.0 + oz), 0.6, (0.5, 0.6, 1.0)),
+        ),
         origin_offset=tuple(origin_offset),
     )
 
@@ -66,8 +79,12 @@ def texture(points_world: Tensor, tint: Tensor, scene: AnalyticScene) -> Tensor:
     off = torch.tensor(scene.origin_offset, dtype=points_world.dtype, device=points_world.device).view(1, 3, 1, 1)
     p = (points_world - off) * scene.frequency
     phase = torch.tensor([0.0, 2.1, 4.2], dtype=p.dtype, device=p.device).view(1, 3, 1, 1)
-    pattern = 0.5 + 0.2 * torch.sin(p[:, 0:1] + phase) + 0.2 * torch.sin(p[:, 1:2] * 1.3 + 2 * phase) \
+    pattern = (
+        0.5
+        + 0.2 * torch.sin(p[:, 0:1] + phase)
+        + 0.2 * torch.sin(p[:, 1:2] * 1.3 + 2 * phase)
         + 0.08 * torch.sin(p[:, 2:3] * 0.7 + phase)
+    )
     return pattern * tint
 
 
@@ -109,7 +126,7 @@ def raycast(camera: PinholeCamera, scene: AnalyticScene, dtype=torch.float64) ->
         oc = o - c
         a = (d * d).sum(1, keepdim=True)
         b = 2.0 * (d * oc).sum(1, keepdim=True)
-        cc = (oc * oc).sum(1, keepdim=True) - sp.radius ** 2
+        cc = (oc * oc).sum(1, keepdim=True) - sp.radius**2
         disc = b * b - 4 * a * cc
         sq = disc.clamp_min(0).sqrt()
         t = (-b - sq) / (2 * a)
@@ -127,9 +144,17 @@ def raycast(camera: PinholeCamera, scene: AnalyticScene, dtype=torch.float64) ->
     return Gbuffer(best_t, torch.where(hit, best_n, torch.zeros_like(best_n)), position, color)
 
 
-def camera_pair(height: int, width: int, batch: int = 1, baseline: float = DEFAULT_BASELINE, forward: float = 0.0,
-                yaw_deg: float = 0.0, vfov_deg: float = 60.0, origin_offset=(0.0, 0.0, 0.0),
-                dtype=torch.float64) -> tuple[PinholeCamera, PinholeCamera]:
+def camera_pair(
+    height: int,
+    width: int,
+    batch: int = 1,
+    baseline: float = DEFAULT_BASELINE,
+    forward: float = 0.0,
+    yaw_deg: float = 0.0,
+    vfov_deg: float = 60.0,
+    origin_offset=(0.0, 0.0, 0.0),
+    dtype=torch.float64,
+) -> tuple[PinholeCamera, PinholeCamera]:
     """(dst, src) cameras looking into :func:`default_scene`: a stereo pair (``baseline``) plus optional motion.
 
     The source camera is the right eye of a rig at the head pose moved ``forward`` along its viewing axis and rotated by
@@ -146,14 +171,22 @@ def camera_pair(height: int, width: int, batch: int = 1, baseline: float = DEFAU
     import math
 
     c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
-    motion = torch.tensor([[c, 0.0, s, 0.0], [0.0, 1.0, 0.0, 0.0], [-s, 0.0, c, -forward], [0.0, 0.0, 0.0, 1.0]],
-                          dtype=dtype)  # head_new_from_head_old in camera axes
+    motion = torch.tensor(
+        [[c, 0.0, s, 0.0], [0.0, 1.0, 0.0, 0.0], [-s, 0.0, c, -forward], [0.0, 0.0, 0.0, 1.0]], dtype=dtype
+    )  # head_new_from_head_old in camera axes
     _, right = rig.cameras(motion @ head, K, height, width)
     return left, right
 
 
-def example_inputs(module: nn.Module, batch: int = 1, height: int = 24, width: int = 32,
-                   dtype: torch.dtype = torch.float32, seed: int = 0, head_motion: bool = True) -> tuple[Tensor, ...]:
+def example_inputs(
+    module: nn.Module,
+    batch: int = 1,
+    height: int = 24,
+    width: int = 32,
+    dtype: torch.dtype = torch.float32,
+    seed: int = 0,
+    head_motion: bool = True,
+) -> tuple[Tensor, ...]:
     """Realistic inputs for a module's forward: :func:`default_scene` seen by a stereo pair with a little head
     motion (occlusions, disocclusions, out-of-frame taps, background without surface).
 
@@ -171,14 +204,25 @@ def example_inputs(module: nn.Module, batch: int = 1, height: int = 24, width: i
     f = Gbuffer(*(v.to(dtype) for v in gd))
     s = Gbuffer(*(v.to(dtype) for v in gs))
     by_name = {
-        "src_color": noisy.to(dtype), "src_depth": s.depth, "src_normal": s.normal, "src_K": src.K.to(dtype),
+        "src_color": noisy.to(dtype),
+        "src_depth": s.depth,
+        "src_normal": s.normal,
+        "src_K": src.K.to(dtype),
         "src_cam_from_world": src.cam_from_world.to(dtype),
-        "dst_depth": f.depth, "dst_normal": f.normal, "dst_K": dst.K.to(dtype),
+        "dst_depth": f.depth,
+        "dst_normal": f.normal,
+        "dst_K": dst.K.to(dtype),
         "dst_cam_from_world": dst.cam_from_world.to(dtype),
         "current_color": (f.color * (0.5 + torch.rand(f.color.shape, generator=g, dtype=f.color.dtype))),
-        "depth": f.depth, "normal": f.normal, "K": dst.K.to(dtype), "cam_from_world": dst.cam_from_world.to(dtype),
-        "history_color": s.color, "history_len": torch.full_like(s.depth, 3.0),
-        "prev_depth": s.depth, "prev_normal": s.normal, "prev_K": src.K.to(dtype),
+        "depth": f.depth,
+        "normal": f.normal,
+        "K": dst.K.to(dtype),
+        "cam_from_world": dst.cam_from_world.to(dtype),
+        "history_color": s.color,
+        "history_len": torch.full_like(s.depth, 3.0),
+        "prev_depth": s.depth,
+        "prev_normal": s.normal,
+        "prev_K": src.K.to(dtype),
         "prev_cam_from_world": src.cam_from_world.to(dtype),
     }
     if "motion" in module.input_names:  # static geometry: the motion of the cameras, no world motion

@@ -58,16 +58,32 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ._checks import (STEREO_NAMES, TEMPORAL_NAMES, check_camera, check_floating, check_motion,
-                      check_reprojection_inputs, check_scalar, check_shape, tracing)
+from ._checks import (
+    STEREO_NAMES,
+    TEMPORAL_NAMES,
+    check_camera,
+    check_floating,
+    check_motion,
+    check_reprojection_inputs,
+    check_scalar,
+    check_shape,
+    tracing,
+)
 from ._tensors import as_scalar, compute_dtype
 from .camera import Eye
 from .errors import ParameterError, ParameterTypeError
 from .reproject import History, Reason, StereoReprojection, TemporalReprojection, Thresholds, View, temporal_reproject
 from .reproject.functional import temporal_blend, temporal_views, warp_values
 
-__all__ = ["EyeState", "temporal_step", "warp_history", "blend_histories", "SpatiotemporalReprojection",
-           "LEFT_MODES", "STEREO_WEIGHT"]
+__all__ = [
+    "EyeState",
+    "temporal_step",
+    "warp_history",
+    "blend_histories",
+    "SpatiotemporalReprojection",
+    "LEFT_MODES",
+    "STEREO_WEIGHT",
+]
 
 #: The reprojected eye's modes: ``"fill"`` (the paper: reprojection where kept, traced samples elsewhere) and
 #: ``"blend"`` (:func:`blend_histories` at every pixel).
@@ -116,9 +132,17 @@ class EyeState:
         return History(self.color, self.history_len)
 
 
-def temporal_step(module: TemporalReprojection, state: EyeState | None, color: Tensor, depth: Tensor,
-                  normal: Tensor, K: Tensor, cam_from_world: Tensor, motion: Tensor | None = None,
-                  motion_world: Tensor | None = None) -> tuple[EyeState, Tensor, Tensor]:
+def temporal_step(
+    module: TemporalReprojection,
+    state: EyeState | None,
+    color: Tensor,
+    depth: Tensor,
+    normal: Tensor,
+    K: Tensor,
+    cam_from_world: Tensor,
+    motion: Tensor | None = None,
+    motion_world: Tensor | None = None,
+) -> tuple[EyeState, Tensor, Tensor]:
     """Advance one eye's accumulation by a frame.
 
     Args:
@@ -155,17 +179,38 @@ def temporal_step(module: TemporalReprojection, state: EyeState | None, color: T
         reason = torch.full_like(depth, int(Reason.NO_HISTORY), dtype=torch.uint8)
         return EyeState(color, n, depth, normal, K, cam_from_world), valid, reason
     m = module
-    view, prev_view = temporal_views(color, (depth, normal, K, cam_from_world), state.history,
-                                     (state.depth, state.normal, state.K, state.cam_from_world), (motion, motion_world))
-    out, n, valid, reason = temporal_reproject(color, view, state.history, prev_view, m.thresholds, blend=m.blend,
-                                               sampling=m.sampling, soft=m.soft, backend=m.backend,
-                                               return_reason=True)
+    view, prev_view = temporal_views(
+        color,
+        (depth, normal, K, cam_from_world),
+        state.history,
+        (state.depth, state.normal, state.K, state.cam_from_world),
+        (motion, motion_world),
+    )
+    out, n, valid, reason = temporal_reproject(
+        color,
+        view,
+        state.history,
+        prev_view,
+        m.thresholds,
+        blend=m.blend,
+        sampling=m.sampling,
+        soft=m.soft,
+        backend=m.backend,
+        return_reason=True,
+    )
     return EyeState(out, n, depth, normal, K, cam_from_world), valid, reason
 
 
-def warp_history(module: TemporalReprojection, state: EyeState, depth: Tensor, normal: Tensor, K: Tensor,
-                 cam_from_world: Tensor, motion: Tensor | None = None,
-                 motion_world: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+def warp_history(
+    module: TemporalReprojection,
+    state: EyeState,
+    depth: Tensor,
+    normal: Tensor,
+    K: Tensor,
+    cam_from_world: Tensor,
+    motion: Tensor | None = None,
+    motion_world: Tensor | None = None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """The warp of :func:`temporal_step` without its blend: an eye's history moved into this frame.
 
     The same warp (taps, tests, backend rule) as :func:`~stereorepro.reproject.temporal_reproject`, so blending
@@ -194,11 +239,25 @@ def warp_history(module: TemporalReprojection, state: EyeState, depth: Tensor, n
         >>> float(color.max()), float(length.max()), bool(valid.all()), int(reason.max())
         (0.5, 3.0, True, 0)
     """
-    check_reprojection_inputs(state.color, state.depth, state.normal, state.K, state.cam_from_world, depth, normal,
-                              K, cam_from_world, TEMPORAL_NAMES)
+    check_reprojection_inputs(
+        state.color,
+        state.depth,
+        state.normal,
+        state.K,
+        state.cam_from_world,
+        depth,
+        normal,
+        K,
+        cam_from_world,
+        TEMPORAL_NAMES,
+    )
     if not tracing():
-        check_shape(state.history_len, ["B", "1", "H", "W"], "history_len",
-                    {"B": state.color.shape[0], "H": state.color.shape[-2], "W": state.color.shape[-1]})
+        check_shape(
+            state.history_len,
+            ["B", "1", "H", "W"],
+            "history_len",
+            {"B": state.color.shape[0], "H": state.color.shape[-2], "W": state.color.shape[-1]},
+        )
         check_floating(state.history_len, "history_len")
         check_motion(motion, motion_world, depth, "motion", "motion_world")
     m = module
@@ -220,10 +279,19 @@ def _ema_weight(n: Tensor, a: Tensor, warmup: bool) -> Tensor:
     return torch.where((n > 0) & (a < 1.0), one, zero)
 
 
-def blend_histories(traced_color: Tensor, stereo_color: Tensor, stereo_len: Tensor, stereo_valid: Tensor,
-                    history_color: Tensor, history_len: Tensor, history_valid: Tensor, alpha=0.2,
-                    warmup: bool = True, max_history: float = 255.0,
-                    stereo_weight=STEREO_WEIGHT) -> tuple[Tensor, Tensor]:
+def blend_histories(
+    traced_color: Tensor,
+    stereo_color: Tensor,
+    stereo_len: Tensor,
+    stereo_valid: Tensor,
+    history_color: Tensor,
+    history_len: Tensor,
+    history_valid: Tensor,
+    alpha=0.2,
+    warmup: bool = True,
+    max_history: float = 255.0,
+    stereo_weight=STEREO_WEIGHT,
+) -> tuple[Tensor, Tensor]:
     """The blended left eye: the stereo-reprojected history, the eye's own warped history and the traced samples.
 
     At every pixel the two histories are combined by a weighted mean of their sample counts, as the warm-up EMA
@@ -283,11 +351,20 @@ def blend_histories(traced_color: Tensor, stereo_color: Tensor, stereo_len: Tens
         bind = check_shape(traced_color, ["B", "C", "H", "W"], "traced_color")
         check_shape(stereo_color, ["B", "C", "H", "W"], "stereo_color", bind)
         check_shape(history_color, ["B", "C", "H", "W"], "history_color", bind)
-        for name, t in (("stereo_len", stereo_len), ("history_len", history_len), ("stereo_valid", stereo_valid),
-                        ("history_valid", history_valid)):
+        for name, t in (
+            ("stereo_len", stereo_len),
+            ("history_len", history_len),
+            ("stereo_valid", stereo_valid),
+            ("history_valid", history_valid),
+        ):
             check_shape(t, ["B", "1", "H", "W"], name, bind)
-        for name, t in (("traced_color", traced_color), ("stereo_color", stereo_color),
-                        ("history_color", history_color), ("stereo_len", stereo_len), ("history_len", history_len)):
+        for name, t in (
+            ("traced_color", traced_color),
+            ("stereo_color", stereo_color),
+            ("history_color", history_color),
+            ("stereo_len", stereo_len),
+            ("history_len", history_len),
+        ):
             check_floating(t, name)
         for name, t in (("stereo_valid", stereo_valid), ("history_valid", history_valid)):
             if t.dtype != torch.bool:
@@ -315,8 +392,11 @@ def blend_histories(traced_color: Tensor, stereo_color: Tensor, stereo_len: Tens
     s_m, l_m = torch.where(both, S, zero), torch.where(both, L, zero)
     mixed = l_m + f * (s_m - l_m)
     hist = torch.where(both, mixed, torch.where(use_s, S, torch.where(use_l, L, zero)))
-    n_hist = torch.where(both, torch.minimum(rho * n_s + n_l, cap),
-                         torch.where(use_s, torch.minimum(rho * n_s, cap), torch.where(use_l, n_l, zero)))
+    n_hist = torch.where(
+        both,
+        torch.minimum(rho * n_s + n_l, cap),
+        torch.where(use_s, torch.minimum(rho * n_s, cap), torch.where(use_l, n_l, zero)),
+    )
     # the traced samples where the stereo reprojection discarded: the EMA into the own history (the fill rule)
     trace = ~stereo_valid
     cur = torch.where(trace, traced_color, torch.zeros((), dtype=traced_color.dtype, device=dev))
@@ -377,19 +457,30 @@ class SpatiotemporalReprojection:
         ((1, 3, 6, 8), 6, 126.0)
     """
 
-    def __init__(self, position_threshold: float, normal_threshold: float, alpha: float = 0.2,
-                 warmup: bool = True, max_history: float = 255.0, sampling: str = "bilinear",
-                 stereo: bool = True, temporal: bool = True, backend: str = "auto", left_mode: str = "fill",
-                 stereo_weight: float = STEREO_WEIGHT, alternate: bool = False):
+    def __init__(
+        self,
+        position_threshold: float,
+        normal_threshold: float,
+        alpha: float = 0.2,
+        warmup: bool = True,
+        max_history: float = 255.0,
+        sampling: str = "bilinear",
+        stereo: bool = True,
+        temporal: bool = True,
+        backend: str = "auto",
+        left_mode: str = "fill",
+        stereo_weight: float = STEREO_WEIGHT,
+        alternate: bool = False,
+    ):
         if left_mode not in LEFT_MODES:
             raise ParameterError(f"left_mode must be one of {LEFT_MODES}, got {left_mode!r}")
         check_scalar(stereo_weight, "stereo_weight", 0.0)
         if alternate and not stereo:
-            raise ParameterError("alternate=True reprojects the fully traced eye into the other: it needs "
-                                 "stereo=True")
+            raise ParameterError("alternate=True reprojects the fully traced eye into the other: it needs stereo=True")
         self.stereo_module = StereoReprojection(position_threshold, normal_threshold, sampling, backend=backend)
-        self.temporal_module = TemporalReprojection(position_threshold, normal_threshold, alpha, warmup,
-                                                    max_history, sampling, backend=backend)
+        self.temporal_module = TemporalReprojection(
+            position_threshold, normal_threshold, alpha, warmup, max_history, sampling, backend=backend
+        )
         self.backend = backend
         self.stereo = bool(stereo)
         self.temporal = bool(temporal)
@@ -429,23 +520,35 @@ class SpatiotemporalReprojection:
         left on odd frames). The other eye (``.other``) traces only the pixels of :meth:`other_trace_mask`."""
         return Eye.LEFT if self.alternate and self.frame_index % 2 == 1 else Eye.RIGHT
 
-    def _accumulate(self, state: EyeState | None, color, depth, normal, K, cam_from_world, motion=None,
-                    motion_world=None):
+    def _accumulate(
+        self, state: EyeState | None, color, depth, normal, K, cam_from_world, motion=None, motion_world=None
+    ):
         """Temporal step of one eye: (color, history_len, valid, reason); valid/reason None without history."""
         if not self.temporal or state is None:
             return color, torch.ones_like(depth, dtype=torch.float32), None, None
-        new, valid, reason = temporal_step(self.temporal_module, state, color, depth, normal, K, cam_from_world,
-                                           motion, motion_world)
+        new, valid, reason = temporal_step(
+            self.temporal_module, state, color, depth, normal, K, cam_from_world, motion, motion_world
+        )
         return new.color, new.history_len, valid, reason
 
     def _expect(self, call: str, full_eye: str) -> None:
         if self.fully_traced_eye() != full_eye:
-            raise RuntimeError(f"{call}(): frame {self.frame_index} traces the {self.fully_traced_eye()} eye in full "
-                               "(alternate=True); call full(), other_trace_mask() and other() with the eyes "
-                               "fully_traced_eye() names")
+            raise RuntimeError(
+                f"{call}(): frame {self.frame_index} traces the {self.fully_traced_eye()} eye in full "
+                "(alternate=True); call full(), other_trace_mask() and other() with the eyes "
+                "fully_traced_eye() names"
+            )
 
-    def full(self, color: Tensor, depth: Tensor, normal: Tensor, K: Tensor, cam_from_world: Tensor,
-             motion: Tensor | None = None, motion_world: Tensor | None = None) -> Tensor:
+    def full(
+        self,
+        color: Tensor,
+        depth: Tensor,
+        normal: Tensor,
+        K: Tensor,
+        cam_from_world: Tensor,
+        motion: Tensor | None = None,
+        motion_world: Tensor | None = None,
+    ) -> Tensor:
         """Accumulate this frame's fully traced eye (:meth:`fully_traced_eye`; :meth:`right` outside alternate
         mode).
 
@@ -464,8 +567,9 @@ class SpatiotemporalReprojection:
         eye = self.fully_traced_eye()
         check_camera(K, cam_from_world, eye, {"B": bind.get("B")} if "B" in bind else None)
         check_motion(motion, motion_world, depth)  # on every frame: the first one does not read it
-        out, n, valid, reason = self._accumulate(getattr(self, f"{eye}_state"), color, depth, normal, K,
-                                                 cam_from_world, motion, motion_world)
+        out, n, valid, reason = self._accumulate(
+            getattr(self, f"{eye}_state"), color, depth, normal, K, cam_from_world, motion, motion_world
+        )
         self.full_valid, self.full_reason = valid, reason
         self.right_valid, self.right_reason = (valid, reason) if eye == "right" else (None, None)
         setattr(self, f"{eye}_state", EyeState(out, n, depth, normal, K, cam_from_world))
@@ -476,8 +580,16 @@ class SpatiotemporalReprojection:
         self.stereo_valid = self.stereo_reason = None
         return out
 
-    def right(self, color: Tensor, depth: Tensor, normal: Tensor, K: Tensor, cam_from_world: Tensor,
-              motion: Tensor | None = None, motion_world: Tensor | None = None) -> Tensor:
+    def right(
+        self,
+        color: Tensor,
+        depth: Tensor,
+        normal: Tensor,
+        K: Tensor,
+        cam_from_world: Tensor,
+        motion: Tensor | None = None,
+        motion_world: Tensor | None = None,
+    ) -> Tensor:
         """Accumulate this frame's right eye: :meth:`full` when the right eye is the fully traced one (always,
         unless ``alternate``; RuntimeError on the frames that trace the left eye in full).
 
@@ -493,8 +605,15 @@ class SpatiotemporalReprojection:
         self._expect("right", "right")
         return self.full(color, depth, normal, K, cam_from_world, motion, motion_world)
 
-    def other_trace_mask(self, depth: Tensor, normal: Tensor, K: Tensor, cam_from_world: Tensor,
-                         motion: Tensor | None = None, motion_world: Tensor | None = None) -> Tensor:
+    def other_trace_mask(
+        self,
+        depth: Tensor,
+        normal: Tensor,
+        K: Tensor,
+        cam_from_world: Tensor,
+        motion: Tensor | None = None,
+        motion_world: Tensor | None = None,
+    ) -> Tensor:
         """Reproject the fully traced eye into the other and return the other eye's pixels that must be traced.
 
         Args:
@@ -508,9 +627,11 @@ class SpatiotemporalReprojection:
         """
         src_eye = self.fully_traced_eye()
         if self._frame_eye != src_eye or getattr(self, f"{src_eye}_state") is None:
-            raise RuntimeError(f"the trace mask of the reprojected eye (left_trace_mask() / other_trace_mask()) "
-                               f"needs the fully traced eye ({'right()' if src_eye == 'right' else 'full()'}) "
-                               "to be called first for this frame")
+            raise RuntimeError(
+                f"the trace mask of the reprojected eye (left_trace_mask() / other_trace_mask()) "
+                f"needs the fully traced eye ({'right()' if src_eye == 'right' else 'full()'}) "
+                "to be called first for this frame"
+            )
         if not tracing():
             check_shape(depth, ["B", "1", "H", "W"], "depth")
             check_motion(motion, motion_world, depth)  # before other() reads it (it does not on the first frame)
@@ -522,18 +643,36 @@ class SpatiotemporalReprojection:
         r, m = getattr(self, f"{src_eye}_state"), self.stereo_module
         work = compute_dtype(r.color, r.history_len)
         values = torch.cat([r.color.to(work), r.history_len.to(work)], 1)  # the sample count rides along
-        check_reprojection_inputs(values, r.depth, r.normal, r.K, r.cam_from_world, depth, normal, K, cam_from_world,
-                                  dict(STEREO_NAMES, src_values=f"{src_eye} history"))
+        check_reprojection_inputs(
+            values,
+            r.depth,
+            r.normal,
+            r.K,
+            r.cam_from_world,
+            depth,
+            normal,
+            K,
+            cam_from_world,
+            dict(STEREO_NAMES, src_values=f"{src_eye} history"),
+        )
         dst = View.unchecked(depth, normal, K, cam_from_world)
         hard = Thresholds(m.position_threshold, m.normal_threshold)  # the stereo step's tests are hard
-        warped, valid, reason, _ = warp_values(values, r.view, dst, hard, m.sampling, backend=m.backend,
-                                               confidence=False)
+        warped, valid, reason, _ = warp_values(
+            values, r.view, dst, hard, m.sampling, backend=m.backend, confidence=False
+        )
         self._stereo_out = (warped[:, :3], warped[:, 3:4])
         self.stereo_valid, self.stereo_reason = valid, reason
         return ~valid
 
-    def left_trace_mask(self, depth: Tensor, normal: Tensor, K: Tensor, cam_from_world: Tensor,
-                        motion: Tensor | None = None, motion_world: Tensor | None = None) -> Tensor:
+    def left_trace_mask(
+        self,
+        depth: Tensor,
+        normal: Tensor,
+        K: Tensor,
+        cam_from_world: Tensor,
+        motion: Tensor | None = None,
+        motion_world: Tensor | None = None,
+    ) -> Tensor:
         """Reproject the right eye into the left and return the pixels that must be traced (:meth:`other_trace_mask`
         when the left eye is the reprojected one: always, unless ``alternate``).
 
@@ -559,31 +698,48 @@ class SpatiotemporalReprojection:
             (B, 3, H, W) the reprojected eye's output for this frame.
         """
         if self._left_gbuffer is None:
-            raise RuntimeError("left() / other() needs left_trace_mask() / other_trace_mask() to be called first "
-                               "for this frame")
+            raise RuntimeError(
+                "left() / other() needs left_trace_mask() / other_trace_mask() to be called first for this frame"
+            )
         depth, normal, K, cam_from_world, motion, motion_world = self._left_gbuffer
-        check_shape(traced_color, ["B", "3", "H", "W"], "traced_color",
-                    {"B": depth.shape[0], "H": depth.shape[-2], "W": depth.shape[-1]})
+        check_shape(
+            traced_color,
+            ["B", "3", "H", "W"],
+            "traced_color",
+            {"B": depth.shape[0], "H": depth.shape[-2], "W": depth.shape[-1]},
+        )
         eye = self._frame_eye.other
         state = getattr(self, f"{eye}_state")
         if self.left_mode == "blend" and self._stereo_out is not None:
             s_color, s_len = self._stereo_out
             if self.temporal and state is not None:
-                hist, hist_len, valid, _ = warp_history(self.temporal_module, state, depth, normal, K, cam_from_world,
-                                                        motion, motion_world)
+                hist, hist_len, valid, _ = warp_history(
+                    self.temporal_module, state, depth, normal, K, cam_from_world, motion, motion_world
+                )
             else:
                 hist, hist_len = torch.zeros_like(s_color), torch.zeros_like(s_len)
                 valid = None
             m = self.temporal_module
-            out, n = blend_histories(traced_color, s_color, s_len, self.stereo_valid, hist, hist_len,
-                                     torch.zeros_like(self.stereo_valid) if valid is None else valid,
-                                     m.alpha, m.warmup, m.max_history, self.stereo_weight)
+            out, n = blend_histories(
+                traced_color,
+                s_color,
+                s_len,
+                self.stereo_valid,
+                hist,
+                hist_len,
+                torch.zeros_like(self.stereo_valid) if valid is None else valid,
+                m.alpha,
+                m.warmup,
+                m.max_history,
+                self.stereo_weight,
+            )
             self.other_valid = valid
         else:
             trace = ~self.stereo_valid
             traced = torch.where(trace, traced_color, torch.zeros((), dtype=traced_color.dtype))
-            filled, n, valid, _ = self._accumulate(state, traced, depth, normal, K, cam_from_world, motion,
-                                                   motion_world)
+            filled, n, valid, _ = self._accumulate(
+                state, traced, depth, normal, K, cam_from_world, motion, motion_world
+            )
             self.other_valid = None if valid is None else valid & trace
             if self._stereo_out is not None:
                 s_color, s_len = self._stereo_out

@@ -121,8 +121,9 @@ def pixel_centers(height: int, width: int, device=None, dtype=torch.float32) -> 
     return torch.stack([uu, vv], dim=0)
 
 
-def intrinsics_from_fov(vfov_deg: float, width: int, height: int, batch: int = 1,
-                        dtype=torch.float32, device=None) -> Tensor:
+def intrinsics_from_fov(
+    vfov_deg: float, width: int, height: int, batch: int = 1, dtype=torch.float32, device=None
+) -> Tensor:
     """Pinhole intrinsics with square pixels and the principal point at the image centre.
 
     Args:
@@ -221,6 +222,7 @@ def inverse_intrinsics(K: Tensor) -> Tensor:
 # the module ``torch`` (tensors: autograd, tracing, any device) or ``numpy`` (float64 arrays: compose_warp's CPU
 # path); the bodies use only names the two share.
 
+
 def _invert_rigid(T, xp):
     R = T[..., :3, :3]
     t = T[..., :3, 3:]
@@ -307,8 +309,9 @@ class Warp(NamedTuple):
     Ks_inv = property(lambda self: self._legacy("Ks_inv", "K_src_inv"))
 
 
-def compose_warp(src_K: Tensor, src_cam_from_world: Tensor, dst_K: Tensor, dst_cam_from_world: Tensor,
-                 dtype: torch.dtype) -> Warp:
+def compose_warp(
+    src_K: Tensor, src_cam_from_world: Tensor, dst_K: Tensor, dst_cam_from_world: Tensor, dtype: torch.dtype
+) -> Warp:
     """The :class:`Warp` from a destination camera into a source camera, composed in float64, cast to ``dtype``.
 
     Entries within 1e-12 (relative) of an integer are snapped to it, so identical cameras give ``P = I`` and
@@ -330,8 +333,9 @@ def compose_warp(src_K: Tensor, src_cam_from_world: Tensor, dst_K: Tensor, dst_c
         (True, 0.0)
     """
     cams = (src_K, src_cam_from_world, dst_K, dst_cam_from_world)
-    if not tracing() and all(c.device.type == "cpu" and not (c.requires_grad and torch.is_grad_enabled())
-                             for c in cams):
+    if not tracing() and all(
+        c.device.type == "cpu" and not (c.requires_grad and torch.is_grad_enabled()) for c in cams
+    ):
         return _compose_warp_numpy(cams, dtype)
     return Warp(*(m.to(dtype) for m in _compose_warp(*(c.double() for c in cams), torch)))
 
@@ -385,8 +389,9 @@ def rectify_warp(warp: Warp, height: int, width: int, check: bool = True) -> War
     if check and not tracing():
         Pd, ktd = P.detach().double(), kt.detach().double()
         size = float(max(height, width, 1))
-        rows = ((Pd[:, 1, 0].abs() * width + (Pd[:, 1, 1] - 1).abs() * height + Pd[:, 1, 2].abs())
-                + (Pd[:, 2, 0].abs() * width + Pd[:, 2, 1].abs() * height + (Pd[:, 2, 2] - 1).abs()) * size)
+        rows = (Pd[:, 1, 0].abs() * width + (Pd[:, 1, 1] - 1).abs() * height + Pd[:, 1, 2].abs()) + (
+            Pd[:, 2, 0].abs() * width + Pd[:, 2, 1].abs() * height + (Pd[:, 2, 2] - 1).abs()
+        ) * size
         base = ktd[:, 1, 0].abs() + ktd[:, 2, 0].abs() * size
         limit = RECTIFIED_TOLERANCE_REL * ktd[:, 0, 0].abs() + 1e-12
         if bool((rows > RECTIFIED_TOLERANCE_PX).any()) or bool((base > limit).any()):
@@ -395,7 +400,8 @@ def rectify_warp(warp: Warp, height: int, width: int, check: bool = True) -> War
             raise CameraError(
                 f"rectified=True: the cameras are not a rectified pair (rows deviate by up to {float(rows.max()):.3g} "
                 f"px, vertical/forward baseline {float(base.max()):.3g} against {float(limit.max()):.3g}); pass "
-                "rectified=False for a general pair")
+                "rectified=False for a general pair"
+            )
     rows = torch.eye(3, dtype=P.dtype, device=P.device)[1:].expand(P.shape[0], 2, 3)  # (0, 1, 0), (0, 0, 1)
     return Warp(M, t, torch.cat([P[:, :1], rows], 1), torch.cat([kt[:, :1], torch.zeros_like(kt[:, 1:])], 1), Ks_inv)
 
@@ -421,8 +427,9 @@ def unproject(depth: Tensor, K: Tensor) -> Tensor:
     check_shape(depth, ["B", "1", "H", "W"], "depth")
     check_shape(K, ["B", "3", "3"], "K")
     B, _, H, W = depth.shape
-    uv1 = torch.cat([pixel_centers(H, W, depth.device, depth.dtype),
-                     torch.ones(1, H, W, device=depth.device, dtype=depth.dtype)], 0)  # 3xHxW
+    uv1 = torch.cat(
+        [pixel_centers(H, W, depth.device, depth.dtype), torch.ones(1, H, W, device=depth.device, dtype=depth.dtype)], 0
+    )  # 3xHxW
     rays = inverse_intrinsics(K.to(depth.dtype)) @ uv1.reshape(1, 3, H * W)  # Bx3xHW, z = 1
     return rays.reshape(B, 3, H, W) * depth
 
@@ -454,8 +461,9 @@ def project(points_cam: Tensor, K: Tensor) -> tuple[Tensor, Tensor]:
     return p[:, :2] / z, z
 
 
-def camera_motion(depth: Tensor, K: Tensor, cam_from_world: Tensor, prev_K: Tensor,
-                  prev_cam_from_world: Tensor) -> Tensor:
+def camera_motion(
+    depth: Tensor, K: Tensor, cam_from_world: Tensor, prev_K: Tensor, prev_cam_from_world: Tensor
+) -> Tensor:
     """Screen-space motion vectors of static geometry from the cameras alone: where each pixel's surface point
     was in the previous camera's image, ``prev_pixel = pixel + motion`` (the convention of
     :attr:`stereorepro.render.RenderResult.motion`), computed in float64.
@@ -500,8 +508,15 @@ def camera_motion(depth: Tensor, K: Tensor, cam_from_world: Tensor, prev_K: Tens
     return torch.where(keep, motion, torch.full((), float("nan"), dtype=d.dtype, device=d.device)).to(depth.dtype)
 
 
-def world_motion_from_view_z(depth: Tensor, motion: Tensor, view_z_delta: Tensor, K: Tensor, cam_from_world: Tensor,
-                             prev_K: Tensor, prev_cam_from_world: Tensor) -> Tensor:
+def world_motion_from_view_z(
+    depth: Tensor,
+    motion: Tensor,
+    view_z_delta: Tensor,
+    K: Tensor,
+    cam_from_world: Tensor,
+    prev_K: Tensor,
+    prev_cam_from_world: Tensor,
+) -> Tensor:
     """World-space motion from 2.5D motion (screen motion + view-z delta, the input NVIDIA's NRD recommends): the
     ``motion_world`` the reprojection ops read (:class:`~stereorepro.View`), converted once, at the boundary.
 
@@ -545,12 +560,16 @@ def world_motion_from_view_z(depth: Tensor, motion: Tensor, view_z_delta: Tensor
     pixel = pixel_centers(H, W, d.device, d.dtype).unsqueeze(0)  # 1x2xHxW
     uv1_prev = torch.cat([pixel + torch.where(keep, mo, 0.0), one.expand(B, 1, H, W)], 1)
     p_prev = (inverse_intrinsics(prev_K.double()) @ uv1_prev.reshape(B, 3, H * W)) * torch.where(
-        keep, z_prev, one).reshape(B, 1, H * W)  # Bx3xHW, the previous camera's frame
+        keep, z_prev, one
+    ).reshape(B, 1, H * W)  # Bx3xHW, the previous camera's frame
     p_cam = unproject(torch.where(ok, d, one), K.double()).reshape(B, 3, H * W)
     world_from_cam, world_from_prev = invert_rigid(cam_from_world.double()), invert_rigid(prev_cam_from_world.double())
     # P_prev − P, rotation parts first: the translations cancel exactly when both cameras coincide
-    delta = (world_from_prev[:, :3, :3] @ p_prev - world_from_cam[:, :3, :3] @ p_cam
-             + (world_from_prev[:, :3, 3:] - world_from_cam[:, :3, 3:]))
+    delta = (
+        world_from_prev[:, :3, :3] @ p_prev
+        - world_from_cam[:, :3, :3] @ p_cam
+        + (world_from_prev[:, :3, 3:] - world_from_cam[:, :3, 3:])
+    )
     nan = torch.full((), math.nan, dtype=d.dtype, device=d.device)
     return torch.where(keep, delta.reshape(B, 3, H, W), nan).to(motion.dtype)
 
@@ -713,8 +732,9 @@ class PinholeCamera:
         return self.world_from_cam[:, :3, 3]
 
     def to(self, *args, **kwargs) -> "PinholeCamera":
-        return PinholeCamera(self.K.to(*args, **kwargs), self.cam_from_world.to(*args, **kwargs),
-                             self.height, self.width)
+        return PinholeCamera(
+            self.K.to(*args, **kwargs), self.cam_from_world.to(*args, **kwargs), self.height, self.width
+        )
 
     def __getitem__(self, i) -> "PinholeCamera":
         sl = slice(i, i + 1) if isinstance(i, int) else i
@@ -838,8 +858,9 @@ class StereoRig:
         if self.convergence_distance is not None and not (self.convergence_distance > 0):
             raise ValueError(f"StereoRig: convergence_distance must be positive, got {self.convergence_distance}")
 
-    def cameras(self, cam_from_world_head: Tensor, K: Tensor, height: int, width: int
-                ) -> tuple[PinholeCamera, PinholeCamera]:
+    def cameras(
+        self, cam_from_world_head: Tensor, K: Tensor, height: int, width: int
+    ) -> tuple[PinholeCamera, PinholeCamera]:
         """Left and right cameras of a head pose.
 
         Args:

@@ -60,18 +60,46 @@ from ._checks import check_floating, check_scalar, check_shape, tracing
 from ._tensors import finite_or_zero
 from .camera import has_surface
 from .errors import ParameterError, ParameterTypeError, ShapeError
-from .reproject import (Blend, History, StereoReprojection, TemporalReprojection, Thresholds, View, stereo_reproject,
-                        temporal_reproject)
+from .reproject import (
+    Blend,
+    History,
+    StereoReprojection,
+    TemporalReprojection,
+    Thresholds,
+    View,
+    stereo_reproject,
+    temporal_reproject,
+)
 from .reproject.functional import as_thresholds, stereo_views, temporal_views
 from .reproject.view import Field, view_fields
 
-__all__ = ["FEATURES", "STEREO_FEATURES", "OTHER_NAMES", "feature_channels", "denoise_features",
-           "reprojection_features", "reproject_denoise", "DenoiserFeatures", "DenoiseResult",
-           "empty_history", "ReprojectionDenoiser", "denoiser_example_inputs"]
+__all__ = [
+    "FEATURES",
+    "STEREO_FEATURES",
+    "OTHER_NAMES",
+    "feature_channels",
+    "denoise_features",
+    "reprojection_features",
+    "reproject_denoise",
+    "DenoiserFeatures",
+    "DenoiseResult",
+    "empty_history",
+    "ReprojectionDenoiser",
+    "denoiser_example_inputs",
+]
 
 #: The denoiser's input channels, in order (see the module docstring).
-FEATURES = ("log1p_color_r", "log1p_color_g", "log1p_color_b", "history_len_norm", "valid", "inverse_depth",
-            "normal_x", "normal_y", "normal_z")
+FEATURES = (
+    "log1p_color_r",
+    "log1p_color_g",
+    "log1p_color_b",
+    "history_len_norm",
+    "valid",
+    "inverse_depth",
+    "normal_x",
+    "normal_y",
+    "normal_z",
+)
 #: Channels appended with ``stereo=True``.
 STEREO_FEATURES = ("log1p_stereo_r", "log1p_stereo_g", "log1p_stereo_b", "stereo_valid")
 
@@ -95,9 +123,16 @@ def _log1p_color(c: Tensor) -> Tensor:
     return torch.log1p(c.clamp_min(0.0))
 
 
-def denoise_features(color: Tensor, history_len: Tensor, valid: Tensor, depth: Tensor, normal: Tensor,
-                     max_history: float = 255.0, stereo_color: Tensor | None = None,
-                     stereo_valid: Tensor | None = None) -> Tensor:
+def denoise_features(
+    color: Tensor,
+    history_len: Tensor,
+    valid: Tensor,
+    depth: Tensor,
+    normal: Tensor,
+    max_history: float = 255.0,
+    stereo_color: Tensor | None = None,
+    stereo_valid: Tensor | None = None,
+) -> Tensor:
     """The denoiser's input: (B, 9, H, W), or (B, 13, H, W) with the stereo channels (:data:`FEATURES`,
     :data:`STEREO_FEATURES`), in ``color``'s dtype.
 
@@ -130,11 +165,18 @@ def denoise_features(color: Tensor, history_len: Tensor, valid: Tensor, depth: T
         check_scalar(max_history, "max_history", 1.0, allow_inf=True, tracing=False)
     dt = color.dtype
     surface = has_surface(depth)
-    inv_depth = torch.where(surface, 1.0 / torch.where(surface, depth, torch.ones((), dtype=depth.dtype,
-                                                                                    device=depth.device)),
-                            torch.zeros((), dtype=depth.dtype, device=depth.device))
-    feats = [_log1p_color(color), (history_len / float(max_history)).to(dt), valid.to(dt), inv_depth.to(dt),
-             finite_or_zero(normal).to(dt)]
+    inv_depth = torch.where(
+        surface,
+        1.0 / torch.where(surface, depth, torch.ones((), dtype=depth.dtype, device=depth.device)),
+        torch.zeros((), dtype=depth.dtype, device=depth.device),
+    )
+    feats = [
+        _log1p_color(color),
+        (history_len / float(max_history)).to(dt),
+        valid.to(dt),
+        inv_depth.to(dt),
+        finite_or_zero(normal).to(dt),
+    ]
     if stereo_color is not None:
         check_shape(stereo_color, ["B", "3", "H", "W"], "stereo_color", bind)
         check_shape(stereo_valid, ["B", "1", "H", "W"], "stereo_valid", bind)
@@ -198,13 +240,26 @@ class DenoiseResult(NamedTuple):
 
 
 def _deprecated(name: str, new: str) -> None:
-    warnings.warn(f"{name} with flat tensor arguments is deprecated and will be removed in the next release: call "
-                  f"{new}", DeprecationWarning, stacklevel=3)
+    warnings.warn(
+        f"{name} with flat tensor arguments is deprecated and will be removed in the next release: call {new}",
+        DeprecationWarning,
+        stacklevel=3,
+    )
 
 
-def reprojection_features(current_color: Tensor, view: View, history, prev_view: View, thresholds, *legacy_args,
-                          blend: Blend = Blend(), sampling: str = "bilinear", backend: str = "auto",
-                          other: tuple[Tensor, View] | None = None, **legacy_kwargs) -> DenoiserFeatures:
+def reprojection_features(
+    current_color: Tensor,
+    view: View,
+    history,
+    prev_view: View,
+    thresholds,
+    *legacy_args,
+    blend: Blend = Blend(),
+    sampling: str = "bilinear",
+    backend: str = "auto",
+    other: tuple[Tensor, View] | None = None,
+    **legacy_kwargs,
+) -> DenoiserFeatures:
     """The reprojection half of :func:`reproject_denoise`: the denoiser's input features and the new state.
 
     It has no trained parameters (hard tests), so a training loop can compute the features of a clip once and
@@ -227,28 +282,39 @@ def reprojection_features(current_color: Tensor, view: View, history, prev_view:
         ((1, 9, 6, 8), 1.0)
     """
     if not isinstance(view, View):
-        _deprecated("reprojection_features", "reprojection_features(current_color, view: View, history: History, "
-                    "prev_view: View, (position_threshold, normal_threshold), ...)")
+        _deprecated(
+            "reprojection_features",
+            "reprojection_features(current_color, view: View, history: History, "
+            "prev_view: View, (position_threshold, normal_threshold), ...)",
+        )
         args = (current_color, view, history, prev_view, thresholds) + legacy_args
-        kw = dict(legacy_kwargs, **({} if sampling == "bilinear" else {"sampling": sampling}),
-                  **({} if backend == "auto" else {"backend": backend}))
+        kw = dict(
+            legacy_kwargs,
+            **({} if sampling == "bilinear" else {"sampling": sampling}),
+            **({} if backend == "auto" else {"backend": backend}),
+        )
         if other is not None:
             kw["other"] = other
         return _features_flat(*args, **kw)
     if legacy_args or legacy_kwargs:
-        raise ParameterTypeError("reprojection_features: unexpected arguments with View inputs: "
-                                 f"{len(legacy_args)} positional, {sorted(legacy_kwargs)}")
+        raise ParameterTypeError(
+            "reprojection_features: unexpected arguments with View inputs: "
+            f"{len(legacy_args)} positional, {sorted(legacy_kwargs)}"
+        )
     thr = as_thresholds(thresholds)
-    color, n, valid, _ = temporal_reproject(current_color, view, history, prev_view, thr, blend=blend,
-                                            sampling=sampling, backend=backend)
+    color, n, valid, _ = temporal_reproject(
+        current_color, view, history, prev_view, thr, blend=blend, sampling=sampling, backend=backend
+    )
     s_color = s_valid = None
     if other is not None:
         o_color, o_view = _check_other(other, view)
-        s_color, s_valid, _, _ = stereo_reproject(o_color, o_view, view, Thresholds(thr.position, thr.normal),
-                                                  sampling=sampling, backend=backend)
+        s_color, s_valid, _, _ = stereo_reproject(
+            o_color, o_view, view, Thresholds(thr.position, thr.normal), sampling=sampling, backend=backend
+        )
     max_history = Blend(*blend).max_history
-    return DenoiserFeatures(denoise_features(color, n, valid, view.depth, view.normal, max_history, s_color,
-                                             s_valid), color, n)
+    return DenoiserFeatures(
+        denoise_features(color, n, valid, view.depth, view.normal, max_history, s_color, s_valid), color, n
+    )
 
 
 def _check_other(other, view: View) -> tuple[Tensor, View]:
@@ -258,18 +324,29 @@ def _check_other(other, view: View) -> tuple[Tensor, View]:
         raise ParameterTypeError(f"other: expected (other_color, other_view: View), got {type(other).__name__}")
     o_color, o_view = other
     if not tracing():
-        check_shape(o_color, ["B", "3", "H", "W"], "other_color (the other eye's colour)",
-                    {"B": o_view.batch_size, "H": o_view.height, "W": o_view.width}, False)
+        check_shape(
+            o_color,
+            ["B", "3", "H", "W"],
+            "other_color (the other eye's colour)",
+            {"B": o_view.batch_size, "H": o_view.height, "W": o_view.width},
+            False,
+        )
         check_floating(o_color, "other_color", False)
         if o_view.batch_size != view.batch_size:
-            raise ShapeError(f"other_view: batch size {o_view.batch_size}, this eye's view has "
-                             f"{view.batch_size}")
+            raise ShapeError(f"other_view: batch size {o_view.batch_size}, this eye's view has {view.batch_size}")
     return o_color, o_view
 
 
 #: Flat names of the other eye's inputs, for the checks of the flat forms.
-_OTHER_NAMES = dict(src_values="other_color", src_depth="other_depth", src_normal="other_normal", src="other",
-                    dst_depth="depth", dst_normal="normal", dst="current")
+_OTHER_NAMES = dict(
+    src_values="other_color",
+    src_depth="other_depth",
+    src_normal="other_normal",
+    src="other",
+    dst_depth="depth",
+    dst_normal="normal",
+    dst="current",
+)
 
 
 def _flat_views(current_color: Tensor, current: tuple, history: tuple, previous: tuple, other: tuple | None):
@@ -281,27 +358,71 @@ def _flat_views(current_color: Tensor, current: tuple, history: tuple, previous:
     if len(other) != len(OTHER_NAMES):
         raise ParameterError(f"other: expected ({', '.join(OTHER_NAMES)}), got {len(other)} tensors")
     depth = current[0]
-    check_shape(other[0], ["B", "3", "H", "W"], "other_color",
-                {"B": depth.shape[0], "H": depth.shape[-2], "W": depth.shape[-1]})
+    check_shape(
+        other[0], ["B", "3", "H", "W"], "other_color", {"B": depth.shape[0], "H": depth.shape[-2], "W": depth.shape[-1]}
+    )
     o_view, _ = stereo_views(other[0], tuple(other[1:]), current, _OTHER_NAMES)
     return view, history, prev_view, (other[0], o_view)
 
 
-def _features_flat(current_color, depth, normal, K, cam_from_world, history_color, history_len, prev_depth,
-                   prev_normal, prev_K, prev_cam_from_world, position_threshold, normal_threshold, alpha=0.2,
-                   warmup=True, max_history=255.0, sampling="bilinear", backend="auto", other=None):
+def _features_flat(
+    current_color,
+    depth,
+    normal,
+    K,
+    cam_from_world,
+    history_color,
+    history_len,
+    prev_depth,
+    prev_normal,
+    prev_K,
+    prev_cam_from_world,
+    position_threshold,
+    normal_threshold,
+    alpha=0.2,
+    warmup=True,
+    max_history=255.0,
+    sampling="bilinear",
+    backend="auto",
+    other=None,
+):
     """The flat form of :func:`reprojection_features` (deprecated): a plain 3-tuple."""
-    view, history, prev_view, other = _flat_views(current_color, (depth, normal, K, cam_from_world),
-                                                  (history_color, history_len),
-                                                  (prev_depth, prev_normal, prev_K, prev_cam_from_world), other)
-    return tuple(reprojection_features(current_color, view, history, prev_view, (position_threshold, normal_threshold),
-                                       blend=Blend(alpha, warmup, max_history), sampling=sampling, backend=backend,
-                                       other=other))
+    view, history, prev_view, other = _flat_views(
+        current_color,
+        (depth, normal, K, cam_from_world),
+        (history_color, history_len),
+        (prev_depth, prev_normal, prev_K, prev_cam_from_world),
+        other,
+    )
+    return tuple(
+        reprojection_features(
+            current_color,
+            view,
+            history,
+            prev_view,
+            (position_threshold, normal_threshold),
+            blend=Blend(alpha, warmup, max_history),
+            sampling=sampling,
+            backend=backend,
+            other=other,
+        )
+    )
 
 
-def reproject_denoise(current_color: Tensor, view: View, history, prev_view: View, denoiser, thresholds,
-                      *legacy_args, blend: Blend = Blend(), sampling: str = "bilinear", backend: str = "auto",
-                      other: tuple[Tensor, View] | None = None, **legacy_kwargs) -> DenoiseResult:
+def reproject_denoise(
+    current_color: Tensor,
+    view: View,
+    history,
+    prev_view: View,
+    denoiser,
+    thresholds,
+    *legacy_args,
+    blend: Blend = Blend(),
+    sampling: str = "bilinear",
+    backend: str = "auto",
+    other: tuple[Tensor, View] | None = None,
+    **legacy_kwargs,
+) -> DenoiseResult:
     """Temporal reprojection, (optional) stereo reprojection and a denoiser, for one eye and one frame.
 
     Args:
@@ -337,22 +458,40 @@ def reproject_denoise(current_color: Tensor, view: View, history, prev_view: Vie
         (1, 3, 6, 8)
     """
     if not isinstance(view, View):
-        _deprecated("reproject_denoise", "reproject_denoise(current_color, view: View, history: History, "
-                    "prev_view: View, denoiser, (position_threshold, normal_threshold), ...)")
+        _deprecated(
+            "reproject_denoise",
+            "reproject_denoise(current_color, view: View, history: History, "
+            "prev_view: View, denoiser, (position_threshold, normal_threshold), ...)",
+        )
         args = (current_color, view, history, prev_view, denoiser, thresholds) + legacy_args
-        kw = dict(legacy_kwargs, **({} if sampling == "bilinear" else {"sampling": sampling}),
-                  **({} if backend == "auto" else {"backend": backend}))
+        kw = dict(
+            legacy_kwargs,
+            **({} if sampling == "bilinear" else {"sampling": sampling}),
+            **({} if backend == "auto" else {"backend": backend}),
+        )
         if other is not None:
             kw["other"] = other
         return tuple(_denoise_flat(*args, **kw))
     if legacy_args or legacy_kwargs:
-        raise ParameterTypeError("reproject_denoise: unexpected arguments with View inputs: "
-                                 f"{len(legacy_args)} positional, {sorted(legacy_kwargs)}")
+        raise ParameterTypeError(
+            "reproject_denoise: unexpected arguments with View inputs: "
+            f"{len(legacy_args)} positional, {sorted(legacy_kwargs)}"
+        )
     if not callable(denoiser):
-        raise ParameterTypeError(f"denoiser: expected a module mapping (B, C_in, H, W) to (B, 3, H, W), "
-                                 f"got {type(denoiser).__name__}")
-    x, color, n = reprojection_features(current_color, view, history, prev_view, thresholds, blend=blend,
-                                        sampling=sampling, backend=backend, other=other)
+        raise ParameterTypeError(
+            f"denoiser: expected a module mapping (B, C_in, H, W) to (B, 3, H, W), got {type(denoiser).__name__}"
+        )
+    x, color, n = reprojection_features(
+        current_color,
+        view,
+        history,
+        prev_view,
+        thresholds,
+        blend=blend,
+        sampling=sampling,
+        backend=backend,
+        other=other,
+    )
     return DenoiseResult(_run_denoiser(denoiser, x, current_color, other is not None), color, n)
 
 
@@ -365,32 +504,70 @@ def _run_denoiser(denoiser, x: Tensor, current_color: Tensor, stereo: bool) -> T
     except RuntimeError as e:  # typically a first layer built for another C_in: say what the features are
         if "channels" not in str(e):
             raise
-        raise ShapeError(f"denoiser: failed on the features, shape {tuple(x.shape)} (C_in = {x.shape[1]}: "
-                         f"{', '.join(FEATURES + (STEREO_FEATURES if stereo else ()))}): {e}") from e
+        raise ShapeError(
+            f"denoiser: failed on the features, shape {tuple(x.shape)} (C_in = {x.shape[1]}: "
+            f"{', '.join(FEATURES + (STEREO_FEATURES if stereo else ()))}): {e}"
+        ) from e
     if not isinstance(denoised, Tensor):
-        raise ParameterTypeError(f"denoiser: expected it to return a tensor of shape (B, 3, H, W), "
-                                 f"got {type(denoised).__name__}")
+        raise ParameterTypeError(
+            f"denoiser: expected it to return a tensor of shape (B, 3, H, W), got {type(denoised).__name__}"
+        )
     B, _, H, W = current_color.shape
     if tuple(denoised.shape) != (B, 3, H, W):
-        raise ShapeError(f"denoiser: expected an output of shape (B, 3, H, W) = {(B, 3, H, W)} for input "
-                         f"features {tuple(x.shape)}, got {tuple(denoised.shape)}")
+        raise ShapeError(
+            f"denoiser: expected an output of shape (B, 3, H, W) = {(B, 3, H, W)} for input "
+            f"features {tuple(x.shape)}, got {tuple(denoised.shape)}"
+        )
     return denoised
 
 
-def _denoise_flat(current_color, depth, normal, K, cam_from_world, history_color, history_len, prev_depth,
-                  prev_normal, prev_K, prev_cam_from_world, denoiser, position_threshold, normal_threshold, alpha=0.2,
-                  warmup=True, max_history=255.0, sampling="bilinear", backend="auto", other=None):
+def _denoise_flat(
+    current_color,
+    depth,
+    normal,
+    K,
+    cam_from_world,
+    history_color,
+    history_len,
+    prev_depth,
+    prev_normal,
+    prev_K,
+    prev_cam_from_world,
+    denoiser,
+    position_threshold,
+    normal_threshold,
+    alpha=0.2,
+    warmup=True,
+    max_history=255.0,
+    sampling="bilinear",
+    backend="auto",
+    other=None,
+):
     """The flat form of :func:`reproject_denoise` (deprecated)."""
-    view, history, prev_view, other = _flat_views(current_color, (depth, normal, K, cam_from_world),
-                                                  (history_color, history_len),
-                                                  (prev_depth, prev_normal, prev_K, prev_cam_from_world), other)
-    return reproject_denoise(current_color, view, history, prev_view, denoiser,
-                             (position_threshold, normal_threshold), blend=Blend(alpha, warmup, max_history),
-                             sampling=sampling, backend=backend, other=other)
+    view, history, prev_view, other = _flat_views(
+        current_color,
+        (depth, normal, K, cam_from_world),
+        (history_color, history_len),
+        (prev_depth, prev_normal, prev_K, prev_cam_from_world),
+        other,
+    )
+    return reproject_denoise(
+        current_color,
+        view,
+        history,
+        prev_view,
+        denoiser,
+        (position_threshold, normal_threshold),
+        blend=Blend(alpha, warmup, max_history),
+        sampling=sampling,
+        backend=backend,
+        other=other,
+    )
 
 
-def empty_history(depth: Tensor, normal: Tensor, K: Tensor, cam_from_world: Tensor
-                  ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+def empty_history(
+    depth: Tensor, normal: Tensor, K: Tensor, cam_from_world: Tensor
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
     """The state to pass on a first frame (or after a camera cut): (history_color, history_len, prev_depth,
     prev_normal, prev_K, prev_cam_from_world) = zeros (B, 3, H, W), zeros (B, 1, H, W), zeros (B, 1, H, W) (no
     surface: every history tap is rejected), zeros (B, 3, H, W), ``K``, ``cam_from_world``; images in ``depth``'s
@@ -456,16 +633,28 @@ class ReprojectionDenoiser(nn.Module):
     input_names = [f.name for f in input_fields]
     output_names = ["denoised", "color", "history_len_out"]
 
-    def __init__(self, denoiser: nn.Module, position_threshold: float, normal_threshold: float, alpha: float = 0.2,
-                 warmup: bool = True, max_history: float = 255.0, sampling: str = "bilinear",
-                 backend: str = "auto", stereo: bool = False):
+    def __init__(
+        self,
+        denoiser: nn.Module,
+        position_threshold: float,
+        normal_threshold: float,
+        alpha: float = 0.2,
+        warmup: bool = True,
+        max_history: float = 255.0,
+        sampling: str = "bilinear",
+        backend: str = "auto",
+        stereo: bool = False,
+    ):
         super().__init__()
         if not isinstance(denoiser, nn.Module):
-            raise ParameterTypeError(f"denoiser: expected an nn.Module mapping (B, C_in, H, W) to "
-                                     f"(B, 3, H, W), got {type(denoiser).__name__}")
+            raise ParameterTypeError(
+                f"denoiser: expected an nn.Module mapping (B, C_in, H, W) to "
+                f"(B, 3, H, W), got {type(denoiser).__name__}"
+            )
         # the settings (validated there): hard tests, no learnable thresholds
-        self.temporal = TemporalReprojection(position_threshold, normal_threshold, alpha, warmup, max_history,
-                                             sampling, backend=backend)
+        self.temporal = TemporalReprojection(
+            position_threshold, normal_threshold, alpha, warmup, max_history, sampling, backend=backend
+        )
         self.stereo = bool(stereo)
         if self.stereo:
             self.input_fields = type(self).input_fields + OTHER_FIELDS
@@ -486,49 +675,115 @@ class ReprojectionDenoiser(nn.Module):
             missing = [n for n in OTHER_NAMES if n not in given]
             raise ParameterTypeError(f"ReprojectionDenoiser(stereo=True).{method} needs {', '.join(missing)}")
         if not self.stereo and given:
-            raise ParameterTypeError(f"ReprojectionDenoiser(stereo=False).{method} got {', '.join(given)}: "
-                                     "construct it with stereo=True for stereo features")
+            raise ParameterTypeError(
+                f"ReprojectionDenoiser(stereo=False).{method} got {', '.join(given)}: "
+                "construct it with stereo=True for stereo features"
+            )
         return others if self.stereo else None
 
-    def _views(self, current_color: Tensor, current: tuple, history: tuple, previous: tuple, others: tuple,
-               method: str) -> tuple:
+    def _views(
+        self, current_color: Tensor, current: tuple, history: tuple, previous: tuple, others: tuple, method: str
+    ) -> tuple:
         """(view, History, prev_view, other) of the flat inputs, checked under their flat names."""
         other = self._other(others, method)
         return _flat_views(current_color, current, history, previous, other)
 
-    def features(self, current_color: Tensor, depth: Tensor, normal: Tensor, K: Tensor, cam_from_world: Tensor,
-                 history_color: Tensor, history_len: Tensor, prev_depth: Tensor, prev_normal: Tensor,
-                 prev_K: Tensor, prev_cam_from_world: Tensor, other_color: Tensor | None = None,
-                 other_depth: Tensor | None = None, other_normal: Tensor | None = None,
-                 other_K: Tensor | None = None, other_cam_from_world: Tensor | None = None
-                 ) -> tuple[Tensor, Tensor, Tensor]:
+    def features(
+        self,
+        current_color: Tensor,
+        depth: Tensor,
+        normal: Tensor,
+        K: Tensor,
+        cam_from_world: Tensor,
+        history_color: Tensor,
+        history_len: Tensor,
+        prev_depth: Tensor,
+        prev_normal: Tensor,
+        prev_K: Tensor,
+        prev_cam_from_world: Tensor,
+        other_color: Tensor | None = None,
+        other_depth: Tensor | None = None,
+        other_normal: Tensor | None = None,
+        other_K: Tensor | None = None,
+        other_cam_from_world: Tensor | None = None,
+    ) -> tuple[Tensor, Tensor, Tensor]:
         """The forward without the denoiser: (features, color, history_len) (:func:`reprojection_features`), the
         denoiser's training input."""
         view, history, prev_view, other = self._views(
-            current_color, (depth, normal, K, cam_from_world), (history_color, history_len),
+            current_color,
+            (depth, normal, K, cam_from_world),
+            (history_color, history_len),
             (prev_depth, prev_normal, prev_K, prev_cam_from_world),
-            (other_color, other_depth, other_normal, other_K, other_cam_from_world), "features")
+            (other_color, other_depth, other_normal, other_K, other_cam_from_world),
+            "features",
+        )
         t = self.temporal
-        return tuple(reprojection_features(current_color, view, history, prev_view, t.thresholds, blend=t.blend,
-                                           sampling=t.sampling, backend=t.backend, other=other))
+        return tuple(
+            reprojection_features(
+                current_color,
+                view,
+                history,
+                prev_view,
+                t.thresholds,
+                blend=t.blend,
+                sampling=t.sampling,
+                backend=t.backend,
+                other=other,
+            )
+        )
 
-    def forward(self, current_color: Tensor, depth: Tensor, normal: Tensor, K: Tensor, cam_from_world: Tensor,
-                history_color: Tensor, history_len: Tensor, prev_depth: Tensor, prev_normal: Tensor,
-                prev_K: Tensor, prev_cam_from_world: Tensor, other_color: Tensor | None = None,
-                other_depth: Tensor | None = None, other_normal: Tensor | None = None,
-                other_K: Tensor | None = None, other_cam_from_world: Tensor | None = None
-                ) -> tuple[Tensor, Tensor, Tensor]:
+    def forward(
+        self,
+        current_color: Tensor,
+        depth: Tensor,
+        normal: Tensor,
+        K: Tensor,
+        cam_from_world: Tensor,
+        history_color: Tensor,
+        history_len: Tensor,
+        prev_depth: Tensor,
+        prev_normal: Tensor,
+        prev_K: Tensor,
+        prev_cam_from_world: Tensor,
+        other_color: Tensor | None = None,
+        other_depth: Tensor | None = None,
+        other_normal: Tensor | None = None,
+        other_K: Tensor | None = None,
+        other_cam_from_world: Tensor | None = None,
+    ) -> tuple[Tensor, Tensor, Tensor]:
         view, history, prev_view, other = self._views(
-            current_color, (depth, normal, K, cam_from_world), (history_color, history_len),
+            current_color,
+            (depth, normal, K, cam_from_world),
+            (history_color, history_len),
             (prev_depth, prev_normal, prev_K, prev_cam_from_world),
-            (other_color, other_depth, other_normal, other_K, other_cam_from_world), "forward")
+            (other_color, other_depth, other_normal, other_K, other_cam_from_world),
+            "forward",
+        )
         t = self.temporal
-        return tuple(reproject_denoise(current_color, view, history, prev_view, self.denoiser, t.thresholds,
-                                       blend=t.blend, sampling=t.sampling, backend=t.backend, other=other))
+        return tuple(
+            reproject_denoise(
+                current_color,
+                view,
+                history,
+                prev_view,
+                self.denoiser,
+                t.thresholds,
+                blend=t.blend,
+                sampling=t.sampling,
+                backend=t.backend,
+                other=other,
+            )
+        )
 
 
-def denoiser_example_inputs(module: ReprojectionDenoiser, batch: int = 1, height: int = 24, width: int = 32,
-                            dtype: torch.dtype = torch.float32, seed: int = 0) -> tuple[Tensor, ...]:
+def denoiser_example_inputs(
+    module: ReprojectionDenoiser,
+    batch: int = 1,
+    height: int = 24,
+    width: int = 32,
+    dtype: torch.dtype = torch.float32,
+    seed: int = 0,
+) -> tuple[Tensor, ...]:
     """Synthetic inputs for ``module``'s forward, in the order of its ``input_names`` (for export and tests):
     :func:`stereorepro._testing.example_inputs`' temporal inputs (a stereo pair with head motion, one eye as the
     previous frame), and with ``stereo`` the other camera of that pair as the other eye.

@@ -20,8 +20,17 @@ Examples:
 
 from __future__ import annotations
 
-__all__ = ["StereoreproError", "ShapeError", "ParameterError", "ParameterTypeError", "SceneError", "SequenceError",
-           "CameraError", "UserError", "MissingDependencyError"]
+__all__ = [
+    "StereoreproError",
+    "ShapeError",
+    "ParameterError",
+    "ParameterTypeError",
+    "SceneError",
+    "SequenceError",
+    "CameraError",
+    "UserError",
+    "MissingDependencyError",
+]
 
 
 class StereoreproError(Exception):

@@ -27,5 +27,7 @@ class BaseTester:
         """Same dtype, shape and bytes (NaN where NaN)."""
         for g, r in zip(got, ref):
             assert g.dtype == r.dtype and g.shape == r.shape, (g.dtype, r.dtype, g.shape, r.shape)
-            assert torch.equal(g.detach().cpu().contiguous().view(-1).view(torch.uint8),
-                               r.detach().cpu().contiguous().view(-1).view(torch.uint8))
+            assert torch.equal(
+                g.detach().cpu().contiguous().view(-1).view(torch.uint8),
+                r.detach().cpu().contiguous().view(-1).view(torch.uint8),
+            )

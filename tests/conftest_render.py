@@ -27,7 +27,9 @@ def box_scene(tmp_path: Path, albedo: float, emission: float, half: float = 1.0,
     """A closed box (enclosure) whose every surface has the same albedo and emission."""
     lo = [c - half for c in center]
     hi = [c + half for c in center]
-    return write_scene(tmp_path, f"""
+    return write_scene(
+        tmp_path,
+        f"""
         effects = []
         num_frames = 1
         [geometry]
@@ -39,21 +41,27 @@ def box_scene(tmp_path: Path, albedo: float, emission: float, half: float = 1.0,
         vfov_deg = 60.0
         positions = [[{center[0]}, {center[1]}, {center[2] - 0.5 * half}]]
         targets = [[{center[0]}, {center[1]}, {center[2] + half}]]
-        """, "furnace")
+        """,
+        "furnace",
+    )
 
 
 def camera_looking(eye, target, up=(0.0, 1.0, 0.0), width=32, height=32, vfov=60.0) -> PinholeCamera:
     t = lambda a: torch.tensor([a], dtype=torch.float64)  # noqa: E731
-    return PinholeCamera(intrinsics_from_fov(vfov, width, height, dtype=torch.float64),
-                         look_at(t(eye), t(target), t(up)), height, width)
+    return PinholeCamera(
+        intrinsics_from_fov(vfov, width, height, dtype=torch.float64), look_at(t(eye), t(target), t(up)), height, width
+    )
 
 
-def plane_point_light_scene(tmp_path: Path, albedo=0.5, intensity=2.0, height=1.0, scale=1.0,
-                            offset=(0.0, 0.0, 0.0), extra="") -> Path:
+def plane_point_light_scene(
+    tmp_path: Path, albedo=0.5, intensity=2.0, height=1.0, scale=1.0, offset=(0.0, 0.0, 0.0), extra=""
+) -> Path:
     """A square plane y = offset_y (side 20*scale) under a point light at height*scale above (offset)."""
     s = 10.0 * scale
     ox, oy, oz = offset
-    return write_scene(tmp_path, f"""
+    return write_scene(
+        tmp_path,
+        f"""
         effects = []
         num_frames = 1
         [geometry]
@@ -67,7 +75,9 @@ def plane_point_light_scene(tmp_path: Path, albedo=0.5, intensity=2.0, height=1.
         type = "point"
         intensity = [{intensity}, {intensity}, {intensity}]
         position = [{ox}, {oy + height * scale}, {oz}]
-        """, "plane")
+        """,
+        "plane",
+    )
 
 
 def plane_radiance(points_world: torch.Tensor, light, albedo, intensity) -> torch.Tensor:

@@ -7,8 +7,7 @@ import pytest
 import torch
 
 from base import BaseTester
-from stereorepro import (PinholeCamera, SpatiotemporalReprojection, stereo_reproject, temporal_blend,
-                         temporal_reproject)
+from stereorepro import PinholeCamera, SpatiotemporalReprojection, stereo_reproject, temporal_blend, temporal_reproject
 from stereorepro.accumulate import EyeState, blend_histories, temporal_step, warp_history
 from stereorepro._testing import camera_pair, default_scene, raycast
 from stereorepro.camera import Eye
@@ -33,8 +32,14 @@ def _gbuffers(pose, baseline):
     out = {}
     for eye, cam in (("left", _left_of(right, baseline)), ("right", right)):
         gb = raycast(cam, scene)
-        out[eye] = dict(color=gb.color, clean=gb.color.float(), depth=gb.depth.float(),
-                        normal=gb.normal.float(), K=cam.K, cam_from_world=cam.cam_from_world)
+        out[eye] = dict(
+            color=gb.color,
+            clean=gb.color.float(),
+            depth=gb.depth.float(),
+            normal=gb.normal.float(),
+            K=cam.K,
+            cam_from_world=cam.cam_from_world,
+        )
     return out
 
 
@@ -73,8 +78,19 @@ class TestSpatiotemporalReprojection(BaseTester):
         st = SpatiotemporalReprojection(*THR, temporal=False, backend=be)
         f, right, mask, left = run_sequence(st, n=1)[0]
         r, lf = f["right"], f["left"]
-        ref, valid, _ = stereo_reproject(r["color"], r["depth"], r["normal"], r["K"], r["cam_from_world"],
-                                         lf["depth"], lf["normal"], lf["K"], lf["cam_from_world"], *THR, backend=be)
+        ref, valid, _ = stereo_reproject(
+            r["color"],
+            r["depth"],
+            r["normal"],
+            r["K"],
+            r["cam_from_world"],
+            lf["depth"],
+            lf["normal"],
+            lf["K"],
+            lf["cam_from_world"],
+            *THR,
+            backend=be,
+        )
         assert torch.equal(mask, ~valid) and 0 < mask.float().mean() < 0.3
         # stereo only: kept pixels are the reprojection, discarded ones the traced samples (only those are read)
         assert torch.equal(left, torch.where(valid, ref, lf["color"]))
@@ -92,9 +108,21 @@ class TestSpatiotemporalReprojection(BaseTester):
         f0, right0, *_ = outs[0]
         f1, right1, *_ = outs[1]
         r0, r1 = f0["right"], f1["right"]
-        ref, n, valid = temporal_reproject(r1["color"], r1["depth"], r1["normal"], r1["K"], r1["cam_from_world"],
-                                           right0, torch.ones_like(r0["depth"]), r0["depth"], r0["normal"],
-                                           r0["K"], r0["cam_from_world"], *THR, backend=be)
+        ref, n, valid = temporal_reproject(
+            r1["color"],
+            r1["depth"],
+            r1["normal"],
+            r1["K"],
+            r1["cam_from_world"],
+            right0,
+            torch.ones_like(r0["depth"]),
+            r0["depth"],
+            r0["normal"],
+            r0["K"],
+            r0["cam_from_world"],
+            *THR,
+            backend=be,
+        )
         assert torch.equal(right1, ref) and torch.equal(st.right_valid, valid)
 
     def test_accumulation_reduces_error(self, backend):
@@ -165,6 +193,7 @@ class TestSpatiotemporalReprojection(BaseTester):
 
 # --- beyond the paper: the blended left eye and alternating eyes ---------------------------------------------------
 
+
 def _blend_inputs(B=2, C=3, h=5, w=7, dtype=torch.float64, seed=0):
     """Random inputs of blend_histories: colours, counts in [0.5, 8] kept away from the kink at 1/alpha − 1 = 4,
     random keep masks (the arguments in blend_histories' order, alpha and the rest left out)."""
@@ -227,8 +256,8 @@ class TestBlendHistories(BaseTester):
         args = _blend_inputs(B=3, C=1)
         out, n = blend_histories(*args)
         for b in range(3):
-            ob, nb = blend_histories(*[a[b:b + 1] for a in args])
-            assert torch.equal(ob, out[b:b + 1]) and torch.equal(nb, n[b:b + 1])
+            ob, nb = blend_histories(*[a[b : b + 1] for a in args])
+            assert torch.equal(ob, out[b : b + 1]) and torch.equal(nb, n[b : b + 1])
         out0, n0 = blend_histories(*[a[:0] for a in args])
         assert out0.shape == (0, 1, 5, 7) and n0.shape == (0, 1, 5, 7)
 
@@ -280,14 +309,16 @@ class TestBlendHistories(BaseTester):
         n_h = torch.arange(35, dtype=torch.float64).reshape(1, 1, 5, 7).expand(2, 1, 5, 7) * 0.5  # 0 .. 17
         everywhere = torch.ones_like(sv)
         for alpha in (0.2, 0.1, 0.5):
-            out, n = blend_histories(traced, x, torch.ones_like(n_h), everywhere, hist, n_h, hv, alpha,
-                                     stereo_weight=1.0)
+            out, n = blend_histories(
+                traced, x, torch.ones_like(n_h), everywhere, hist, n_h, hv, alpha, stereo_weight=1.0
+            )
             ref, n_ref = temporal_blend(x, hist, n_h, hv, alpha)
             torch.testing.assert_close(out, ref, rtol=0, atol=1e-12)
             assert torch.equal(n, n_ref)
 
     def test_weight_rule_values(self):
         """Hand-computed cases of the rule: counts below the saturation, saturated, the cap, one history alone."""
+
         def one(v):
             return torch.full((1, 1, 1, 1), float(v), dtype=torch.float64)
 
@@ -347,24 +378,58 @@ class TestBlendedLeftEye(BaseTester):
         for (full, mask, out), (_, _, out_f), f in zip(outs, outs_fill, frames):
             assert full == "right" and torch.equal(out["left"], out_f["left"])
             r, lf = f["right"], f["left"]
-            r_state, _, _ = temporal_step(st.temporal_module, r_state, r["color"], r["depth"], r["normal"], r["K"],
-                                          r["cam_from_world"])
-            ref_s, valid, _ = stereo_reproject(r_state.color, r_state.depth, r_state.normal, r_state.K,
-                                               r_state.cam_from_world, lf["depth"], lf["normal"], lf["K"],
-                                               lf["cam_from_world"], *THR, backend=be)
-            ref_len, _, _ = stereo_reproject(r_state.history_len.expand(-1, 3, -1, -1), r_state.depth,
-                                             r_state.normal, r_state.K, r_state.cam_from_world, lf["depth"],
-                                             lf["normal"], lf["K"], lf["cam_from_world"], *THR, backend=be)
+            r_state, _, _ = temporal_step(
+                st.temporal_module, r_state, r["color"], r["depth"], r["normal"], r["K"], r["cam_from_world"]
+            )
+            ref_s, valid, _ = stereo_reproject(
+                r_state.color,
+                r_state.depth,
+                r_state.normal,
+                r_state.K,
+                r_state.cam_from_world,
+                lf["depth"],
+                lf["normal"],
+                lf["K"],
+                lf["cam_from_world"],
+                *THR,
+                backend=be,
+            )
+            ref_len, _, _ = stereo_reproject(
+                r_state.history_len.expand(-1, 3, -1, -1),
+                r_state.depth,
+                r_state.normal,
+                r_state.K,
+                r_state.cam_from_world,
+                lf["depth"],
+                lf["normal"],
+                lf["K"],
+                lf["cam_from_world"],
+                *THR,
+                backend=be,
+            )
             traced = torch.where(~valid, lf["color"], torch.zeros(()))
             if l_state is None:
                 filled, n = traced, torch.ones_like(lf["depth"])
             else:
-                filled, n, _ = temporal_reproject(traced, lf["depth"], lf["normal"], lf["K"], lf["cam_from_world"],
-                                                  l_state.color, l_state.history_len, l_state.depth, l_state.normal,
-                                                  l_state.K, l_state.cam_from_world, *THR, backend=be)
+                filled, n, _ = temporal_reproject(
+                    traced,
+                    lf["depth"],
+                    lf["normal"],
+                    lf["K"],
+                    lf["cam_from_world"],
+                    l_state.color,
+                    l_state.history_len,
+                    l_state.depth,
+                    l_state.normal,
+                    l_state.K,
+                    l_state.cam_from_world,
+                    *THR,
+                    backend=be,
+                )
             left = torch.where(valid, ref_s, filled)
-            l_state = EyeState(left, torch.where(valid, ref_len[:, :1], n), lf["depth"], lf["normal"], lf["K"],
-                               lf["cam_from_world"])
+            l_state = EyeState(
+                left, torch.where(valid, ref_len[:, :1], n), lf["depth"], lf["normal"], lf["K"], lf["cam_from_world"]
+            )
             assert torch.equal(mask, ~valid) and torch.equal(out["right"], r_state.color)
             assert torch.equal(out["left"], left)
         assert torch.equal(st.left_state.history_len, l_state.history_len)
@@ -397,10 +462,20 @@ class TestBlendedLeftEye(BaseTester):
         _, mask, out = run_eyes(st, frames[2:])[0]
         lf = frames[2]["left"]
         s_color, s_len = st._stereo_out
-        hist, n_h, valid, _ = warp_history(st.temporal_module, prev, lf["depth"], lf["normal"], lf["K"],
-                                           lf["cam_from_world"])
-        ref, n_ref = blend_histories(torch.where(mask, lf["color"], float("nan")), s_color, s_len, ~mask, hist,
-                                     n_h, valid, st.temporal_module.alpha, stereo_weight=st.stereo_weight)
+        hist, n_h, valid, _ = warp_history(
+            st.temporal_module, prev, lf["depth"], lf["normal"], lf["K"], lf["cam_from_world"]
+        )
+        ref, n_ref = blend_histories(
+            torch.where(mask, lf["color"], float("nan")),
+            s_color,
+            s_len,
+            ~mask,
+            hist,
+            n_h,
+            valid,
+            st.temporal_module.alpha,
+            stereo_weight=st.stereo_weight,
+        )
         assert torch.equal(out["left"], ref) and torch.equal(st.left_state.history_len, n_ref)
         assert torch.equal(st.left_valid, valid) and 0.5 < valid.float().mean() < 1.0
         # the blend differs from the fill where both histories exist
@@ -452,8 +527,10 @@ class TestBlendedLeftEye(BaseTester):
 
 class TestAlternateEyes(BaseTester):
     def test_smoke(self, backend):
-        outs = run_eyes(SpatiotemporalReprojection(*THR, alternate=True, backend=self.backend_arg(backend)),
-                        [frame(i) for i in range(2)])
+        outs = run_eyes(
+            SpatiotemporalReprojection(*THR, alternate=True, backend=self.backend_arg(backend)),
+            [frame(i) for i in range(2)],
+        )
         for full, mask, out in outs:
             assert out["left"].shape == out["right"].shape == (1, 3, H, W) and mask.dtype == torch.bool
 
@@ -471,20 +548,37 @@ class TestAlternateEyes(BaseTester):
             other = "left" if full == "right" else "right"
             if full == "left":
                 with pytest.raises(RuntimeError, match="left eye in full"):
-                    st.right(f["right"]["color"], f["right"]["depth"], f["right"]["normal"], f["right"]["K"],
-                             f["right"]["cam_from_world"])
+                    st.right(
+                        f["right"]["color"],
+                        f["right"]["depth"],
+                        f["right"]["normal"],
+                        f["right"]["K"],
+                        f["right"]["cam_from_world"],
+                    )
             a, b = f[full], f[other]
             prev = states[full]
             out_full = st.full(a["color"], a["depth"], a["normal"], a["K"], a["cam_from_world"])
-            ref_state, valid, _ = temporal_step(st.temporal_module, prev, a["color"], a["depth"], a["normal"],
-                                                a["K"], a["cam_from_world"])
+            ref_state, valid, _ = temporal_step(
+                st.temporal_module, prev, a["color"], a["depth"], a["normal"], a["K"], a["cam_from_world"]
+            )
             assert torch.equal(out_full, ref_state.color)
             if prev is not None:
                 assert torch.equal(st.full_valid, valid) and valid.float().mean() > 0.5
             assert (st.right_valid is None) == (full == "left" or prev is None)
             mask = st.other_trace_mask(b["depth"], b["normal"], b["K"], b["cam_from_world"])
-            ref_s, kept, _ = stereo_reproject(out_full, a["depth"], a["normal"], a["K"], a["cam_from_world"],
-                                              b["depth"], b["normal"], b["K"], b["cam_from_world"], *THR, backend=be)
+            ref_s, kept, _ = stereo_reproject(
+                out_full,
+                a["depth"],
+                a["normal"],
+                a["K"],
+                a["cam_from_world"],
+                b["depth"],
+                b["normal"],
+                b["K"],
+                b["cam_from_world"],
+                *THR,
+                backend=be,
+            )
             assert torch.equal(mask, ~kept) and 0 < mask.float().mean() < 0.3  # both directions reproject
             out_other = st.other(torch.where(mask, b["color"], float("nan")))
             assert torch.equal(torch.where(kept, out_other, 0.0), torch.where(kept, ref_s, 0.0))

@@ -56,8 +56,9 @@ def public_signatures():
 
 
 def test_no_public_function_takes_more_than_twelve_parameters():
-    too_long = [(qual, n) for qual, n, owner, attr in public_signatures()
-                if n > MAX_PARAMETERS and not _exempt(owner, attr)]
+    too_long = [
+        (qual, n) for qual, n, owner, attr in public_signatures() if n > MAX_PARAMETERS and not _exempt(owner, attr)
+    ]
     assert not too_long, f"public functions over {MAX_PARAMETERS} parameters: {too_long}"
 
 

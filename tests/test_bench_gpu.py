@@ -24,8 +24,14 @@ def test_no_cuda_device_exits_cleanly_writing_nothing():
     if torch.cuda.is_available():
         pytest.skip("a CUDA device is present: this is the no-device path")
     before = _stamp()
-    proc = subprocess.run(["bash", str(ROOT / "bench" / "gpu.sh")], cwd=ROOT, capture_output=True, text=True,
-                          timeout=120, env={**os.environ, "PYTHON": sys.executable})
+    proc = subprocess.run(
+        ["bash", str(ROOT / "bench" / "gpu.sh")],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "PYTHON": sys.executable},
+    )
     assert proc.returncode == 0, proc.stderr
     assert "no CUDA device" in proc.stdout and "nothing written" in proc.stdout
     assert _stamp() == before
@@ -34,9 +40,28 @@ def test_no_cuda_device_exits_cleanly_writing_nothing():
 @pytest.mark.onnx
 def test_cpu_dry_run(tmp_path):
     """The timing, onnxruntime and save code paths on the CPU at a tiny size (the GPU run differs in the device)."""
-    proc = subprocess.run([sys.executable, str(ROOT / "bench" / "gpu.py"), "--device", "cpu", "--sizes", "48x32",
-                           "--repeats", "2", "--warmup", "1", "--save", "gpu_test", "--results-dir", str(tmp_path)],
-                          cwd=ROOT, capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "bench" / "gpu.py"),
+            "--device",
+            "cpu",
+            "--sizes",
+            "48x32",
+            "--repeats",
+            "2",
+            "--warmup",
+            "1",
+            "--save",
+            "gpu_test",
+            "--results-dir",
+            str(tmp_path),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     rec = json.loads((tmp_path / "gpu_test.json").read_text())
     assert rec["device"] == "cpu" and rec["gpu"] is None and rec["tests"] is None
@@ -50,6 +75,11 @@ def test_cpu_dry_run(tmp_path):
 
 
 def test_bad_size_is_a_usage_error():
-    proc = subprocess.run([sys.executable, str(ROOT / "bench" / "gpu.py"), "--device", "cpu", "--sizes", "720"],
-                          cwd=ROOT, capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "bench" / "gpu.py"), "--device", "cpu", "--sizes", "720"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 2 and "720p, 1080p, 2160p or WxH" in proc.stderr

@@ -160,7 +160,7 @@ class TestJitter:
         for length in (1, 2, 8, 16, 17):
             offs = [jitter_offset(f, length) for f in range(-length, 3 * length)]
             assert all(-0.5 <= v < 0.5 for o in offs for v in o)
-            assert offs[:length] == offs[length:2 * length] == offs[2 * length:3 * length]  # period, negative too
+            assert offs[:length] == offs[length : 2 * length] == offs[2 * length : 3 * length]  # period, negative too
             assert len(set(offs[:length])) == length
         seq = torch.tensor([jitter_offset(f) for f in range(16)], dtype=torch.float64)
         assert seq.mean(0).abs().max() < 0.05  # well spread about the pixel centre
@@ -173,8 +173,9 @@ class TestJitter:
         K = torch.tensor([[[300.0, 1.5, 33.0], [0.0, 280.0, 21.0], [0.0, 0.0, 1.0]]], dtype=torch.float64)
         cam = PinholeCamera(K, _head(), 40, 64)
         jit = cam.jittered(dx, dy)
-        pts = cam.unproject(torch.rand(1, 1, 40, 64, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
-                            * 5 + 0.5)
+        pts = cam.unproject(
+            torch.rand(1, 1, 40, 64, dtype=torch.float64, generator=torch.Generator().manual_seed(0)) * 5 + 0.5
+        )
         uv, z = cam.project(pts)
         uv_j, z_j = jit.project(pts)
         shift = torch.tensor([dx, dy], dtype=torch.float64).view(1, 2, 1, 1)

@@ -13,9 +13,19 @@ from torch import nn
 
 from base import BaseTester
 from conftest import load_script
-from stereorepro import (CameraError, ReprojectionDenoiser, ShapeError, TemporalReprojection, denoise_features,
-                         empty_history, export_onnx, reproject_denoise, reprojection_features, stereo_reproject,
-                         temporal_step)
+from stereorepro import (
+    CameraError,
+    ReprojectionDenoiser,
+    ShapeError,
+    TemporalReprojection,
+    denoise_features,
+    empty_history,
+    export_onnx,
+    reproject_denoise,
+    reprojection_features,
+    stereo_reproject,
+    temporal_step,
+)
 from stereorepro.denoise import FEATURES, OTHER_NAMES, STEREO_FEATURES, denoiser_example_inputs, feature_channels
 from stereorepro.errors import StereoreproError
 from stereorepro.reproject import History, View
@@ -44,8 +54,9 @@ def make(stereo: bool = False, seed: int = 0, **kw) -> ReprojectionDenoiser:
 
 
 def inputs(model, height=H, width=W, dtype=torch.float32, seed=0, device="cpu"):
-    return tuple(x.to(device) for x in denoiser_example_inputs(model, height=height, width=width, dtype=dtype,
-                                                               seed=seed))
+    return tuple(
+        x.to(device) for x in denoiser_example_inputs(model, height=height, width=width, dtype=dtype, seed=seed)
+    )
 
 
 def frame(i):
@@ -53,8 +64,13 @@ def frame(i):
     _, cam = camera_pair(H, W, baseline=0.065, forward=0.03 * i, yaw_deg=0.3 * i)
     g = raycast(cam, default_scene())
     noise = 2 * torch.rand(g.color.shape, generator=torch.Generator().manual_seed(i), dtype=torch.float64)
-    return dict(color=(g.color * noise).float(), depth=g.depth.float(), normal=g.normal.float(),
-                K=cam.K.float(), cam_from_world=cam.cam_from_world.float())
+    return dict(
+        color=(g.color * noise).float(),
+        depth=g.depth.float(),
+        normal=g.normal.float(),
+        K=cam.K.float(),
+        cam_from_world=cam.cam_from_world.float(),
+    )
 
 
 def assert_parity(ref, got, atol=1e-4):
@@ -223,8 +239,9 @@ class TestReprojectionDenoiser(BaseTester):
         stereo = make(True)
         sx = list(inputs(stereo))
         t = sx[index]
-        sx[index] = {"size": (t[..., :-1] if t.dim() == 4 else t[:, :2]), "batch": torch.cat([t, t]),
-                     "dtype": t.int()}[bad]
+        sx[index] = {"size": (t[..., :-1] if t.dim() == 4 else t[:, :2]), "batch": torch.cat([t, t]), "dtype": t.int()}[
+            bad
+        ]
         name = stereo.input_names[index]
         with pytest.raises((ShapeError, TypeError)) as info:
             stereo(*sx)
@@ -239,11 +256,13 @@ class TestReprojectionDenoiser(BaseTester):
         view, history, prev = View(*sx[1:5]), History(sx[5], sx[6]), View(*sx[7:11])
         o_view = View(*sx[12:16])
         two = View(*(torch.cat([t, t]) for t in sx[12:16]))
-        for other, match in (((sx[11][..., :-1], o_view), r"other_color \(the other eye's colour\): .* W=32"),
-                             ((sx[11][:, :2], o_view), r"other_color \(the other eye's colour\)"),
-                             ((sx[11].int(), o_view), "other_color: expected a floating"),
-                             ((torch.cat([sx[11], sx[11]]), two), "other_view: batch size 2"),
-                             ((sx[11], sx[12]), r"other: expected \(other_color, other_view: View\)")):
+        for other, match in (
+            ((sx[11][..., :-1], o_view), r"other_color \(the other eye's colour\): .* W=32"),
+            ((sx[11][:, :2], o_view), r"other_color \(the other eye's colour\)"),
+            ((sx[11].int(), o_view), "other_color: expected a floating"),
+            ((torch.cat([sx[11], sx[11]]), two), "other_view: batch size 2"),
+            ((sx[11], sx[12]), r"other: expected \(other_color, other_view: View\)"),
+        ):
             with pytest.raises(StereoreproError, match=match):
                 reprojection_features(sx[0], view, history, prev, THR, other=other)
 

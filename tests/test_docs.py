@@ -24,8 +24,13 @@ def test_quick_start_runs_verbatim(tmp_path):
     assert len(code.splitlines()) <= 25
     script = tmp_path / "quick_start.py"
     script.write_text(code, encoding="utf-8")
-    run = subprocess.run([sys.executable, "-W", "error::DeprecationWarning", str(script)], cwd=tmp_path,
-                         capture_output=True, text=True, timeout=300)
+    run = subprocess.run(
+        [sys.executable, "-W", "error::DeprecationWarning", str(script)],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert run.returncode == 0, run.stderr
     assert "stereo: valid on" in run.stdout and "frame 3:" in run.stdout
 

@@ -74,14 +74,22 @@ class TestExamples:
         ex = load_example("denoiser_preprocess")
         g = torch.Generator().manual_seed(0)
         F, H, W = 2, 6, 8
-        clip = {"color": torch.rand(F, 3, H, W, generator=g) * 3 - 0.5, "albedo": torch.rand(F, 3, H, W, generator=g),
-                "normal": torch.nn.functional.normalize(torch.randn(F, 3, H, W, generator=g), dim=1),
-                "accumulated": torch.rand(F, 3, H, W, generator=g) * 2 - 0.2,
-                "valid": (torch.rand(F, 1, H, W, generator=g) > 0.5).float(),
-                "history_len": torch.randint(1, 256, (F, 1, H, W), generator=g).float()}
-        documented = [torch.log1p(clip["color"].clamp_min(0)), clip["albedo"], clip["normal"],
-                      torch.log1p(clip["accumulated"].clamp_min(0)), clip["valid"],
-                      torch.log1p(clip["history_len"]) / np.log(256.0)]
+        clip = {
+            "color": torch.rand(F, 3, H, W, generator=g) * 3 - 0.5,
+            "albedo": torch.rand(F, 3, H, W, generator=g),
+            "normal": torch.nn.functional.normalize(torch.randn(F, 3, H, W, generator=g), dim=1),
+            "accumulated": torch.rand(F, 3, H, W, generator=g) * 2 - 0.2,
+            "valid": (torch.rand(F, 1, H, W, generator=g) > 0.5).float(),
+            "history_len": torch.randint(1, 256, (F, 1, H, W), generator=g).float(),
+        }
+        documented = [
+            torch.log1p(clip["color"].clamp_min(0)),
+            clip["albedo"],
+            clip["normal"],
+            torch.log1p(clip["accumulated"].clamp_min(0)),
+            clip["valid"],
+            torch.log1p(clip["history_len"]) / np.log(256.0),
+        ]
         plain, reprojected = ex.features(clip, False), ex.features(clip, True)
         assert plain.shape[1] == 9 and reprojected.shape[1] == 14
         assert torch.equal(plain, torch.cat(documented[:3], 1))
@@ -107,7 +115,6 @@ class TestExamples:
             h = res["held_out"][label]
             assert np.isfinite(h["rmse_mean"]) and h["effective_spp_median"] > 0
 
-
     def test_train_thresholds_learned_beat_hand_set(self, tmp_path):
         """What the example shows (docs/guides/denoisers.md): given enough training frames, the learned thresholds and alpha
         beat the hand-set ones on held-out frames (with hard tests). A fixed small case: 64x36, 60 Adam steps over
@@ -127,8 +134,10 @@ class TestExamples:
 
 
 # ---------------------------------------------------------------------------------------------- support table
-MODULES = {"stereo": lambda: StereoReprojection(0.05, 0.2, backend="torch"),
-           "temporal": lambda: TemporalReprojection(0.05, 0.2, backend="torch")}
+MODULES = {
+    "stereo": lambda: StereoReprojection(0.05, 0.2, backend="torch"),
+    "temporal": lambda: TemporalReprojection(0.05, 0.2, backend="torch"),
+}
 LOW = {"float16": torch.float16, "bfloat16": torch.bfloat16}
 
 
@@ -156,8 +165,10 @@ class TestSupportTable:
         """float16/bfloat16 colour with float32 G-buffers: same decisions, output in the colour's dtype."""
         module = MODULES[kind]().to(device)
         ref = module(*_inputs(module, torch.float32, device))
-        xs = tuple(x.to(LOW[low]) if name.endswith("color") else x
-                   for name, x in zip(module.input_names, _inputs(module, torch.float32, device)))
+        xs = tuple(
+            x.to(LOW[low]) if name.endswith("color") else x
+            for name, x in zip(module.input_names, _inputs(module, torch.float32, device))
+        )
         out = module(*xs)
         assert out[0].dtype == LOW[low] and torch.equal(out[-1], ref[-1])
         tol = 2e-3 if low == "float16" else 1.6e-2  # half an ulp at 1.0, relative

@@ -66,7 +66,7 @@ def _imports(name: str, path: Path, modules) -> set[str]:
         elif isinstance(node, ast.ImportFrom):
             mod = node.module or ""
             if node.level:
-                anchor = base[:len(base) - (node.level - 1)]
+                anchor = base[: len(base) - (node.level - 1)]
                 mod = ".".join(anchor + ([mod] if mod else []))
             targets = [f"{mod}.{a.name}" for a in node.names]
         for t in targets:
@@ -170,7 +170,8 @@ class TestLayers:
             "stereorepro.accumulate -> stereorepro._testing (only ['stereorepro.denoise', 'stereorepro.io.onnx'] "
             "import the test inputs)",
             "stereorepro.io.frames (io) -> stereorepro.render.tracer (render)",
-            "stereorepro.measure.metrics (measure) -> stereorepro (cli)"]
+            "stereorepro.measure.metrics (measure) -> stereorepro (cli)",
+        ]
 
     def test_relative_imports_resolve(self):
         """``from .. import _backend`` is an import of the module, ``from .. import _core`` of the compiled core."""
@@ -197,7 +198,8 @@ class TestImportGraph:
         """The check itself fails on a graph with a cycle (here: the one the native wrapper used to close)."""
         graph = _graph()
         graph["stereorepro.reproject._native"] = graph["stereorepro.reproject._native"] | {
-            "stereorepro.reproject.functional"}
+            "stereorepro.reproject.functional"
+        }
         assert _cycles(graph) == [["stereorepro.reproject._native", "stereorepro.reproject.functional"]]
 
     def test_native_wrapper_is_a_leaf(self):
@@ -206,14 +208,23 @@ class TestImportGraph:
 
     def test_only_one_file_imports_embreex(self):
         """(An import statement or the optional-dependency helper, ``require("embreex...")``.)"""
+
         def imports_embreex(x) -> bool:
             if isinstance(x, (ast.Import, ast.ImportFrom)):
                 return "embreex" in ast.dump(x)
-            return (isinstance(x, ast.Call) and getattr(x.func, "id", None) == "require" and bool(x.args)
-                    and isinstance(x.args[0], ast.Constant) and str(x.args[0].value).startswith("embreex"))
+            return (
+                isinstance(x, ast.Call)
+                and getattr(x.func, "id", None) == "require"
+                and bool(x.args)
+                and isinstance(x.args[0], ast.Constant)
+                and str(x.args[0].value).startswith("embreex")
+            )
 
-        users = [n for n, p in _modules().items() if "embreex" in p.read_text()
-                 and any(imports_embreex(x) for x in ast.walk(ast.parse(p.read_text())))]
+        users = [
+            n
+            for n, p in _modules().items()
+            if "embreex" in p.read_text() and any(imports_embreex(x) for x in ast.walk(ast.parse(p.read_text())))
+        ]
         assert users == ["stereorepro.render._embree"]
 
 
@@ -221,8 +232,10 @@ class TestLightImport:
     HEAVY = ("embreex", "OpenEXR", "matplotlib", "mitsuba", "trimesh", "onnx", "onnxruntime", "kornia")
 
     def _loaded(self, code: str) -> list[str]:
-        probe = (f"import sys\n{code}\nimport json\n"
-                 f"print(json.dumps(sorted({{m.split('.')[0] for m in sys.modules}} & set({list(self.HEAVY)!r}))))")
+        probe = (
+            f"import sys\n{code}\nimport json\n"
+            f"print(json.dumps(sorted({{m.split('.')[0] for m in sys.modules}} & set({list(self.HEAVY)!r}))))"
+        )
         res = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
         return json.loads(res.stdout.strip().splitlines()[-1])
 
@@ -231,37 +244,102 @@ class TestLightImport:
 
     def test_renderer_loads_on_first_use(self):
         assert "embreex" in self._loaded("from stereorepro import PathTracer")
-        assert "OpenEXR" in self._loaded("import stereorepro, numpy as np, tempfile, os\n"
-                                         "stereorepro.write_exr(os.path.join(tempfile.mkdtemp(), 'a.exr'), "
-                                         "{'R': np.zeros((2, 2), np.float32)})")
+        assert "OpenEXR" in self._loaded(
+            "import stereorepro, numpy as np, tempfile, os\n"
+            "stereorepro.write_exr(os.path.join(tempfile.mkdtemp(), 'a.exr'), "
+            "{'R': np.zeros((2, 2), np.float32)})"
+        )
 
 
 class TestPublicSurface:
     #: Every name ``stereorepro`` exported before the restructure (4a85799^).
-    NAMES = ["PinholeCamera", "StereoRig", "has_surface", "intrinsics_from_fov", "invert_rigid", "look_at",
-             "pixel_centers", "project", "unproject", "Reason", "StereoReprojection", "TemporalReprojection",
-             "backward_reproject", "reason_to_rgb", "stereo_reproject", "temporal_blend", "temporal_reproject",
-             "export_onnx", "EFFECTIVE_SPP_FLAGS", "EffectiveSppLadder", "effective_spp", "effective_spp_many",
-             "fit_ladder", "ladder_rmse", "mse", "rmse", "ssim", "suggest_reference_spp",
-             "SpatiotemporalReprojection", "PathTracer", "RenderResult", "read_exr", "write_exr", "list_scenes",
-             "load_scene", "__version__"]
+    NAMES = [
+        "PinholeCamera",
+        "StereoRig",
+        "has_surface",
+        "intrinsics_from_fov",
+        "invert_rigid",
+        "look_at",
+        "pixel_centers",
+        "project",
+        "unproject",
+        "Reason",
+        "StereoReprojection",
+        "TemporalReprojection",
+        "backward_reproject",
+        "reason_to_rgb",
+        "stereo_reproject",
+        "temporal_blend",
+        "temporal_reproject",
+        "export_onnx",
+        "EFFECTIVE_SPP_FLAGS",
+        "EffectiveSppLadder",
+        "effective_spp",
+        "effective_spp_many",
+        "fit_ladder",
+        "ladder_rmse",
+        "mse",
+        "rmse",
+        "ssim",
+        "suggest_reference_spp",
+        "SpatiotemporalReprojection",
+        "PathTracer",
+        "RenderResult",
+        "read_exr",
+        "write_exr",
+        "list_scenes",
+        "load_scene",
+        "__version__",
+    ]
     #: Sub-packages and the names they export.
     MODULES = {
-        "stereorepro.scenes": ["Scene", "SceneError", "SceneGeometry", "list_scenes", "load_scene", "scenes_dir",
-                               "shared_scenes_dir", "KNOWN_EFFECTS", "expand_path"],
+        "stereorepro.scenes": [
+            "Scene",
+            "SceneError",
+            "SceneGeometry",
+            "list_scenes",
+            "load_scene",
+            "scenes_dir",
+            "shared_scenes_dir",
+            "KNOWN_EFFECTS",
+            "expand_path",
+        ],
         "stereorepro.render": ["PathTracer", "RenderResult", "ray_epsilon"],
-        "stereorepro.io": ["atomic_path", "atomic_write", "read_exr", "write_exr", "exr_to_tensors", "export_onnx",
-                           "onnx_input_dims"],
+        "stereorepro.io": [
+            "atomic_path",
+            "atomic_write",
+            "read_exr",
+            "write_exr",
+            "exr_to_tensors",
+            "export_onnx",
+            "onnx_input_dims",
+        ],
         "stereorepro.measure": ["rmse", "effective_spp_many", "ladder_rmse", "EffectiveSppLadder"],
-        "stereorepro.workflows.experiment": ["ExperimentConfig", "run_experiment", "REFERENCE_OFFSET", "SCHEMES",
-                                             "RenderCache", "tables_markdown", "THRESHOLD_ROWS"],
+        "stereorepro.workflows.experiment": [
+            "ExperimentConfig",
+            "run_experiment",
+            "REFERENCE_OFFSET",
+            "SCHEMES",
+            "RenderCache",
+            "tables_markdown",
+            "THRESHOLD_ROWS",
+        ],
         "stereorepro._checks": ["ShapeError", "check_shape"],
         "stereorepro.cli": ["main", "parse_resolution", "UserError", "build_parser"],
     }
     #: Module paths of an earlier layout: gone (module paths inside the package are not a contract).
-    REMOVED = ["stereorepro.native", "stereorepro.pipeline", "stereorepro.reproject_cli", "stereorepro.experiment",
-               "stereorepro.onnx_export", "stereorepro.metrics", "stereorepro.synthetic", "stereorepro.io.sequence",
-               "stereorepro.io.diagnose", "stereorepro.measure.experiment"]
+    REMOVED = [
+        "stereorepro.native",
+        "stereorepro.pipeline",
+        "stereorepro.reproject_cli",
+        "stereorepro.experiment",
+        "stereorepro.onnx_export",
+        "stereorepro.metrics",
+        "stereorepro.synthetic",
+        "stereorepro.io.sequence",
+        "stereorepro.io.diagnose",
+        "stereorepro.measure.experiment",
+    ]
 
     def test_old_names_importable(self):
         for name in self.NAMES:
@@ -345,8 +423,12 @@ for name in {block!r}:
 
 
 def _run_blocked(block, code: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-c", _BLOCKED.format(block=list(block), code=code)],
-                          capture_output=True, text=True, check=False)
+    return subprocess.run(
+        [sys.executable, "-c", _BLOCKED.format(block=list(block), code=code)],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
 
 
 class TestExtras:
@@ -375,22 +457,42 @@ sys.exit(10 + main(["demo", "--frames", "1", "--out", "/nonexistent/demo"]))
         assert "pip install 'stereorepro[experiment]'" in err[0], err
 
     #: A scene file with a mesh: loading its geometry needs trimesh.
-    MESH_SCENE = ("import tempfile, os; from stereorepro import load_scene\n"
-                  "p = os.path.join(tempfile.mkdtemp(), 's.toml')\n"
-                  "open(p, 'w').write(open(load_scene('living_room').source).read()"
-                  ".replace('generator = \"living_room\"', 'mesh = \"x.ply\"'))\n"
-                  "load_scene(p).geometry()")
+    MESH_SCENE = (
+        "import tempfile, os; from stereorepro import load_scene\n"
+        "p = os.path.join(tempfile.mkdtemp(), 's.toml')\n"
+        "open(p, 'w').write(open(load_scene('living_room').source).read()"
+        ".replace('generator = \"living_room\"', 'mesh = \"x.ply\"'))\n"
+        "load_scene(p).geometry()"
+    )
 
-    @pytest.mark.parametrize("block, code, extra", [
-        ("embreex", "from stereorepro import PathTracer", "render"),
-        ("trimesh", MESH_SCENE, "render"),
-        ("OpenEXR", ("import stereorepro, numpy as np\n"
-                     "stereorepro.write_exr('/nonexistent/a.exr', {'R': np.zeros((2, 2), np.float32)})"), "exr"),
-        ("kornia", "import torch, stereorepro\nstereorepro.ssim(torch.rand(1, 3, 16, 16), torch.rand(1, 3, 16, 16))",
-         "experiment"),
-        ("flip_evaluator", ("import torch\nfrom stereorepro.measure.metrics import flip\n"
-                            "flip(torch.rand(1, 3, 16, 16), torch.rand(1, 3, 16, 16))"), "experiment"),
-    ])
+    @pytest.mark.parametrize(
+        "block, code, extra",
+        [
+            ("embreex", "from stereorepro import PathTracer", "render"),
+            ("trimesh", MESH_SCENE, "render"),
+            (
+                "OpenEXR",
+                (
+                    "import stereorepro, numpy as np\n"
+                    "stereorepro.write_exr('/nonexistent/a.exr', {'R': np.zeros((2, 2), np.float32)})"
+                ),
+                "exr",
+            ),
+            (
+                "kornia",
+                "import torch, stereorepro\nstereorepro.ssim(torch.rand(1, 3, 16, 16), torch.rand(1, 3, 16, 16))",
+                "experiment",
+            ),
+            (
+                "flip_evaluator",
+                (
+                    "import torch\nfrom stereorepro.measure.metrics import flip\n"
+                    "flip(torch.rand(1, 3, 16, 16), torch.rand(1, 3, 16, 16))"
+                ),
+                "experiment",
+            ),
+        ],
+    )
     def test_missing_extra_is_named(self, block, code, extra):
         res = _run_blocked([block], code)
         last = res.stderr.strip().splitlines()[-1]
@@ -408,8 +510,9 @@ sys.exit(10 + main(["demo", "--frames", "1", "--out", "/nonexistent/demo"]))
             _extras.require("kornia", "ssim")
         assert isinstance(info.value, ImportError) and isinstance(info.value, StereoreproError)
         assert info.value.extra == "experiment" and info.value.name == "kornia"
-        assert str(info.value).startswith("ssim needs kornia, which is not installed: pip install "
-                                          "'stereorepro[experiment]'")
+        assert str(info.value).startswith(
+            "ssim needs kornia, which is not installed: pip install 'stereorepro[experiment]'"
+        )
 
         def broken(name):
             raise ImportError("libfoo.so: cannot open shared object file", name="libfoo")
@@ -439,7 +542,7 @@ sys.exit(10 + main(["demo", "--frames", "1", "--out", "/nonexistent/demo"]))
             for req in extras[extra]:
                 name = re.match(r"[A-Za-z0-9_.-]+(\[[^]]*\])?", req).group(0)
                 if name.startswith("stereorepro["):
-                    for sub in name[len("stereorepro["):-1].split(","):
+                    for sub in name[len("stereorepro[") : -1].split(","):
                         out |= names(sub)
                 else:
                     out.add(name.lower())

@@ -61,8 +61,9 @@ def alpha_list(s: str) -> tuple[float, ...]:
         try:
             a = float(part)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"expected comma-separated numbers in (0, 1], got {part.strip()!r}") \
-                from None
+            raise argparse.ArgumentTypeError(
+                f"expected comma-separated numbers in (0, 1], got {part.strip()!r}"
+            ) from None
         if not (math.isfinite(a) and 0.0 < a <= 1.0):
             raise argparse.ArgumentTypeError(f"expected numbers in (0, 1], got {part.strip()!r}")
         out.append(a)

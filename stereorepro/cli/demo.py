@@ -9,13 +9,16 @@ from __future__ import annotations
 
 from .experiment import add_arguments, run_command
 
-DEFAULTS = dict(scene="living_room", frames=24, resolution=(240, 135), reference_spp=128, ladder_spp=16,
-                out="runs/demo")
+DEFAULTS = dict(
+    scene="living_room", frames=24, resolution=(240, 135), reference_spp=128, ladder_spp=16, out="runs/demo"
+)
 
 
 def _cmd(args) -> int:
-    print(f"stereorepro demo: scene {args.scene}, {args.frames} frames at {args.resolution[0]}x{args.resolution[1]}, "
-          f"reference {args.reference_spp} spp, ladder 1..{args.ladder_spp} spp -> {args.out}")
+    print(
+        f"stereorepro demo: scene {args.scene}, {args.frames} frames at {args.resolution[0]}x{args.resolution[1]}, "
+        f"reference {args.reference_spp} spp, ladder 1..{args.ladder_spp} spp -> {args.out}"
+    )
     return run_command(args)
 
 

@@ -28,8 +28,9 @@ from .._version import __version__
 from ..errors import MissingDependencyError, UserError
 from ._args import parse_resolution  # noqa: F401  (re-exported: the shared argument types live in _args)
 
-DESCRIPTION = ("stereorepro: spatiotemporal sample reprojection for stereoscopic path tracing "
-               "(also: python -m stereorepro).")
+DESCRIPTION = (
+    "stereorepro: spatiotemporal sample reprojection for stereoscopic path tracing (also: python -m stereorepro)."
+)
 EPILOG = "Run 'stereorepro COMMAND --help' for a command's options and their defaults."
 #: reST / Markdown markup in help texts: ``literal``, `literal`, :role:`target`.
 _MARKUP = re.compile(r":[a-z]+:`~?([^`]*)`|``([^`]*)``|`([^`]*)`")
@@ -71,6 +72,7 @@ class _VersionAction(argparse.Action):
     def __call__(self, parser, namespace, values, option_string=None):
         try:
             from .. import _core  # noqa: F401
+
             native = "native core: built"
         except ImportError:
             native = "native core: not built (torch / numpy paths)"
@@ -108,8 +110,9 @@ def _show_defaults(parser: argparse.ArgumentParser) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="stereorepro", description=DESCRIPTION, epilog=EPILOG)
-    parser.add_argument("--version", action=_VersionAction, help="print the version and whether the native core is "
-                        "built, and exit")
+    parser.add_argument(
+        "--version", action=_VersionAction, help="print the version and whether the native core is built, and exit"
+    )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     # each command module imports its heavy dependencies inside its commands
     from . import demo, experiment, render, reproject
@@ -121,8 +124,21 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 #: errno values of an OSError that are the machine's answer to the user, not a bug: exit 2 with one line.
-USER_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EACCES, errno.EPERM, errno.EROFS, errno.EFBIG,
-                         errno.ENAMETOOLONG, errno.ENOTDIR, errno.EISDIR, errno.ENOENT, errno.EEXIST})
+USER_ERRNOS = frozenset(
+    {
+        errno.ENOSPC,
+        errno.EDQUOT,
+        errno.EACCES,
+        errno.EPERM,
+        errno.EROFS,
+        errno.EFBIG,
+        errno.ENAMETOOLONG,
+        errno.ENOTDIR,
+        errno.EISDIR,
+        errno.ENOENT,
+        errno.EEXIST,
+    }
+)
 
 
 def _os_error_line(e: OSError) -> str:

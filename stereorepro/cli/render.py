@@ -16,8 +16,9 @@ RENDER_BYTES_PER_PIXEL = 160
 SAMPLE_LIMIT = 2**63
 
 
-def check_environment(what: str, width: int | None = None, height: int | None = None,
-                      bytes_per_pixel: int = RENDER_BYTES_PER_PIXEL) -> None:
+def check_environment(
+    what: str, width: int | None = None, height: int | None = None, bytes_per_pixel: int = RENDER_BYTES_PER_PIXEL
+) -> None:
     """A command's checks of the machine before it creates anything: ``STEREOREPRO_BACKEND`` names a backend and,
     given a resolution, its memory estimate fits (UserError naming the variable or the estimate)."""
     try:
@@ -50,8 +51,10 @@ def _cmd_scenes(args) -> int:
             continue
         missing = _missing_mesh(s)
         if missing is not None:
-            print(f"{name:28s} unavailable: mesh not found: {missing} (set ${SHARED_ENV} to the folder of the shared "
-                  "meshes, or pass --shared-scenes)")
+            print(
+                f"{name:28s} unavailable: mesh not found: {missing} (set ${SHARED_ENV} to the folder of the shared "
+                "meshes, or pass --shared-scenes)"
+            )
             continue
         effects = ",".join(sorted(s.effects)) or "diffuse"
         print(f"{name:28s} {effects:14s} frames={s.num_frames:<4d} {s.description}")
@@ -70,8 +73,10 @@ def _cmd_render(args) -> int:
     if not args.out.lower().endswith(".exr"):
         raise UserError(f"--out must be an .exr file, got {args.out}")
     if args.sample_offset + args.spp > SAMPLE_LIMIT:
-        raise UserError(f"--sample-offset + --spp must be at most 2**63 (the renderer's 64-bit sample index), got "
-                        f"{args.sample_offset} + {args.spp}")
+        raise UserError(
+            f"--sample-offset + --spp must be at most 2**63 (the renderer's 64-bit sample index), got "
+            f"{args.sample_offset} + {args.spp}"
+        )
     check_environment("render", *args.resolution)
     try:
         scene = load_scene(args.scene)
@@ -81,8 +86,14 @@ def _cmd_render(args) -> int:
         left, right = scene.stereo_cameras(args.frame, w, h)
         cam = {"left": left, "right": right, "head": scene.camera(args.frame, w, h)}[args.eye]
         tracer = PathTracer(scene, seed=args.seed, workers=args.workers)
-        res = tracer.render(cam, args.frame, args.spp, sample_offset=args.sample_offset,
-                            eye=Eye.RIGHT if args.eye == "right" else Eye.LEFT, progress=not args.quiet)
+        res = tracer.render(
+            cam,
+            args.frame,
+            args.spp,
+            sample_offset=args.sample_offset,
+            eye=Eye.RIGHT if args.eye == "right" else Eye.LEFT,
+            progress=not args.quiet,
+        )
     except SceneError as e:
         raise UserError(str(e)) from None
     write_exr(args.out, res)  # a full disk / permission error: exit 2 with one line (cli.main's policy)
@@ -93,11 +104,13 @@ def _cmd_render(args) -> int:
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("scenes", help="list the built-in scenes and the shared-mesh scenes, with their "
-                              "availability")
+    p = subparsers.add_parser(
+        "scenes", help="list the built-in scenes and the shared-mesh scenes, with their availability"
+    )
     p.add_argument("--all", action="store_true", help="accepted for compatibility: every scene is listed")
-    p.add_argument("--shared-scenes", default=None,
-                   help="folder of the shared meshes (overrides $STEREOREPRO_SHARED_SCENES)")
+    p.add_argument(
+        "--shared-scenes", default=None, help="folder of the shared meshes (overrides $STEREOREPRO_SHARED_SCENES)"
+    )
     p.set_defaults(func=_cmd_scenes)
 
     p = subparsers.add_parser("render", help="path trace one frame of a scene to an EXR")
@@ -110,7 +123,8 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--sample-offset", type=nonnegative_int, default=0)
     p.add_argument("--workers", type=positive_int, default=None)
-    p.add_argument("--shared-scenes", default=None,
-                   help="folder of the shared meshes (overrides $STEREOREPRO_SHARED_SCENES)")
+    p.add_argument(
+        "--shared-scenes", default=None, help="folder of the shared meshes (overrides $STEREOREPRO_SHARED_SCENES)"
+    )
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_render)

@@ -22,19 +22,31 @@ def _cmd_reproject(args) -> int:
         raise UserError(f"--eye applies to --mode temporal only (got --mode {args.mode})")
     check_environment("reproject")
     try:
-        check_thresholds(0.0 if args.position_threshold is None else args.position_threshold,
-                         0.0 if args.normal_threshold is None else args.normal_threshold, tracing=False)
+        check_thresholds(
+            0.0 if args.position_threshold is None else args.position_threshold,
+            0.0 if args.normal_threshold is None else args.normal_threshold,
+            tracing=False,
+        )
     except ParameterError as e:
         raise UserError("--" + str(e).replace("_", "-", 1).split(";")[0]) from None  # the CLI takes no inf
     device = args.device
     if device == "auto":
         device = "cuda" if torch.cuda.is_available() else "cpu"
     try:
-        summary = reproject_sequence(args.input, args.out, args.mode, args.eye or "right", args.position_threshold,
-                                     args.normal_threshold, args.alpha, args.sampling, device,
-                                     log=None if args.quiet else print,
-                                     warn=lambda m: print(f"stereorepro reproject: warning: {m}", file=sys.stderr),
-                                     source=args.source)
+        summary = reproject_sequence(
+            args.input,
+            args.out,
+            args.mode,
+            args.eye or "right",
+            args.position_threshold,
+            args.normal_threshold,
+            args.alpha,
+            args.sampling,
+            device,
+            log=None if args.quiet else print,
+            warn=lambda m: print(f"stereorepro reproject: warning: {m}", file=sys.stderr),
+            source=args.source,
+        )
     except SequenceError as e:
         raise UserError(str(e)) from None
     if not args.quiet:
@@ -64,26 +76,50 @@ def _cmd_export(args) -> int:
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("reproject", help="stereo/temporal reprojection of a directory of EXR frames",
-                              description="Reproject a directory of frames from any renderer (cameras.json + "
-                                          "{frame:04d}_{left|right}.exr with R,G,B, Z, N.X/N.Y/N.Z).")
+    p = subparsers.add_parser(
+        "reproject",
+        help="stereo/temporal reprojection of a directory of EXR frames",
+        description="Reproject a directory of frames from any renderer (cameras.json + "
+        "{frame:04d}_{left|right}.exr with R,G,B, Z, N.X/N.Y/N.Z).",
+    )
     p.add_argument("--input", required=True, help="directory with cameras.json and the frames")
     p.add_argument("--out", required=True, help="output directory")
-    p.add_argument("--mode", choices=MODES, default="both",
-                   help="stereo: right->left per frame; temporal: accumulation per eye; both: the paper's scheme")
-    p.add_argument("--eye", choices=("left", "right", "both"), default=None,
-                   help="eyes accumulated in temporal mode (default right)")
-    p.add_argument("--position-threshold", type=positive_float, default=None,
-                   help="max |P_src - P_dst| in scene units (default: cameras.json reprojection.position_threshold)")
-    p.add_argument("--normal-threshold", type=positive_float, default=None,
-                   help="max |N_src - N_dst| of unit normals (default: cameras.json reprojection.normal_threshold)")
+    p.add_argument(
+        "--mode",
+        choices=MODES,
+        default="both",
+        help="stereo: right->left per frame; temporal: accumulation per eye; both: the paper's scheme",
+    )
+    p.add_argument(
+        "--eye",
+        choices=("left", "right", "both"),
+        default=None,
+        help="eyes accumulated in temporal mode (default right)",
+    )
+    p.add_argument(
+        "--position-threshold",
+        type=positive_float,
+        default=None,
+        help="max |P_src - P_dst| in scene units (default: cameras.json reprojection.position_threshold)",
+    )
+    p.add_argument(
+        "--normal-threshold",
+        type=positive_float,
+        default=None,
+        help="max |N_src - N_dst| of unit normals (default: cameras.json reprojection.normal_threshold)",
+    )
     p.add_argument("--alpha", type=positive_float, default=0.2, help="minimum EMA weight of a new frame (paper: 0.2)")
     p.add_argument("--sampling", choices=("bilinear", "nearest"), default="bilinear")
-    p.add_argument("--from", dest="source", choices=SOURCES, default="stereorepro",
-                   help="the renderer that wrote the EXRs: stereorepro (our channels), mitsuba (films of the aov "
-                        "integrator with aovs='dd:depth,nn:sh_normal,pp:position') or blender (its multilayer "
-                        "{frame:04d}_L/_R.exr; cameras.json from stereorepro.io.blender.write_cameras); "
-                        "cameras.json is ours (OpenCV)")
+    p.add_argument(
+        "--from",
+        dest="source",
+        choices=SOURCES,
+        default="stereorepro",
+        help="the renderer that wrote the EXRs: stereorepro (our channels), mitsuba (films of the aov "
+        "integrator with aovs='dd:depth,nn:sh_normal,pp:position') or blender (its multilayer "
+        "{frame:04d}_L/_R.exr; cameras.json from stereorepro.io.blender.write_cameras); "
+        "cameras.json is ours (OpenCV)",
+    )
     p.add_argument("--device", choices=("cpu", "cuda", "auto"), default="cpu")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_reproject)

@@ -6,5 +6,4 @@ from .atomic import atomic_path, atomic_write
 from .exr import exr_to_tensors, read_exr, write_exr
 from .onnx import export_onnx, onnx_input_dims
 
-__all__ = ["atomic_path", "atomic_write", "read_exr", "write_exr", "exr_to_tensors", "export_onnx",
-           "onnx_input_dims"]
+__all__ = ["atomic_path", "atomic_write", "read_exr", "write_exr", "exr_to_tensors", "export_onnx", "onnx_input_dims"]

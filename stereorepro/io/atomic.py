@@ -190,8 +190,9 @@ def _own_staging(out: Path) -> tuple[bool, Path]:
 
 
 @contextlib.contextmanager
-def staged_outputs(out: str | os.PathLike, last: Iterable[str] = (),
-                   replaces: re.Pattern | None = None) -> Iterator[Path]:
+def staged_outputs(
+    out: str | os.PathLike, last: Iterable[str] = (), replaces: re.Pattern | None = None
+) -> Iterator[Path]:
     """Yield a staging folder of this run inside ``out`` to write a set of files into (flat, by their final
     names); on leaving the block without an exception every file is synced and renamed into ``out`` (the names
     in ``last`` after the others, in that order: a marker such as ``results.json`` appears only once the set is

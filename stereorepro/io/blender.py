@@ -43,8 +43,17 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["FLIP", "BLENDER_CHANNELS", "BACKGROUND_DEPTH", "FILE_RE", "eye_camera", "write_cameras",
-           "frame_from_channels", "layer_prefix", "file_name"]
+__all__ = [
+    "FLIP",
+    "BLENDER_CHANNELS",
+    "BACKGROUND_DEPTH",
+    "FILE_RE",
+    "eye_camera",
+    "write_cameras",
+    "frame_from_channels",
+    "layer_prefix",
+    "file_name",
+]
 
 #: Blender's camera axes (y up, z backward) to OpenCV's (y down, z forward).
 FLIP = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -118,8 +127,11 @@ def eye_camera(camera_object, scene, eye: str) -> tuple[np.ndarray, np.ndarray]:
     if stereo:
         st = cam.stereo
         iod = float(st.interocular_distance)
-        x = {"LEFT": {"left": 0.0, "right": iod}, "RIGHT": {"left": -iod, "right": 0.0},
-             "CENTER": {"left": -iod / 2, "right": iod / 2}}[st.pivot][eye]
+        x = {
+            "LEFT": {"left": 0.0, "right": iod},
+            "RIGHT": {"left": -iod, "right": 0.0},
+            "CENTER": {"left": -iod / 2, "right": iod / 2},
+        }[st.pivot][eye]
         if st.convergence_mode == "TOE":
             raise ValueError("write_cameras: toe-in stereo is not supported (use PARALLEL or OFFAXIS)")
         if st.convergence_mode == "OFFAXIS":  # a point at the convergence distance ahead of the camera -> centre
@@ -131,8 +143,9 @@ def eye_camera(camera_object, scene, eye: str) -> tuple[np.ndarray, np.ndarray]:
     return K, FLIP @ np.linalg.inv(world)
 
 
-def write_cameras(path, scene=None, frames=None, position_threshold: float | None = None,
-                  normal_threshold: float | None = None) -> Path:
+def write_cameras(
+    path, scene=None, frames=None, position_threshold: float | None = None, normal_threshold: float | None = None
+) -> Path:
     """Write our ``cameras.json`` for both eyes of the scene's camera at ``frames`` (default: frame_start ..
     frame_end), with ``meta.frame_numbers`` so that ``stereorepro reproject --from blender`` finds Blender's
     ``{frame:04d}_L.exr`` / ``_R.exr``. Runs where ``bpy`` imports (Blender's Python, or ``pip install bpy``).
@@ -177,8 +190,11 @@ def write_cameras(path, scene=None, frames=None, position_threshold: float | Non
     finally:
         scene.frame_set(current)
     doc = {"frames": records, "meta": {"writer": "stereorepro.io.blender.write_cameras", "frame_numbers": frames}}
-    rep = {k: v for k, v in (("position_threshold", position_threshold), ("normal_threshold", normal_threshold))
-           if v is not None}
+    rep = {
+        k: v
+        for k, v in (("position_threshold", position_threshold), ("normal_threshold", normal_threshold))
+        if v is not None
+    }
     if rep:
         doc["reprojection"] = rep
     _atomic_write(path, json.dumps(doc, indent=1))
@@ -202,17 +218,23 @@ def layer_prefix(names, where: str = "") -> str:
     names = set(names)
     prefixes = sorted({k[: -len("Depth.Z")] for k in names if k.endswith(".Depth.Z")})
     if not prefixes and any(c in names for c in BLENDER_CHANNELS):
-        raise SequenceError(f"{where}: channels without a view-layer prefix (found: {', '.join(sorted(names))}); "
-                            "Blender's multilayer EXRs name them <view layer>.<pass>.<channel>, e.g. "
-                            "ViewLayer.Combined.R: save as OpenEXR MultiLayer")
+        raise SequenceError(
+            f"{where}: channels without a view-layer prefix (found: {', '.join(sorted(names))}); "
+            "Blender's multilayer EXRs name them <view layer>.<pass>.<channel>, e.g. "
+            "ViewLayer.Combined.R: save as OpenEXR MultiLayer"
+        )
     if len(prefixes) != 1:
-        raise SequenceError(f"{where}: expected one view layer with a Depth pass, found {prefixes or 'none'} "
-                            "(enable the Z, Normal (and Vector) passes)")
+        raise SequenceError(
+            f"{where}: expected one view layer with a Depth pass, found {prefixes or 'none'} "
+            "(enable the Z, Normal (and Vector) passes)"
+        )
     pre = prefixes[0]
     missing = [pre + c for c in BLENDER_CHANNELS if pre + c not in names]
     if missing:
-        raise SequenceError(f"{where}: missing Blender pass channel(s) {', '.join(missing)} (enable the Combined, Z "
-                            f"and Normal passes of the view layer; found: {', '.join(sorted(names))})")
+        raise SequenceError(
+            f"{where}: missing Blender pass channel(s) {', '.join(missing)} (enable the Combined, Z "
+            f"and Normal passes of the view layer; found: {', '.join(sorted(names))})"
+        )
     return pre
 
 
@@ -251,8 +273,11 @@ def frame_from_channels(channels: dict, where: str = "") -> dict:
     depth = stack(("Depth.Z",))
     normal = stack(("Normal.X", "Normal.Y", "Normal.Z"))
     background = ~(depth < BACKGROUND_DEPTH) | (normal.abs().sum(1, keepdim=True) == 0)
-    out = {"color": stack(("Combined.R", "Combined.G", "Combined.B")),
-           "depth": torch.where(background, torch.full((), math.inf), depth), "normal": normal}
+    out = {
+        "color": stack(("Combined.R", "Combined.G", "Combined.B")),
+        "depth": torch.where(background, torch.full((), math.inf), depth),
+        "normal": normal,
+    }
     if all(c in channels for c in vector):
         v = stack(("Vector.X", "Vector.Y"))
         motion = torch.cat([v[:, :1], -v[:, 1:2]], 1)  # y up -> our y down

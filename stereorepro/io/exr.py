@@ -26,12 +26,28 @@ from .._extras import require
 from ..errors import SequenceError, ShapeError
 from .atomic import atomic_write
 
-__all__ = ["write_exr", "read_exr", "exr_to_tensors", "result_channels", "CHANNELS", "MAX_SAMPLES", "exr_header",
-           "exr_info", "ExrInfo", "channel_size"]
+__all__ = [
+    "write_exr",
+    "read_exr",
+    "exr_to_tensors",
+    "result_channels",
+    "CHANNELS",
+    "MAX_SAMPLES",
+    "exr_header",
+    "exr_info",
+    "ExrInfo",
+    "channel_size",
+]
 
 #: Channel names of each group of the frame format (a RenderResult's field name → its EXR channels).
-CHANNELS = {"radiance": ("R", "G", "B"), "depth": ("Z",), "normal": ("N.X", "N.Y", "N.Z"),
-            "position": ("P.X", "P.Y", "P.Z"), "motion": ("M.X", "M.Y"), "motion_world": ("MW.X", "MW.Y", "MW.Z")}
+CHANNELS = {
+    "radiance": ("R", "G", "B"),
+    "depth": ("Z",),
+    "normal": ("N.X", "N.Y", "N.Z"),
+    "position": ("P.X", "P.Y", "P.Z"),
+    "motion": ("M.X", "M.Y"),
+    "motion_world": ("MW.X", "MW.Y", "MW.Z"),
+}
 _GROUPS = CHANNELS
 
 
@@ -92,8 +108,9 @@ def write_exr(path: str | os.PathLike, data) -> None:
     if len(shapes) != 1 or len(next(iter(shapes))) != 2:
         raise ShapeError(f"write_exr: all channels must be (H, W) arrays of one size, got {shapes}")
     if min(next(iter(shapes))) < 1:
-        raise ShapeError(f"write_exr: {path}: channels of shape {next(iter(shapes))} are empty (an EXR needs "
-                         "H, W >= 1)")
+        raise ShapeError(
+            f"write_exr: {path}: channels of shape {next(iter(shapes))} are empty (an EXR needs H, W >= 1)"
+        )
     # OpenEXR ignores numpy strides and rewrites the dict it is given: pass fresh, contiguous copies.
     fresh = {str(k): np.ascontiguousarray(np.asarray(v, dtype=np.float32)).copy() for k, v in chans.items()}
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
@@ -148,8 +165,10 @@ class _Capture:
         """What was written since ``mark`` (4 KiB of each kind at most; other threads' output included)."""
         if self.saved is None:
             return ""
-        return (os.pread(self.tmp.fileno(), 4096, mark[0]).decode(errors="replace")
-                + self.py.getvalue()[mark[1]:mark[1] + 4096])
+        return (
+            os.pread(self.tmp.fileno(), 4096, mark[0]).decode(errors="replace")
+            + self.py.getvalue()[mark[1] : mark[1] + 4096]
+        )
 
     def stop(self) -> None:
         if self.saved is None:
@@ -231,15 +250,21 @@ def _check_header(path: Path, parts) -> ExrInfo:
         sizes.append((hgt, w))
         windows.append((str(h.get("name", i)), window))
     if samples > MAX_SAMPLES:
-        raise ValueError(f"its header claims {samples} samples (more than MAX_SAMPLES = {MAX_SAMPLES}); "
-                         f"refusing to allocate {samples * 4 / 2 ** 30:.1f} GiB")
+        raise ValueError(
+            f"its header claims {samples} samples (more than MAX_SAMPLES = {MAX_SAMPLES}); "
+            f"refusing to allocate {samples * 4 / 2**30:.1f} GiB"
+        )
     if bounded and samples * 2 > _MAX_RATIO * size + (1 << 20):  # at least 2 bytes (half) per sample
-        raise ValueError(f"truncated or corrupt: its header claims {samples} samples, more than a file of {size} "
-                         f"bytes can hold with its compression")
+        raise ValueError(
+            f"truncated or corrupt: its header claims {samples} samples, more than a file of {size} "
+            f"bytes can hold with its compression"
+        )
     odd = next(((n, w) for n, w in windows if w != windows[0][1]), None)
     if odd is not None:
-        raise ValueError(f"part {odd[0]!r} has data window {odd[1]}, part {windows[0][0]!r} {windows[0][1]} "
-                         "(all parts of a file must share one data window: their pixels would not line up)")
+        raise ValueError(
+            f"part {odd[0]!r} has data window {odd[1]}, part {windows[0][0]!r} {windows[0][1]} "
+            "(all parts of a file must share one data window: their pixels would not line up)"
+        )
     display = _window(parts[0].header, "displayWindow") if "displayWindow" in parts[0].header else windows[0][1]
     return ExrInfo(names, sizes, windows[0][1], display)
 
@@ -375,8 +400,10 @@ def channel_size(channels: dict, names, where: str, size: tuple[int, int] | None
         if size is None:
             size, reference = shape, f"channel {name}"
         elif shape != tuple(size):
-            raise SequenceError(f"{where}: channel {name} is {shape[1]}x{shape[0]}, {reference} {size[1]}x{size[0]} "
-                                "(all channels of a frame must have one size)")
+            raise SequenceError(
+                f"{where}: channel {name} is {shape[1]}x{shape[0]}, {reference} {size[1]}x{size[0]} "
+                "(all channels of a frame must have one size)"
+            )
     return tuple(size)
 
 

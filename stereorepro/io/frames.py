@@ -21,7 +21,6 @@ whose pixel centres are at +0.5, ``cam_from_world`` is rigid. Unknown keys are e
 directory from our path tracer.
 """
 
-
 from __future__ import annotations
 
 import json
@@ -40,8 +39,17 @@ from ..camera import Eye
 from ..errors import SequenceError
 from .exr import CHANNELS, exr_info
 
-__all__ = ["REQUIRED_CHANNELS", "SequenceError", "EyeCamera", "FrameSequence", "Frame", "load_sequence",
-           "read_frame", "EYES", "FRAME_FILE_RE"]
+__all__ = [
+    "REQUIRED_CHANNELS",
+    "SequenceError",
+    "EyeCamera",
+    "FrameSequence",
+    "Frame",
+    "load_sequence",
+    "read_frame",
+    "EYES",
+    "FRAME_FILE_RE",
+]
 
 #: Channels every input EXR must have (others are ignored): the radiance, depth and normal groups.
 REQUIRED_CHANNELS = CHANNELS["radiance"] + CHANNELS["depth"] + CHANNELS["normal"]
@@ -112,7 +120,6 @@ class FrameSequence:
         return self.root / f"{frame:04d}_{eye}.exr"
 
 
-
 @dataclass(frozen=True, eq=False)
 class Frame:
     """One eye of one frame, as :func:`read_frame` returns it (on one device).
@@ -153,8 +160,11 @@ class Frame:
 
     @staticmethod
     def _deprecated(how: str) -> None:
-        warnings.warn(f"Frame {how} (dict-style access) is deprecated: use attribute access (frame.color, "
-                      "frame.motion is None)", DeprecationWarning, stacklevel=3)
+        warnings.warn(
+            f"Frame {how} (dict-style access) is deprecated: use attribute access (frame.color, frame.motion is None)",
+            DeprecationWarning,
+            stacklevel=3,
+        )
 
     def __getitem__(self, key: str):
         self._deprecated(f"[{key!r}]")
@@ -180,9 +190,12 @@ class Frame:
 
 
 def _matrix(value, rows: int, where: str) -> np.ndarray:
-    ok = (isinstance(value, list) and len(value) == rows
-          and all(isinstance(r, list) and len(r) == rows for r in value)
-          and all(isinstance(x, (int, float)) and not isinstance(x, bool) for r in value for x in r))
+    ok = (
+        isinstance(value, list)
+        and len(value) == rows
+        and all(isinstance(r, list) and len(r) == rows for r in value)
+        and all(isinstance(x, (int, float)) and not isinstance(x, bool) for r in value for x in r)
+    )
     if not ok:
         raise SequenceError(f"{where}: expected a {rows}x{rows} list of numbers, got {json.dumps(value)[:80]}")
     a = np.asarray(value, np.float64)
@@ -229,7 +242,7 @@ def _parse_cameras(path: Path, eyes: tuple[str, ...]) -> tuple[list[dict], dict,
     except RecursionError:
         raise SequenceError(f"{path}: malformed: nested too deeply to be a cameras.json") from None
     if not isinstance(data, dict):
-        raise SequenceError(f"{path}: expected an object {{\"frames\": [...]}}, got {type(data).__name__}")
+        raise SequenceError(f'{path}: expected an object {{"frames": [...]}}, got {type(data).__name__}')
     unknown = set(data) - {"frames", "reprojection", "meta"}
     if unknown:
         raise SequenceError(f"{path}: unknown key(s) {sorted(unknown)} (expected frames, reprojection, meta)")
@@ -268,8 +281,10 @@ def _parse_cameras(path: Path, eyes: tuple[str, ...]) -> tuple[list[dict], dict,
         out.append(cams)
     rep = data.get("reprojection", {})
     if not isinstance(rep, dict) or set(rep) - {"position_threshold", "normal_threshold"}:
-        raise SequenceError(f"{path}: 'reprojection' must be an object with position_threshold and/or "
-                            f"normal_threshold, got {json.dumps(rep)[:80]}")
+        raise SequenceError(
+            f"{path}: 'reprojection' must be an object with position_threshold and/or "
+            f"normal_threshold, got {json.dumps(rep)[:80]}"
+        )
     thr = {k: _threshold(rep, k, f"{path}: reprojection") for k in ("position_threshold", "normal_threshold")}
     meta = data.get("meta", {})
     return out, thr, meta if isinstance(meta, dict) else {}
@@ -284,8 +299,10 @@ def _exr_header(path: Path) -> tuple[list[str], int, int]:
     except ValueError as e:
         raise SequenceError(f"{path}: not a readable EXR: {e}") from None
     if info.data_window != info.display_window:
-        raise SequenceError(f"{path}: data window {info.data_window} differs from the display window "
-                            f"{info.display_window} (a shifted or cropped image; frames must cover the whole image)")
+        raise SequenceError(
+            f"{path}: data window {info.data_window} differs from the display window "
+            f"{info.display_window} (a shifted or cropped image; frames must cover the whole image)"
+        )
     return info.channels, info.sizes[0][0], info.sizes[0][1]
 
 
@@ -317,13 +334,18 @@ def _frame_numbers(meta: dict, path: Path, n: int) -> tuple:
     nums = meta.get("frame_numbers")
     if nums is None:
         return tuple(range(1, n + 1))
-    if not (isinstance(nums, list) and len(nums) == n
-            and all(isinstance(x, int) and not isinstance(x, bool) and x >= 0 for x in nums)):
+    if not (
+        isinstance(nums, list)
+        and len(nums) == n
+        and all(isinstance(x, int) and not isinstance(x, bool) and x >= 0 for x in nums)
+    ):
         raise SequenceError(f"{path}: meta.frame_numbers must list {n} frame numbers >= 0, got {json.dumps(nums)[:80]}")
     twice = sorted({x for x in nums if nums.count(x) > 1})
     if twice:
-        raise SequenceError(f"{path}: meta.frame_numbers lists frame(s) {twice} more than once (each frame number "
-                            "names one pair of files)")
+        raise SequenceError(
+            f"{path}: meta.frame_numbers lists frame(s) {twice} more than once (each frame number "
+            "names one pair of files)"
+        )
     return tuple(nums)
 
 
@@ -380,8 +402,10 @@ def load_sequence(input_dir, eyes: tuple[str, ...] = EYES, source: str = "stereo
     beyond = _unlisted_files(root, n, source, numbers)
     if beyond:
         which = "not in its meta.frame_numbers" if source == "blender" else "beyond them"
-        raise SequenceError(f"{root / 'cameras.json'}: lists {n} frame(s) but {root} has frame files {which}: "
-                            f"{', '.join(beyond[:4])}{' ...' if len(beyond) > 4 else ''}")
+        raise SequenceError(
+            f"{root / 'cameras.json'}: lists {n} frame(s) but {root} has frame files {which}: "
+            f"{', '.join(beyond[:4])}{' ...' if len(beyond) > 4 else ''}"
+        )
     size = None
     first = None
     for i in range(n):
@@ -396,15 +420,20 @@ def load_sequence(input_dir, eyes: tuple[str, ...] = EYES, source: str = "stereo
                 layer_prefix(names, str(p))
             missing = [c for c in required if not _has(names, c, source)]
             if missing:
-                raise SequenceError(f"{p}: missing channel(s) {', '.join(missing)} (required for --from {source}: "
-                                    f"{', '.join(required)}; found: {', '.join(sorted(names))})")
+                raise SequenceError(
+                    f"{p}: missing channel(s) {', '.join(missing)} (required for --from {source}: "
+                    f"{', '.join(required)}; found: {', '.join(sorted(names))})"
+                )
             if size is None:
                 size, first = (H, W), p
             elif (H, W) != size:
-                raise SequenceError(f"{p}: size {W}x{H} differs from {first.name}: {size[1]}x{size[0]} "
-                                    "(all frames and eyes must have one size)")
-    return FrameSequence(root, tuple(cams), size[0], size[1], thr["position_threshold"], thr["normal_threshold"],
-                         source, numbers)
+                raise SequenceError(
+                    f"{p}: size {W}x{H} differs from {first.name}: {size[1]}x{size[0]} "
+                    "(all frames and eyes must have one size)"
+                )
+    return FrameSequence(
+        root, tuple(cams), size[0], size[1], thr["position_threshold"], thr["normal_threshold"], source, numbers
+    )
 
 
 #: Normals whose length differs from 1 by more than this (beyond float16 rounding) are renormalised on reading.
@@ -422,8 +451,11 @@ def _unit_normals(normal: Tensor, depth: Tensor) -> tuple[Tensor, dict]:
     fix = ok & ((length - 1.0).abs() > NORMAL_LENGTH_TOLERANCE)
     if bool(fix.any()):
         normal = torch.where(fix, (normal.double() / torch.where(ok, length, 1.0)).to(normal.dtype), normal)
-    return normal, {"surface": int(surf.sum()), "renormalised": int((fix & surf).sum()),
-                    "invalid": int((~ok & surf).sum())}
+    return normal, {
+        "surface": int(surf.sum()),
+        "renormalised": int((fix & surf).sum()),
+        "invalid": int((~ok & surf).sum()),
+    }
 
 
 def read_frame(seq: FrameSequence, frame: int, eye: str, device=None) -> Frame:
@@ -488,5 +520,6 @@ def read_frame(seq: FrameSequence, frame: int, eye: str, device=None) -> Frame:
             names = CHANNELS[key]
             if all(c in ch and ch[c].shape == (seq.height, seq.width) for c in names):
                 motion[key] = stack(names)
-    return Frame(color, depth, normal, cam.K.to(device), cam.cam_from_world.to(device), normal_stats=normal_stats,
-                 **motion)
+    return Frame(
+        color, depth, normal, cam.K.to(device), cam.cam_from_world.to(device), normal_stats=normal_stats, **motion
+    )

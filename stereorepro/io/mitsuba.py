@@ -68,8 +68,9 @@ def sensor_to_camera(sensor) -> PinholeCamera:
     params = mi.traverse(sensor)
     for k in ("principal_point_offset_x", "principal_point_offset_y"):
         if k in params and float(params[k]) != 0.0:
-            raise ValueError(f"sensor_to_camera: {k} = {float(params[k])} is not supported (only a centred "
-                             "principal point)")
+            raise ValueError(
+                f"sensor_to_camera: {k} = {float(params[k])} is not supported (only a centred principal point)"
+            )
     if "x_fov" not in params:
         raise ValueError(f"sensor_to_camera: expected a perspective sensor, got {sensor.class_name()}")
     W, H = (int(v) for v in sensor.film().crop_size())
@@ -102,8 +103,10 @@ def frame_from_channels(channels: dict, camera: PinholeCamera, where: str = "") 
     """
     missing = [c for c in MITSUBA_CHANNELS if c not in channels]
     if missing:
-        raise SequenceError(f"{where}: missing Mitsuba channel(s) {', '.join(missing)} (render with the aov "
-                            f"integrator, aovs = \"{AOVS}\"; found: {', '.join(sorted(channels))})")
+        raise SequenceError(
+            f"{where}: missing Mitsuba channel(s) {', '.join(missing)} (render with the aov "
+            f'integrator, aovs = "{AOVS}"; found: {", ".join(sorted(channels))})'
+        )
     channel_size(channels, MITSUBA_CHANNELS, where, (camera.height, camera.width))
 
     def stack(names):
@@ -114,8 +117,12 @@ def frame_from_channels(channels: dict, camera: PinholeCamera, where: str = "") 
     z = (T[2, :3].view(1, 3, 1, 1) * P).sum(1, keepdim=True) + T[2, 3]
     hit = torch.from_numpy(np.asarray(channels["dd.T"], np.float32))[None, None] > 0
     depth = torch.where(hit & (z > 0), z, torch.full((), math.inf, dtype=torch.float64)).float()
-    return {"color": stack(("R", "G", "B")), "depth": depth, "normal": stack(("nn.X", "nn.Y", "nn.Z")),
-            "position": P.float()}
+    return {
+        "color": stack(("R", "G", "B")),
+        "depth": depth,
+        "normal": stack(("nn.X", "nn.Y", "nn.Z")),
+        "position": P.float(),
+    }
 
 
 def render_gbuffer(scene, sensor=None, spp: int = 16, seed: int = 0) -> dict:
@@ -147,13 +154,25 @@ def render_gbuffer(scene, sensor=None, spp: int = 16, seed: int = 0) -> dict:
     cam = sensor_to_camera(sensor)
     color = np.array(mi.render(scene, sensor=sensor, spp=int(spp), seed=int(seed)), dtype=np.float32)[..., :3]
     params = mi.traverse(sensor)
-    aov_sensor = mi.load_dict({
-        "type": "perspective", "fov_axis": "x", "fov": float(params["x_fov"]),
-        "near_clip": float(params["near_clip"]), "far_clip": float(params["far_clip"]),
-        "to_world": mi.ScalarTransform4f(np.array(sensor.world_transform().matrix)),
-        "sampler": {"type": "stratified", "sample_count": 1, "jitter": False},
-        "film": {"type": "hdrfilm", "width": cam.width, "height": cam.height, "rfilter": {"type": "box"},
-                 "pixel_format": "rgb", "component_format": "float32"}})
+    aov_sensor = mi.load_dict(
+        {
+            "type": "perspective",
+            "fov_axis": "x",
+            "fov": float(params["x_fov"]),
+            "near_clip": float(params["near_clip"]),
+            "far_clip": float(params["far_clip"]),
+            "to_world": mi.ScalarTransform4f(np.array(sensor.world_transform().matrix)),
+            "sampler": {"type": "stratified", "sample_count": 1, "jitter": False},
+            "film": {
+                "type": "hdrfilm",
+                "width": cam.width,
+                "height": cam.height,
+                "rfilter": {"type": "box"},
+                "pixel_format": "rgb",
+                "component_format": "float32",
+            },
+        }
+    )
     aov = mi.load_dict({"type": "aov", "aovs": AOVS})
     mi.render(scene, sensor=aov_sensor, integrator=aov, spp=1, seed=int(seed))
     bmp = aov_sensor.film().bitmap()

@@ -25,6 +25,7 @@ from .atomic import atomic_path
 
 __all__ = ["export_onnx", "onnx_input_dims", "symbolic_axes"]
 
+
 def symbolic_axes(fields) -> dict[str, dict[int, str]]:
     """``{input name: {axis: symbol}}`` of a module's ``input_fields`` (name and symbolic shape per input, e.g.
     ``Field("src_depth", ("B", "1", "Hp", "Wp"))``): every dimension named by letters stays symbolic, digits are
@@ -39,8 +40,9 @@ def symbolic_axes(fields) -> dict[str, dict[int, str]]:
     return {f.name: {axis: dim for axis, dim in enumerate(f.shape) if not dim.isdigit()} for f in fields}
 
 
-def export_onnx(module: nn.Module, path, opset: int = 18, inputs: tuple[Tensor, ...] | None = None,
-                check_symbolic: bool = True) -> Path:
+def export_onnx(
+    module: nn.Module, path, opset: int = 18, inputs: tuple[Tensor, ...] | None = None, check_symbolic: bool = True
+) -> Path:
     """Export a stateless reprojection module to ONNX with symbolic B, H, W (and Hp, Wp for source images).
 
     Args:
@@ -74,8 +76,10 @@ def export_onnx(module: nn.Module, path, opset: int = 18, inputs: tuple[Tensor, 
         raise ValueError(f"opset must be >= 17 (GridSample/ReduceMax semantics), got {opset}")
     fields = tuple(getattr(module, "input_fields", ()))
     if not fields:
-        raise TypeError(f"{type(module).__name__} has no `input_fields` (name and symbolic shape of each forward "
-                        "input); cannot export")
+        raise TypeError(
+            f"{type(module).__name__} has no `input_fields` (name and symbolic shape of each forward "
+            "input); cannot export"
+        )
     names = [f.name for f in fields]
     if inputs is None:
         from .._testing import example_inputs
@@ -91,16 +95,26 @@ def export_onnx(module: nn.Module, path, opset: int = 18, inputs: tuple[Tensor, 
     with atomic_path(path) as tmp, warnings.catch_warnings():
         # torch's constant folding notes every strided Slice it leaves alone: known noise, the graph is correct
         warnings.filterwarnings("ignore", message="Constant folding - Only steps=1", category=UserWarning)
-        torch.onnx.export(module, inputs, str(tmp), input_names=names, output_names=list(module.output_names),
-                          dynamic_axes=dynamic_axes, opset_version=opset, dynamo=False,
-                          do_constant_folding=True)
+        torch.onnx.export(
+            module,
+            inputs,
+            str(tmp),
+            input_names=names,
+            output_names=list(module.output_names),
+            dynamic_axes=dynamic_axes,
+            opset_version=opset,
+            dynamo=False,
+            do_constant_folding=True,
+        )
         if check_symbolic:
             dims = onnx_input_dims(tmp)
             for n in names:
                 for axis, sym in dynamic_axes[n].items():
                     if not isinstance(dims[n][axis], str):
-                        raise RuntimeError(f"export_onnx: input {n!r} axis {axis} was fixed to {dims[n][axis]} "
-                                           f"instead of symbolic {sym!r}")
+                        raise RuntimeError(
+                            f"export_onnx: input {n!r} axis {axis} was fixed to {dims[n][axis]} "
+                            f"instead of symbolic {sym!r}"
+                        )
     return path
 
 

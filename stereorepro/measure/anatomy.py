@@ -67,8 +67,11 @@ def error_shares(se: Tensor, regions: dict[str, Tensor], se_bias: Tensor | None 
     for name, m in regions.items():
         n = int(m.sum())
         s = float(se[m].sum()) if n else 0.0
-        row = {"pixels_pct": 100.0 * n / m.numel(), "se_share_pct": 100.0 * s / total if total > 0 else 0.0,
-               "mse": s / n if n else None}
+        row = {
+            "pixels_pct": 100.0 * n / m.numel(),
+            "se_share_pct": 100.0 * s / total if total > 0 else 0.0,
+            "mse": s / n if n else None,
+        }
         if se_bias is not None:
             b = float(se_bias[m].sum()) if n else 0.0
             row["bias_pct_of_region"] = 100.0 * b / s if s > 0 else None
@@ -110,8 +113,14 @@ def edge_mask(reference: Tensor, fraction: float = 0.05) -> Tensor:
     x = reference.double().mean(1, keepdim=True)
     p = torch.nn.functional.pad(x, (1, 1, 1, 1), mode="replicate")
     c = p[..., 1:-1, 1:-1]
-    g = torch.stack([(c - p[..., 1:-1, :-2]).abs(), (c - p[..., 1:-1, 2:]).abs(), (c - p[..., :-2, 1:-1]).abs(),
-                     (c - p[..., 2:, 1:-1]).abs()]).amax(0)
+    g = torch.stack(
+        [
+            (c - p[..., 1:-1, :-2]).abs(),
+            (c - p[..., 1:-1, 2:]).abs(),
+            (c - p[..., :-2, 1:-1]).abs(),
+            (c - p[..., 2:, 1:-1]).abs(),
+        ]
+    ).amax(0)
     k = max(1, int(round(fraction * g.numel())))
     thr = g.flatten().topk(k).values[-1]
     return g >= thr

@@ -143,15 +143,19 @@ def _pixel_valid(image: Tensor, reference: Tensor, mask: Tensor | None, nonfinit
     valid = torch.ones_like(image[:, :1], dtype=torch.bool) if mask is None else mask.clone()
     ref_bad = ~torch.isfinite(reference).all(1, keepdim=True).expand(B, -1, -1, -1) & valid
     if bool(ref_bad.any()):
-        raise ParameterError(f"{name}: reference has {int(ref_bad.sum())} non-finite pixel(s) inside the mask; "
-                             "a reference must be finite (mask those pixels out)")
+        raise ParameterError(
+            f"{name}: reference has {int(ref_bad.sum())} non-finite pixel(s) inside the mask; "
+            "a reference must be finite (mask those pixels out)"
+        )
     img_bad = ~torch.isfinite(image).all(1, keepdim=True) & valid
     n_bad = int(img_bad.sum())
     if n_bad:
         if nonfinite == "raise":
             items = torch.nonzero(img_bad.flatten(1).any(1)).flatten().tolist()
-            raise ParameterError(f"{name}: image has {n_bad} non-finite pixel(s) (NaN/inf) in batch item(s) "
-                                 f"{items}; pass nonfinite='ignore' to exclude them from the mean")
+            raise ParameterError(
+                f"{name}: image has {n_bad} non-finite pixel(s) (NaN/inf) in batch item(s) "
+                f"{items}; pass nonfinite='ignore' to exclude them from the mean"
+            )
         valid = valid & ~img_bad
     empty = valid.flatten(1).sum(1) == 0
     if bool(empty.any()):
@@ -254,6 +258,7 @@ def flip(image: Tensor, reference: Tensor) -> Tensor:
     ref = reference.expand_as(image)
     out = []
     for b in range(image.shape[0]):
+
         def hwc(t):
             return t[b].detach().to("cpu", torch.float32).clamp(0, 1).permute(1, 2, 0).contiguous().numpy()
 
@@ -262,8 +267,14 @@ def flip(image: Tensor, reference: Tensor) -> Tensor:
     return torch.tensor(out, dtype=torch.float64)
 
 
-def ssim(image: Tensor, reference: Tensor, mask: Tensor | None = None, window_size: int = 11,
-         tonemap: str = "clamp", max_val: float = 1.0) -> Tensor:
+def ssim(
+    image: Tensor,
+    reference: Tensor,
+    mask: Tensor | None = None,
+    window_size: int = 11,
+    tonemap: str = "clamp",
+    max_val: float = 1.0,
+) -> Tensor:
     """Mean SSIM per batch item (kornia's Gaussian-window SSIM, sigma 1.5), computed in float64.
 
     SSIM's constants assume a known data range ``max_val``; HDR radiance has none, so values are first mapped
@@ -327,8 +338,9 @@ def ssim(image: Tensor, reference: Tensor, mask: Tensor | None = None, window_si
     return torch.where(mask, smap, torch.zeros_like(smap)).flatten(1).sum(1) / count.to(torch.float64)
 
 
-def ladder_rmse(ladder_images: Tensor | Sequence[Tensor], reference: Tensor, mask: Tensor | None = None,
-                nonfinite: str = "raise") -> Tensor:
+def ladder_rmse(
+    ladder_images: Tensor | Sequence[Tensor], reference: Tensor, mask: Tensor | None = None, nonfinite: str = "raise"
+) -> Tensor:
     """RMSE of every rung of a ladder against the reference.
 
     Args:
@@ -411,8 +423,10 @@ def _squares(R: Tensor, name: str) -> Tensor:
     """``R²`` of scaled RMSEs, or ParameterError when a ladder spans more than float64 can square."""
     M = R * R
     if not bool((torch.isfinite(M) & (M >= torch.finfo(M.dtype).tiny)).all()):
-        raise ParameterError(f"{name}: ladder_rmse spans too wide a range within a ladder (its MSEs leave "
-                             f"float64's range), got {R.tolist()} after scaling each row by a power of two")
+        raise ParameterError(
+            f"{name}: ladder_rmse spans too wide a range within a ladder (its MSEs leave "
+            f"float64's range), got {R.tolist()} after scaling each row by a power of two"
+        )
     return M
 
 
@@ -442,8 +456,10 @@ def _fit(s: Tensor, M: Tensor, name: str) -> tuple[Tensor, Tensor]:
     zero = torch.zeros_like(a_b0)
     flat = ~interior & (_obj(zero, b_a0) < _obj(a_b0, zero))
     if bool(flat.any()):
-        raise ParameterError(f"{name}: ladder error does not decrease with spp (best fit MSE = a/n + b has a = 0) "
-                         f"in frame(s) {torch.nonzero(flat).flatten().tolist()}")
+        raise ParameterError(
+            f"{name}: ladder error does not decrease with spp (best fit MSE = a/n + b has a = 0) "
+            f"in frame(s) {torch.nonzero(flat).flatten().tolist()}"
+        )
     a = torch.where(interior, a_free, a_b0)
     b = torch.where(interior, b_free, zero)
     return a * M0[:, 0], b * M0[:, 0]
@@ -476,14 +492,17 @@ def fit_ladder(ladder_spp, ladder_rmse) -> tuple[Tensor, Tensor]:
     a, b = _fit(s, _squares(_scaled(R, k), "fit_ladder"), "fit_ladder")
     a, b = _scaled(a, -2 * k[:, 0]), _scaled(b, -2 * k[:, 0])  # back to the ladder's MSE units
     if not bool(torch.isfinite(a).all() and torch.isfinite(b).all() and (a > 0).all()):
-        raise ParameterError(f"fit_ladder: the fit's MSE (a = {a.tolist()}, b = {b.tolist()}) is beyond float64's "
-                             "range; effective_spp_many works on such ladders (it uses only ratios)")
+        raise ParameterError(
+            f"fit_ladder: the fit's MSE (a = {a.tolist()}, b = {b.tolist()}) is beyond float64's "
+            "range; effective_spp_many works on such ladders (it uses only ratios)"
+        )
     shared = _as_f64(ladder_rmse, "fit_ladder ladder_rmse").dim() == 1
     return (a[0], b[0]) if shared else (a, b)
 
 
-def effective_spp_many(rmse_values, ladder_spp, ladder_rmse, interpolation: str = "inverse_mse"
-                       ) -> tuple[Tensor, list[str]]:
+def effective_spp_many(
+    rmse_values, ladder_spp, ladder_rmse, interpolation: str = "inverse_mse"
+) -> tuple[Tensor, list[str]]:
     """Effective spp of F frames (paper §4.1), vectorised. See the module docstring for the model and flags.
 
     Args:
@@ -514,13 +533,16 @@ def effective_spp_many(rmse_values, ladder_spp, ladder_rmse, interpolation: str 
         raise ShapeError(f"effective_spp: rmse_values must be 1-D (F,), got shape {tuple(r.shape)}")
     bad = ~torch.isfinite(r) | (r < 0)
     if bool(bad.any()):
-        raise ParameterError(f"effective_spp: rmse values must be finite and >= 0; got {r[bad].tolist()} "
-                             f"at frame(s) {torch.nonzero(bad).flatten().tolist()}")
+        raise ParameterError(
+            f"effective_spp: rmse values must be finite and >= 0; got {r[bad].tolist()} "
+            f"at frame(s) {torch.nonzero(bad).flatten().tolist()}"
+        )
     s, R = _check_ladder(ladder_spp, ladder_rmse, "effective_spp")
     F, N = r.numel(), s.numel()
     if R.shape[0] not in (1, F):
-        raise ShapeError(f"effective_spp: ladder_rmse (F, N) must have F={F} rows (one per value), "
-                         f"got shape {tuple(R.shape)}")
+        raise ShapeError(
+            f"effective_spp: ladder_rmse (F, N) must have F={F} rows (one per value), got shape {tuple(R.shape)}"
+        )
     r = r.to(s.device)
     R = R.expand(F, N)
     k = _unit_scale(R)  # every quantity below is a ratio of MSEs: scaled exactly, squared safely
@@ -555,16 +577,16 @@ def effective_spp_many(rmse_values, ladder_spp, ladder_rmse, interpolation: str 
 
     is_low = mono & ~exact & (k == 0)
     is_high = mono & ~exact & (k == N)
-    spp = torch.where(~mono, fit_spp,
-                      torch.where(exact, exact_spp,
-                                  torch.where(is_low, low_spp, torch.where(is_high, high_spp, interp_spp))))
+    spp = torch.where(
+        ~mono,
+        fit_spp,
+        torch.where(exact, exact_spp, torch.where(is_low, low_spp, torch.where(is_high, high_spp, interp_spp))),
+    )
     code = torch.full((F,), _INTERP, dtype=torch.int64, device=m.device)
     code = torch.where(mono & exact, torch.full_like(code, _EXACT), code)
     code = torch.where(is_low, torch.full_like(code, _LOW), code)
-    code = torch.where(is_high, torch.where(high_ok, torch.full_like(code, _HIGH), torch.full_like(code, _FLOOR)),
-                       code)
-    code = torch.where(~mono, torch.where(fit_ok, torch.full_like(code, _NONMONO), torch.full_like(code, _FLOOR)),
-                       code)
+    code = torch.where(is_high, torch.where(high_ok, torch.full_like(code, _HIGH), torch.full_like(code, _FLOOR)), code)
+    code = torch.where(~mono, torch.where(fit_ok, torch.full_like(code, _NONMONO), torch.full_like(code, _FLOOR)), code)
     return spp, [EFFECTIVE_SPP_FLAGS[c] for c in code.tolist()]
 
 
@@ -589,8 +611,10 @@ def effective_spp(rmse_value, ladder_spp, ladder_rmse, interpolation: str = "inv
         raise ShapeError(f"effective_spp: rmse_value must be a scalar, got shape {tuple(r.shape)}")
     R = _as_f64(ladder_rmse, "effective_spp ladder_rmse")
     if R.dim() != 1:
-        raise ShapeError(f"effective_spp: ladder_rmse must be 1-D (N,), got shape {tuple(R.shape)}; "
-                         "use effective_spp_many for a ladder per frame")
+        raise ShapeError(
+            f"effective_spp: ladder_rmse must be 1-D (N,), got shape {tuple(R.shape)}; "
+            "use effective_spp_many for a ladder per frame"
+        )
     spp, flags = effective_spp_many(r.reshape(1), ladder_spp, R, interpolation)
     return float(spp[0]), flags[0]
 
@@ -647,23 +671,34 @@ class EffectiveSppLadder:
     def __post_init__(self):
         s, R = _check_ladder(self.ladder_spp, self.ladder_rmse, "EffectiveSppLadder")
         if R.shape[0] != 1 or _as_f64(self.ladder_rmse, "EffectiveSppLadder").dim() != 1:
-            raise ShapeError(f"EffectiveSppLadder: ladder_rmse must be 1-D (N,), got shape "
-                             f"{tuple(torch.as_tensor(self.ladder_rmse).shape)}")
+            raise ShapeError(
+                f"EffectiveSppLadder: ladder_rmse must be 1-D (N,), got shape "
+                f"{tuple(torch.as_tensor(self.ladder_rmse).shape)}"
+            )
         if self.interpolation not in _INTERPOLATIONS:
-            raise ParameterError(f"EffectiveSppLadder: interpolation must be one of {_INTERPOLATIONS}, "
-                                 f"got {self.interpolation!r}")
+            raise ParameterError(
+                f"EffectiveSppLadder: interpolation must be one of {_INTERPOLATIONS}, got {self.interpolation!r}"
+            )
         _fit(s, _squares(_scaled(R, _unit_scale(R)), "EffectiveSppLadder"), "EffectiveSppLadder")  # a flat ladder
         object.__setattr__(self, "ladder_spp", s)
         object.__setattr__(self, "ladder_rmse", R[0])
 
     @classmethod
-    def from_images(cls, ladder_spp, ladder_images: Tensor | Sequence[Tensor], reference: Tensor,
-                    mask: Tensor | None = None, interpolation: str = "inverse_mse") -> "EffectiveSppLadder":
+    def from_images(
+        cls,
+        ladder_spp,
+        ladder_images: Tensor | Sequence[Tensor],
+        reference: Tensor,
+        mask: Tensor | None = None,
+        interpolation: str = "inverse_mse",
+    ) -> "EffectiveSppLadder":
         """Ladder from N images of one frame: ladder_images (N, 1, C, H, W) or N × (1, C, H, W)."""
         R = ladder_rmse(ladder_images, reference, mask)
         if R.shape[0] != 1:
-            raise ShapeError(f"EffectiveSppLadder.from_images: one frame (B = 1) expected, got B = {R.shape[0]}; "
-                             "use ladder_rmse + effective_spp_many for several frames")
+            raise ShapeError(
+                f"EffectiveSppLadder.from_images: one frame (B = 1) expected, got B = {R.shape[0]}; "
+                "use ladder_rmse + effective_spp_many for several frames"
+            )
         return cls(_as_f64(ladder_spp, "ladder_spp"), R[0], interpolation)
 
     @property

@@ -57,8 +57,9 @@ class TriangleBVH:
         """
         if len(origins) == 0:
             return np.zeros(0, np.float32), np.zeros(0, np.int32)
-        res = self._scene.run(np.ascontiguousarray(origins, np.float32),
-                              np.ascontiguousarray(directions, np.float32), output=1)
+        res = self._scene.run(
+            np.ascontiguousarray(origins, np.float32), np.ascontiguousarray(directions, np.float32), output=1
+        )
         return res["tfar"], res["primID"]
 
     def occluded(self, origins: np.ndarray, directions: np.ndarray, tmax: np.ndarray) -> np.ndarray:
@@ -73,9 +74,12 @@ class TriangleBVH:
         """
         if len(origins) == 0:
             return np.zeros(0, bool)
-        res = self._scene.run(np.ascontiguousarray(origins, np.float32),
-                              np.ascontiguousarray(directions, np.float32),
-                              dists=np.array(tmax, dtype=np.float32, copy=True), query="OCCLUDED")
+        res = self._scene.run(
+            np.ascontiguousarray(origins, np.float32),
+            np.ascontiguousarray(directions, np.float32),
+            dists=np.array(tmax, dtype=np.float32, copy=True),
+            query="OCCLUDED",
+        )
         return np.asarray(res) >= 0
 
     def raw_scene(self):
@@ -101,8 +105,14 @@ class SplitBVH:
         moving_ids: (Fm,) int32 scene index of each moving face.
     """
 
-    def __init__(self, static: TriangleBVH, static_ids: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
-                 moving_ids: np.ndarray):
+    def __init__(
+        self,
+        static: TriangleBVH,
+        static_ids: np.ndarray,
+        vertices: np.ndarray,
+        faces: np.ndarray,
+        moving_ids: np.ndarray,
+    ):
         self.static, self.moving = static, TriangleBVH(vertices, faces)
         self._static_ids = np.ascontiguousarray(static_ids, np.int32)
         self._moving_ids = np.ascontiguousarray(moving_ids, np.int32)

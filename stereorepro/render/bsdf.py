@@ -20,8 +20,17 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["onb", "to_world", "unit_circle", "lambert_sample", "lambert_pdf", "phong_eval", "phong_sample",
-           "mixture_sample", "mixture_eval"]
+__all__ = [
+    "onb",
+    "to_world",
+    "unit_circle",
+    "lambert_sample",
+    "lambert_pdf",
+    "phong_eval",
+    "phong_sample",
+    "mixture_sample",
+    "mixture_eval",
+]
 
 _INV_PI = np.float32(1.0 / np.pi)
 _TWO_PI = np.float32(2.0 * np.pi)
@@ -143,8 +152,9 @@ def _reflect(n: np.ndarray, wo: np.ndarray) -> np.ndarray:
     return (2 * dot(n, wo))[:, None] * n - wo
 
 
-def phong_eval(ks: np.ndarray, exponent: np.ndarray, n: np.ndarray, wo: np.ndarray, wi: np.ndarray
-               ) -> tuple[np.ndarray, np.ndarray]:
+def phong_eval(
+    ks: np.ndarray, exponent: np.ndarray, n: np.ndarray, wo: np.ndarray, wi: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Glossy lobe value and sampling pdf.
 
     Args:
@@ -168,8 +178,7 @@ def phong_eval(ks: np.ndarray, exponent: np.ndarray, n: np.ndarray, wo: np.ndarr
     return ks * (base * (exponent + 2))[:, None], base * (exponent + 1)
 
 
-def phong_sample(exponent: np.ndarray, n: np.ndarray, wo: np.ndarray, u1: np.ndarray, u2: np.ndarray
-                 ) -> np.ndarray:
+def phong_sample(exponent: np.ndarray, n: np.ndarray, wo: np.ndarray, u1: np.ndarray, u2: np.ndarray) -> np.ndarray:
     """Directions (N, 3) distributed as ``cos^e`` around the mirror direction of ``wo`` (may fall below the surface).
 
     Examples:

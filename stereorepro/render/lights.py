@@ -60,7 +60,12 @@ class EmitterTable:
         self.area = 0.5 * dbl
         keep = self.area > 0
         self.face_index, self.v0, self.e1, self.e2, self.area = (
-            self.face_index[keep], self.v0[keep], self.e1[keep], self.e2[keep], self.area[keep])
+            self.face_index[keep],
+            self.v0[keep],
+            self.e1[keep],
+            self.e2[keep],
+            self.area[keep],
+        )
         self.normal = (cross[keep] / dbl[keep, None]).astype(np.float32)
         self.radiance = face_emission[self.face_index].astype(np.float32)
         self.power = np.pi * lum[self.face_index] * self.area
@@ -103,12 +108,24 @@ class LightSet:
         # Per scene triangle: selection probability / area (the area pdf used by MIS when a ray hits it).
         self.pdf_area_face = np.zeros(emitters.num_faces, np.float32)
         if self.num_area:
-            self.pdf_area_face[emitters.face_index] = (self.prob[:self.num_area] / emitters.area).astype(np.float32)
+            self.pdf_area_face[emitters.face_index] = (self.prob[: self.num_area] / emitters.area).astype(np.float32)
         # One gather table per area light (float32): v0, e1, e2, normal, radiance (3 each), selection pdf / area.
         E = emitters
-        self._table = np.concatenate([E.v0, E.e1, E.e2, E.normal, E.radiance,
-                                      (self.prob[:self.num_area] / np.maximum(E.area, 1e-30))[:, None]],
-                                     axis=1).astype(np.float32) if self.num_area else np.zeros((0, 16), np.float32)
+        self._table = (
+            np.concatenate(
+                [
+                    E.v0,
+                    E.e1,
+                    E.e2,
+                    E.normal,
+                    E.radiance,
+                    (self.prob[: self.num_area] / np.maximum(E.area, 1e-30))[:, None],
+                ],
+                axis=1,
+            ).astype(np.float32)
+            if self.num_area
+            else np.zeros((0, 16), np.float32)
+        )
 
     def sample(self, points: np.ndarray, u_sel: np.ndarray, u1: np.ndarray, u2: np.ndarray):
         """Sample one light per shading point.
@@ -152,8 +169,9 @@ class LightSet:
             pdf_a = T[:, 15] * d2a / np.maximum(cos_l, np.float32(1e-12))
             ok = (cos_l > 1e-7) & (d2a > 0)
             pdf[a] = np.where(ok, pdf_a, np.float32(np.inf))
-            li[a] = T[:, 12:15] * np.where(ok, np.float32(1) / np.where(ok, pdf_a, np.float32(1)),
-                                            np.float32(0))[:, None]
+            li[a] = (
+                T[:, 12:15] * np.where(ok, np.float32(1) / np.where(ok, pdf_a, np.float32(1)), np.float32(0))[:, None]
+            )
         if len(p):
             k = sel[p] - self.num_area
             ok = d2[p] > 0
@@ -192,7 +210,7 @@ class TriangleDistances:
     def __init__(self, vertices: np.ndarray, faces: np.ndarray):
         V = np.asarray(vertices, np.float64)
         Fc = np.asarray(faces, np.int64).reshape(-1, 3)
-        tri = V[Fc]                                      # (F, 3, 3)
+        tri = V[Fc]  # (F, 3, 3)
         self.a, self.b, self.c = tri[:, 0], tri[:, 1], tri[:, 2]
         self.n = np.cross(self.b - self.a, self.c - self.a)
         self.nn = np.einsum("ij,ij->i", self.n, self.n)
@@ -215,8 +233,9 @@ class TriangleDistances:
         w1 = np.einsum("ij,ij->i", np.cross(c - q, a - q), n)
         w2 = np.einsum("ij,ij->i", np.cross(a - q, b - q), n)
         inside = ok & (w0 >= 0) & (w1 >= 0) & (w2 >= 0)
-        d2 = np.minimum(np.minimum(_segment_distance2(p, a, b), _segment_distance2(p, b, c)),
-                        _segment_distance2(p, c, a))
+        d2 = np.minimum(
+            np.minimum(_segment_distance2(p, a, b), _segment_distance2(p, b, c)), _segment_distance2(p, c, a)
+        )
         return np.where(inside, s * s / nn, d2)
 
     def grouped(self, points: np.ndarray, group: np.ndarray, num_groups: int) -> np.ndarray:
@@ -249,8 +268,9 @@ class TriangleDistances:
         return out
 
 
-def point_mesh_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, chunk: int = 1 << 16
-                        ) -> np.ndarray:
+def point_mesh_distance(
+    points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, chunk: int = 1 << 16
+) -> np.ndarray:
     """Exact Euclidean distance from each point to the nearest triangle of a mesh (brute force, chunked).
 
     Args:
@@ -271,14 +291,20 @@ def point_mesh_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndar
     Fc = np.asarray(faces, np.int64).reshape(-1, 3)
     out = np.full(len(P), np.inf)
     for lo in range(0, len(Fc), chunk):
-        tris = TriangleDistances(vertices, Fc[lo:lo + chunk])
+        tris = TriangleDistances(vertices, Fc[lo : lo + chunk])
         for i, p in enumerate(P):
             out[i] = min(out[i], float(np.sqrt(tris.squared(p).min())))
     return out
 
 
-def radiance_bound(emission: np.ndarray, albedo: np.ndarray, specular: np.ndarray, exponent: np.ndarray,
-                   point_intensity: np.ndarray, point_distance: np.ndarray) -> float:
+def radiance_bound(
+    emission: np.ndarray,
+    albedo: np.ndarray,
+    specular: np.ndarray,
+    exponent: np.ndarray,
+    point_intensity: np.ndarray,
+    point_distance: np.ndarray,
+) -> float:
     """Upper bound ``C`` on the reflected radiance of any vertex of the depth-3 estimator (the firefly clamp).
 
     Rule (all quantities per scene, maxima over RGB channels)::

@@ -33,10 +33,17 @@ _C2 = 0x94D049BB133111EB
 
 #: Dimensions of one path sample (one primary ray, one bounce, two shadow rays).
 DIM = {
-    "jitter_x": 0, "jitter_y": 1,          # sub-pixel position
-    "light1": 2, "light1_u": 3, "light1_v": 4,   # next-event estimation at the first hit
-    "lobe": 5, "bsdf_u": 6, "bsdf_v": 7,     # BSDF-sampled secondary ray
-    "light2": 8, "light2_u": 9, "light2_v": 10,  # next-event estimation at the second hit
+    "jitter_x": 0,
+    "jitter_y": 1,  # sub-pixel position
+    "light1": 2,
+    "light1_u": 3,
+    "light1_v": 4,  # next-event estimation at the first hit
+    "lobe": 5,
+    "bsdf_u": 6,
+    "bsdf_v": 7,  # BSDF-sampled secondary ray
+    "light2": 8,
+    "light2_u": 9,
+    "light2_v": 10,  # next-event estimation at the second hit
 }
 
 

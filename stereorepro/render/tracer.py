@@ -96,8 +96,16 @@ try:  # optional: the package works without the compiled core
 except ImportError:  # pragma: no cover - depends on the build
     _core = None
 
-__all__ = ["PathTracer", "RenderResult", "ray_epsilon", "native_available", "resolve_backend", "BACKENDS",
-           "ENV_VAR", "PIXEL_SAMPLINGS"]
+__all__ = [
+    "PathTracer",
+    "RenderResult",
+    "ray_epsilon",
+    "native_available",
+    "resolve_backend",
+    "BACKENDS",
+    "ENV_VAR",
+    "PIXEL_SAMPLINGS",
+]
 
 BACKENDS = _backend.TRACER_NAMES
 #: ``PathTracer.render(pixel_sampling=...)``: a uniform position in the pixel per sample, or the pixel centre.
@@ -240,9 +248,11 @@ def _check_render_args(spp, sample_offset, pixel_sampling) -> None:
         raise ValueError(f"render: spp must be >= 1, got {spp}")
     if int(sample_offset) < 0:
         raise ParameterError(f"render: sample_offset must be >= 0, got {sample_offset}")
-    if int(sample_offset) + int(spp) > 2 ** 63:  # the 64-bit sample index would wrap
-        raise ParameterError(f"render: sample_offset + spp must be at most 2**63 (the 64-bit sample index), got "
-                             f"{int(sample_offset) + int(spp)}")
+    if int(sample_offset) + int(spp) > 2**63:  # the 64-bit sample index would wrap
+        raise ParameterError(
+            f"render: sample_offset + spp must be at most 2**63 (the 64-bit sample index), got "
+            f"{int(sample_offset) + int(spp)}"
+        )
     if not (isinstance(pixel_sampling, str) and pixel_sampling in PIXEL_SAMPLINGS):
         raise ValueError(f"render: pixel_sampling must be one of {PIXEL_SAMPLINGS}, got {pixel_sampling!r}")
 
@@ -284,14 +294,14 @@ class _Frame:
 
     key: int
     width: int
-    center: np.ndarray      # (3,) float32 camera centre (world)
+    center: np.ndarray  # (3,) float32 camera centre (world)
     dir_from_pix: np.ndarray  # (3, 3) float64: world direction (camera z = 1) = M @ [u, v, 1]
     lights: LightSet
     limit: float | None = None  # firefly clamp C (None: off)
-    shader: object = None       # _core.TracerShader of the frame's lights (native backend)
+    shader: object = None  # _core.TracerShader of the frame's lights (native backend)
     M32: np.ndarray | None = None  # (9,) float32 dir_from_pix, as _camera_dirs rounds it
-    geom: "_Geometry" = None    # the frame's triangles (moving objects placed)
-    center_rays: bool = False   # pixel_sampling="center": primary rays are the G-buffer's rays (see _center_dirs)
+    geom: "_Geometry" = None  # the frame's triangles (moving objects placed)
+    center_rays: bool = False  # pixel_sampling="center": primary rays are the G-buffer's rays (see _center_dirs)
 
 
 @dataclass(frozen=True)
@@ -343,8 +353,15 @@ class PathTracer:
         ((1, 3, 6, 8), (1, 1, 6, 8), 1)
     """
 
-    def __init__(self, scene, seed: int = 0, workers: int | None = None, max_batch: int = 1 << 15,
-                 clamp: str | float | None = "auto", backend: str = "auto"):
+    def __init__(
+        self,
+        scene,
+        seed: int = 0,
+        workers: int | None = None,
+        max_batch: int = 1 << 15,
+        clamp: str | float | None = "auto",
+        backend: str = "auto",
+    ):
         self.backend = resolve_backend(backend)
         if workers is None:
             try:
@@ -501,10 +518,25 @@ class PathTracer:
             ks, ex, ps = np.zeros((nm, 3), f32), np.zeros(nm, f32), np.zeros(nm, f32)
         c = np.ascontiguousarray
         return _core.TracerShader(
-            c(geom.face_normal, f32), c(self.face_material, np.int32), c(self.kd, f32), c(ks, f32), c(ex, f32),
-            c(ps, f32), c(self.emission, f32), c(self.mat_emissive, bool), float(self.eps), bool(self.glossy),
-            bool(ls.empty), c(ls.cdf, np.float64), c(ls.prob, np.float64), c(ls._table, f32), int(ls.num_area),
-            c(ls.point_pos, f32), c(ls.point_int, f32), c(ls.pdf_area_face, f32))
+            c(geom.face_normal, f32),
+            c(self.face_material, np.int32),
+            c(self.kd, f32),
+            c(ks, f32),
+            c(ex, f32),
+            c(ps, f32),
+            c(self.emission, f32),
+            c(self.mat_emissive, bool),
+            float(self.eps),
+            bool(self.glossy),
+            bool(ls.empty),
+            c(ls.cdf, np.float64),
+            c(ls.prob, np.float64),
+            c(ls._table, f32),
+            int(ls.num_area),
+            c(ls.point_pos, f32),
+            c(ls.point_int, f32),
+            c(ls.pdf_area_face, f32),
+        )
 
     def _limit(self, pos: np.ndarray, inten: np.ndarray, frame: int) -> float | None:
         if self.clamp is None:
@@ -526,15 +558,31 @@ class PathTracer:
                 self._triangle_distances = (geom.frame, TriangleDistances(geom.vertices, self.faces))
             dist = self._triangle_distances[1].grouped(pos, self.face_material, len(self.kd))
         m = self._materials
-        c = radiance_bound(m["emission"], m["albedo"], m["specular"] if self.glossy else np.zeros_like(m["albedo"]),
-                           m["exponent"], inten, dist)
+        c = radiance_bound(
+            m["emission"],
+            m["albedo"],
+            m["specular"] if self.glossy else np.zeros_like(m["albedo"]),
+            m["exponent"],
+            inten,
+            dist,
+        )
         return c if math.isfinite(c) else None
 
     # ------------------------------------------------------------------ public API
-    def render(self, camera: PinholeCamera, frame: int, spp: int, sample_offset: int = 0,
-               pixel_mask: Tensor | None = None, eye: int = 0, gbuffers: bool = True,
-               progress: bool = False, prev_camera: PinholeCamera | None = None,
-               prev_frame: int | None = None, pixel_sampling: str = "box") -> RenderResult:
+    def render(
+        self,
+        camera: PinholeCamera,
+        frame: int,
+        spp: int,
+        sample_offset: int = 0,
+        pixel_mask: Tensor | None = None,
+        eye: int = 0,
+        gbuffers: bool = True,
+        progress: bool = False,
+        prev_camera: PinholeCamera | None = None,
+        prev_frame: int | None = None,
+        pixel_sampling: str = "box",
+    ) -> RenderResult:
         """Render radiance (and G-buffers) of one camera.
 
         Args:
@@ -582,11 +630,24 @@ class PathTracer:
             bar.close()
         radiance = sums.image()
         g = self._gbuffer_full(fr, frame, pixels, H, W, counts, prev_camera, prev_frame) if gbuffers else {}
-        return RenderResult(radiance=radiance, ray_counts=counts, spp=int(spp), time_s=time.perf_counter() - t0,
-                            **{k: g.get(k) for k in _GBUFFER_FIELDS})
+        return RenderResult(
+            radiance=radiance,
+            ray_counts=counts,
+            spp=int(spp),
+            time_s=time.perf_counter() - t0,
+            **{k: g.get(k) for k in _GBUFFER_FIELDS},
+        )
 
-    def _trace_range(self, fr: _Frame, pixels: np.ndarray, lo_hi: tuple[int, int], spp: int, sample_offset: int,
-                     sums: "_PixelSums", bar) -> dict:
+    def _trace_range(
+        self,
+        fr: _Frame,
+        pixels: np.ndarray,
+        lo_hi: tuple[int, int],
+        spp: int,
+        sample_offset: int,
+        sums: "_PixelSums",
+        bar,
+    ) -> dict:
         """All ``spp`` samples of the pixels ``pixels[lo:hi]`` (one worker), in batches of at most ``max_batch``
         paths (several samples per batch when the range is short); returns the rays traced per kind."""
         lo, hi = lo_hi
@@ -607,15 +668,26 @@ class PathTracer:
                         bar.update(kk * m)
         return c
 
-    def gbuffer(self, camera: PinholeCamera, frame: int, pixel_mask: Tensor | None = None,
-                prev_camera: PinholeCamera | None = None, prev_frame: int | None = None) -> RenderResult:
+    def gbuffer(
+        self,
+        camera: PinholeCamera,
+        frame: int,
+        pixel_mask: Tensor | None = None,
+        prev_camera: PinholeCamera | None = None,
+        prev_frame: int | None = None,
+    ) -> RenderResult:
         """G-buffers only (radiance zeros, ``spp = 0``, only ``gbuffer`` rays); same values as :meth:`render`."""
         t0 = time.perf_counter()
         fr, pixels, H, W = self._setup(camera, frame, pixel_mask, 0, need_lights=False)
         counts = {"primary": 0, "secondary": 0, "shadow": 0, "gbuffer": 0}
         g = self._gbuffer_full(fr, frame, pixels, H, W, counts, prev_camera, prev_frame)
-        return RenderResult(radiance=torch.zeros(1, 3, H, W), ray_counts=counts, spp=0,
-                            time_s=time.perf_counter() - t0, **{k: g.get(k) for k in _GBUFFER_FIELDS})
+        return RenderResult(
+            radiance=torch.zeros(1, 3, H, W),
+            ray_counts=counts,
+            spp=0,
+            time_s=time.perf_counter() - t0,
+            **{k: g.get(k) for k in _GBUFFER_FIELDS},
+        )
 
     def _gbuffer_full(self, fr, frame, pixels, H, W, counts, prev_camera, prev_frame) -> dict:
         """The G-buffer stage, then (with ``prev_camera``) the motion stage and (moving objects) object ids."""
@@ -634,8 +706,16 @@ class PathTracer:
             g["object_id"] = torch.from_numpy(obj.reshape(1, 1, H, W))
         return g
 
-    def _motion(self, position: Tensor, prim: np.ndarray, frame: int, prev_camera: PinholeCamera, prev_frame: int,
-                H: int, W: int) -> tuple[Tensor, Tensor]:
+    def _motion(
+        self,
+        position: Tensor,
+        prim: np.ndarray,
+        frame: int,
+        prev_camera: PinholeCamera,
+        prev_frame: int,
+        H: int,
+        W: int,
+    ) -> tuple[Tensor, Tensor]:
         """The motion stage: ``motion`` (1, 2, H, W) and ``motion_world`` (1, 3, H, W) (see :class:`RenderResult`),
         from the G-buffer's positions and hit triangles, in float64."""
         hit = prim >= 0
@@ -661,8 +741,10 @@ class PathTracer:
         motion = np.stack([u - (idx % W + 0.5), v - (idx // W + 0.5)])
         motion[:, ~front] = np.nan
         mw[~hit] = np.nan
-        return (torch.from_numpy(motion.astype(np.float32).reshape(1, 2, H, W)),
-                torch.from_numpy(np.ascontiguousarray(mw.T).astype(np.float32).reshape(1, 3, H, W)))
+        return (
+            torch.from_numpy(motion.astype(np.float32).reshape(1, 2, H, W)),
+            torch.from_numpy(np.ascontiguousarray(mw.T).astype(np.float32).reshape(1, 3, H, W)),
+        )
 
     # ------------------------------------------------------------------ internals
     def _setup(self, camera, frame, pixel_mask, eye, need_lights=True):
@@ -680,15 +762,25 @@ class PathTracer:
             if not isinstance(pixel_mask, Tensor) or pixel_mask.dtype != torch.bool:
                 raise TypeError("render: pixel_mask must be a bool tensor of shape (H, W) or (1, 1, H, W)")
             if tuple(pixel_mask.shape) not in ((H, W), (1, 1, H, W)):
-                raise ValueError(f"render: pixel_mask must have shape ({H}, {W}) or (1, 1, {H}, {W}), "
-                                 f"got {tuple(pixel_mask.shape)}")
+                raise ValueError(
+                    f"render: pixel_mask must have shape ({H}, {W}) or (1, 1, {H}, {W}), got {tuple(pixel_mask.shape)}"
+                )
             pixels = np.flatnonzero(pixel_mask.reshape(-1).cpu().numpy()).astype(np.int64)
         K = camera.K[0].detach().cpu().double().numpy()
         wfc = camera.world_from_cam[0].detach().cpu().double().numpy()
         M = wfc[:3, :3] @ np.linalg.inv(K)
         lights, limit, shader = self._prepare_lights_full(frame) if need_lights else (None, None, None)
-        fr = _Frame(stream_key(self.seed, int(frame), int(eye)), W, wfc[:3, 3].astype(np.float32), M, lights, limit,
-                    shader, np.ascontiguousarray(M.astype(np.float32).reshape(9)), self.geometry(frame))
+        fr = _Frame(
+            stream_key(self.seed, int(frame), int(eye)),
+            W,
+            wfc[:3, 3].astype(np.float32),
+            M,
+            lights,
+            limit,
+            shader,
+            np.ascontiguousarray(M.astype(np.float32).reshape(9)),
+            self.geometry(frame),
+        )
         return fr, pixels, H, W
 
     def _ranges(self, n):
@@ -764,8 +856,14 @@ class PathTracer:
         def img(x, C):
             return torch.from_numpy(np.ascontiguousarray(x.reshape(H * W, C).T).reshape(1, C, H, W))
 
-        return {"depth": img(depth, 1), "normal": img(normal, 3), "position": img(position, 3),
-                "albedo": img(albedo, 3), "material_id": img(matid, 1), "_prim": prim_img}
+        return {
+            "depth": img(depth, 1),
+            "normal": img(normal, 3),
+            "position": img(position, 3),
+            "albedo": img(albedo, 3),
+            "material_id": img(matid, 1),
+            "_prim": prim_img,
+        }
 
     def _gbuffer_native(self, fr: _Frame, pixels, H, W, counts) -> dict:
         """:meth:`_gbuffer` with the ray set-up and the writes in ``_core`` (same values; planar outputs, no
@@ -785,9 +883,21 @@ class PathTracer:
             d = np.empty((len(pix), 3), np.float32)
             _core.tracer_gbuffer_rays(W, pix, fr.M32, fr.center, o, d)
             t, prim = fr.geom.bvh.intersect(o, d)
-            _core.tracer_gbuffer_write(pix, d, np.ascontiguousarray(t, np.float32), np.ascontiguousarray(prim, np.int32),
-                                       fr.center, fn, fm, kd, depth, planes["normal"], planes["position"],
-                                       planes["albedo"], matid)
+            _core.tracer_gbuffer_write(
+                pix,
+                d,
+                np.ascontiguousarray(t, np.float32),
+                np.ascontiguousarray(prim, np.int32),
+                fr.center,
+                fn,
+                fm,
+                kd,
+                depth,
+                planes["normal"],
+                planes["position"],
+                planes["albedo"],
+                matid,
+            )
             prim_img[pix] = prim
             return len(pix)
 
@@ -803,8 +913,9 @@ class PathTracer:
     def _bsdf_eval(self, mat, n, wo, wi):
         """f (N, 3), cos_i (N,), pdf (N,) of the surface BSDF; Lambert only unless the scene is glossy."""
         if self.glossy:
-            f, pdf, cos_i = _bsdf.mixture_eval(self.kd[mat], self.ks[mat], self.exponent[mat], self.p_spec[mat],
-                                               n, wo, wi)
+            f, pdf, cos_i = _bsdf.mixture_eval(
+                self.kd[mat], self.ks[mat], self.exponent[mat], self.p_spec[mat], n, wo, wi
+            )
             return f, cos_i, pdf
         cos_i = _dot(n, wi)
         return self.kd[mat] * np.float32(1 / math.pi), cos_i, _bsdf.lambert_pdf(cos_i)
@@ -812,8 +923,17 @@ class PathTracer:
     def _bsdf_sample(self, mat, n, wo, keys):
         u1, u2 = uniform(keys, DIM["bsdf_u"]), uniform(keys, DIM["bsdf_v"])
         if self.glossy:
-            return _bsdf.mixture_sample(self.kd[mat], self.ks[mat], self.exponent[mat], self.p_spec[mat], n, wo,
-                                        uniform(keys, DIM["lobe"]), u1, u2)
+            return _bsdf.mixture_sample(
+                self.kd[mat],
+                self.ks[mat],
+                self.exponent[mat],
+                self.p_spec[mat],
+                n,
+                wo,
+                uniform(keys, DIM["lobe"]),
+                u1,
+                u2,
+            )
         wi, cos_i = _bsdf.lambert_sample(n, u1, u2)
         ok = cos_i > 0
         return wi, self.kd[mat] * ok[:, None], _bsdf.lambert_pdf(cos_i)
@@ -836,8 +956,9 @@ class PathTracer:
         return ok, o, wi, tmax, val
 
     # ------------------------------------------------------------------ one wavefront batch
-    def _trace_paths(self, fr: _Frame, pix: np.ndarray, samp: np.ndarray, counts: dict,
-                     slot: dict | None = None) -> np.ndarray:
+    def _trace_paths(
+        self, fr: _Frame, pix: np.ndarray, samp: np.ndarray, counts: dict, slot: dict | None = None
+    ) -> np.ndarray:
         """Radiance (N, 3) float32 of one sample per path (flat pixel ``pix`` (N,), sample index ``samp`` (N,)):
         the :data:`STAGES` in order, as the tracer's backend implements them; ray counts are added to ``counts``.
         ``slot`` holds the worker's scratch arrays (native backend, see :meth:`_workspace_slot`)."""
@@ -858,10 +979,23 @@ class PathTracer:
         multi-megabyte arrays cost page faults on every batch)."""
         if ws is None or len(ws["keys"]) < n:
             f32, rows = np.float32, lambda k, c=3: np.empty((k, c), f32)
-            ws = {"keys": np.empty(n, np.uint64), "o": rows(n), "d": rows(n), "thr": rows(n),
-                  "pdfb": np.empty(n, f32), "sh_o": rows(2 * n), "sh_d": rows(2 * n), "sh_val": rows(2 * n),
-                  "sh_t": np.empty(2 * n, f32), "sh_path": np.empty(2 * n, np.int32), "b_o": rows(n), "b_d": rows(n),
-                  "b_path": np.empty(n, np.int32), "E2": rows(n), "hit2": np.empty(n, np.uint8)}
+            ws = {
+                "keys": np.empty(n, np.uint64),
+                "o": rows(n),
+                "d": rows(n),
+                "thr": rows(n),
+                "pdfb": np.empty(n, f32),
+                "sh_o": rows(2 * n),
+                "sh_d": rows(2 * n),
+                "sh_val": rows(2 * n),
+                "sh_t": np.empty(2 * n, f32),
+                "sh_path": np.empty(2 * n, np.int32),
+                "b_o": rows(n),
+                "b_d": rows(n),
+                "b_path": np.empty(n, np.int32),
+                "E2": rows(n),
+                "hit2": np.empty(n, np.uint8),
+            }
         return ws
 
     @contextmanager
@@ -887,8 +1021,7 @@ class PathTracer:
 #: (MIS-weighted emission, a light sample); one occlusion query for both light samples' shadow rays; the sample's
 #: sum with the firefly clamps. :class:`_NumpyStages` and :class:`_NativeStages` implement every stage; the three
 #: ``intersect_*`` stages are theirs in common (embreex, :class:`_Stages`).
-STAGES = ("generate", "intersect_primary", "shade_x1", "intersect_bounce", "shade_x2", "intersect_shadow",
-          "accumulate")
+STAGES = ("generate", "intersect_primary", "shade_x1", "intersect_bounce", "shade_x2", "intersect_shadow", "accumulate")
 
 _X1_DIMS = (DIM["light1"], DIM["light1_u"], DIM["light1_v"])
 _X2_DIMS = (DIM["light2"], DIM["light2_u"], DIM["light2_v"])
@@ -1078,8 +1211,14 @@ class _NativeStages(_Stages):
     def start(self, fr: _Frame, pix, samp, counts, slot) -> _NativeBatch:
         N = len(pix)
         slot["ws"] = self.tr._workspace(N, slot["ws"])
-        return _NativeBatch(fr, np.ascontiguousarray(pix, np.int64), np.ascontiguousarray(samp, np.int64), counts,
-                            np.empty((N, 3), np.float32), ws=slot["ws"])  # L: never a workspace buffer
+        return _NativeBatch(
+            fr,
+            np.ascontiguousarray(pix, np.int64),
+            np.ascontiguousarray(samp, np.int64),
+            counts,
+            np.empty((N, 3), np.float32),
+            ws=slot["ws"],
+        )  # L: never a workspace buffer
 
     def generate(self, b: _NativeBatch) -> None:
         fr, N = b.fr, len(b.pix)
@@ -1095,17 +1234,39 @@ class _NativeStages(_Stages):
         N, ws = len(b.pix), b.ws
         b.t, b.prim = np.ascontiguousarray(b.t, np.float32), np.ascontiguousarray(b.prim, np.int32)
         b_o, b_d, b_path = ws["b_o"][:N], ws["b_d"][:N], ws["b_path"][:N]
-        b.n1, nb = b.fr.shader.shade1(b.keys, b.d, b.t, b.prim, b.fr.center, b.L, ws["thr"][:N], ws["pdfb"][:N],
-                                      *self._shadow_buffers(b), b_o, b_d, b_path)
+        b.n1, nb = b.fr.shader.shade1(
+            b.keys,
+            b.d,
+            b.t,
+            b.prim,
+            b.fr.center,
+            b.L,
+            ws["thr"][:N],
+            ws["pdfb"][:N],
+            *self._shadow_buffers(b),
+            b_o,
+            b_d,
+            b_path,
+        )
         b.bounce_o, b.bounce_d, b.bounce_path = b_o[:nb], b_d[:nb], b_path[:nb]
 
     def shade_x2(self, b: _NativeBatch) -> None:
         N, ws, ns = len(b.pix), b.ws, b.n1
         E2, hit2 = ws["E2"][:N], ws["hit2"][:N]
         if len(b.bounce_o):
-            ns += b.fr.shader.shade2(b.keys, b.bounce_o, b.bounce_d, b.bounce_path,
-                                     np.ascontiguousarray(b.t2, np.float32), np.ascontiguousarray(b.prim2, np.int32),
-                                     ws["pdfb"][:N], E2, hit2, *self._shadow_buffers(b), b.n1)
+            ns += b.fr.shader.shade2(
+                b.keys,
+                b.bounce_o,
+                b.bounce_d,
+                b.bounce_path,
+                np.ascontiguousarray(b.t2, np.float32),
+                np.ascontiguousarray(b.prim2, np.int32),
+                ws["pdfb"][:N],
+                E2,
+                hit2,
+                *self._shadow_buffers(b),
+                b.n1,
+            )
         else:
             E2.fill(0)
             hit2.fill(0)
@@ -1113,9 +1274,19 @@ class _NativeStages(_Stages):
 
     def accumulate(self, b: _NativeBatch) -> None:
         N, ws, ns, limit = len(b.pix), b.ws, len(b.shadow_o), b.fr.limit
-        b.fr.shader.accumulate(b.prim, ws["hit2"][:N], ws["thr"][:N], ws["E2"][:N], ws["sh_path"][:ns],
-                               ws["sh_val"][:ns], np.ascontiguousarray(b.occluded, bool), b.n1,
-                               float(np.float32(limit)) if limit is not None else 0.0, limit is not None, b.L)
+        b.fr.shader.accumulate(
+            b.prim,
+            ws["hit2"][:N],
+            ws["thr"][:N],
+            ws["E2"][:N],
+            ws["sh_path"][:ns],
+            ws["sh_val"][:ns],
+            np.ascontiguousarray(b.occluded, bool),
+            b.n1,
+            float(np.float32(limit)) if limit is not None else 0.0,
+            limit is not None,
+            b.L,
+        )
 
     @staticmethod
     def _shadow_buffers(b: _NativeBatch):

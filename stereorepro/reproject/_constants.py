@@ -23,7 +23,7 @@ OFF_FRAME = -COORD_MARGIN
 TABLE_PAD = int(COORD_MARGIN) + 1
 
 #: Integers up to this are exact in float32: larger tables index in float64 (torch) or leave the vector path (C++).
-F32_EXACT_INT = 2 ** 24
+F32_EXACT_INT = 2**24
 
 #: Code of a source tap that passes every destination-independent test in the export formulation: above every
 #: code a tap can report (they run up to ``NONFINITE``).
@@ -34,5 +34,9 @@ TAP_OK_CODE = float(Reason.NONFINITE) + 1.0
 NATIVE_MAX_CHANNELS = 16
 
 #: What the native kernels hold as their own compile-time copies (``_core.reproject_constants`` must equal it).
-MIRRORED_IN_CORE = {"COORD_MARGIN": COORD_MARGIN, "F32_EXACT_INT": F32_EXACT_INT, "MAX_CHANNELS": NATIVE_MAX_CHANNELS,
-                    **{f"REASON_{r.name}": int(r) for r in Reason if r <= Reason.NONFINITE}}
+MIRRORED_IN_CORE = {
+    "COORD_MARGIN": COORD_MARGIN,
+    "F32_EXACT_INT": F32_EXACT_INT,
+    "MAX_CHANNELS": NATIVE_MAX_CHANNELS,
+    **{f"REASON_{r.name}": int(r) for r in Reason if r <= Reason.NONFINITE},
+}

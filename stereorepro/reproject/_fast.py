@@ -59,8 +59,9 @@ class _Scratch:
         return self._views[key]
 
 
-def fast_source_table(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, K_src_inv: Tensor,
-                      wdt: torch.dtype) -> Tensor:
+def fast_source_table(
+    src_values: Tensor, src_depth: Tensor, src_normal: Tensor, K_src_inv: Tensor, wdt: torch.dtype
+) -> Tensor:
     """The fast path's gather table: (B, C+6, Hp·Wp) with Hp, Wp = Hs + 2·TABLE_PAD, Ws + 2·TABLE_PAD.
 
     Channels: values (all 0 for a pixel with any non-finite value), the pixel's point in the source camera frame
@@ -71,10 +72,10 @@ def fast_source_table(src_values: Tensor, src_depth: Tensor, src_normal: Tensor,
     dev = src_values.device
     p = TABLE_PAD
     tab = torch.empty(B, C + 6, Hs + 2 * p, Ws + 2 * p, dtype=wdt, device=dev)
-    for border in (tab[:, :, :p], tab[:, :, p + Hs:], tab[:, :, p:p + Hs, :p], tab[:, :, p:p + Hs, p + Ws:]):
+    for border in (tab[:, :, :p], tab[:, :, p + Hs :], tab[:, :, p : p + Hs, :p], tab[:, :, p : p + Hs, p + Ws :]):
         border.fill_(0.0)
-        border[:, C:C + 3].fill_(math.nan)
-    inner = tab[:, :, p:p + Hs, p:p + Ws]
+        border[:, C : C + 3].fill_(math.nan)
+    inner = tab[:, :, p : p + Hs, p : p + Ws]
     sv = src_values.to(wdt)
     s0 = sv.sum(1, keepdim=True)
     s0 = torch.sub(s0, s0, out=s0)  # 0 where all values of the pixel are finite, NaN elsewhere
@@ -85,10 +86,10 @@ def fast_source_table(src_values: Tensor, src_depth: Tensor, src_normal: Tensor,
     ki = K_src_inv.reshape(B, 9, 1, 1)
     ut = torch.arange(Ws, dtype=wdt, device=dev).view(1, 1, 1, Ws) + 0.5
     vt = torch.arange(Hs, dtype=wdt, device=dev).view(1, 1, Hs, 1) + 0.5
-    torch.mul(zm, ki[:, 0:1] * ut + ki[:, 1:2] * vt + ki[:, 2:3], out=inner[:, C:C + 1])  # px, as in warp_pixels
-    torch.mul(zm, ki[:, 4:5] * vt + ki[:, 5:6], out=inner[:, C + 1:C + 2])  # py
-    inner[:, C + 2:C + 3] = zm
-    torch.nan_to_num(src_normal.to(wdt), 0.0, 0.0, 0.0, out=inner[:, C + 3:])
+    torch.mul(zm, ki[:, 0:1] * ut + ki[:, 1:2] * vt + ki[:, 2:3], out=inner[:, C : C + 1])  # px, as in warp_pixels
+    torch.mul(zm, ki[:, 4:5] * vt + ki[:, 5:6], out=inner[:, C + 1 : C + 2])  # py
+    inner[:, C + 2 : C + 3] = zm
+    torch.nan_to_num(src_normal.to(wdt), 0.0, 0.0, 0.0, out=inner[:, C + 3 :])
     return tab.view(B, C + 6, -1)
 
 
@@ -120,19 +121,24 @@ class _Motion(NamedTuple):
 
     def rows(self, r0: int, r1: int) -> tuple[Tensor, Tensor | None]:
         """Motion and world motion of rows r0 .. r1 - 1, flattened to (B, 2 | 3, N)."""
+
         def flat(x):
             return None if x is None else x[:, :, r0:r1].reshape(x.shape[0], x.shape[1], -1)
+
         return flat(self.motion), flat(self.world)
 
     def pixels(self, b: int, p: Tensor, yy: Tensor, xx: Tensor) -> tuple[Tensor, Tensor | None]:
         """Motion and world motion of pixels ``p`` of batch item ``b`` as (1, 2 | 3, 1, K)."""
+
         def take(x):
             return None if x is None else _gather_pixels(x, b, p, yy, xx).view(1, x.shape[1], 1, -1)
+
         return take(self.motion), take(self.world)
 
 
-def fast_motion_source(geo: _RowGeometry, zc: Tensor, motion: tuple[Tensor, Tensor | None], point: Tensor, r0: int,
-                       r1: int, uv_raw: Tensor) -> None:
+def fast_motion_source(
+    geo: _RowGeometry, zc: Tensor, motion: tuple[Tensor, Tensor | None], point: Tensor, r0: int, r1: int, uv_raw: Tensor
+) -> None:
     """The source pixel of N destination pixels from their motion vectors (warp_pixels' motion source).
 
     Writes ``uv_raw`` (B, 2, N): pixel centre + motion; the lower clamp (OFF_FRAME) where the motion or world motion
@@ -158,8 +164,16 @@ def fast_motion_source(geo: _RowGeometry, zc: Tensor, motion: tuple[Tensor, Tens
     uv_raw.masked_fill_(~((zc > 0) & (point[:, 2:3] > 0)), math.nan)
 
 
-def fast_geometry(geo: _RowGeometry, z: Tensor, n: Tensor, r0: int, r1: int, uv_raw: Tensor, sc: _Scratch,
-                  motion: tuple[Tensor, Tensor | None] | None = None):
+def fast_geometry(
+    geo: _RowGeometry,
+    z: Tensor,
+    n: Tensor,
+    r0: int,
+    r1: int,
+    uv_raw: Tensor,
+    sc: _Scratch,
+    motion: tuple[Tensor, Tensor | None] | None = None,
+):
     """Destination rows r0 .. r1 - 1 -> taps: the fast path's share of the projection and tap weights of
     :func:`warp_pixels` (same arithmetic for every pixel that can have an accepted tap).
 
@@ -179,14 +193,31 @@ def fast_geometry(geo: _RowGeometry, z: Tensor, n: Tensor, r0: int, r1: int, uv_
     Invalid pixels need no flag: no surface (z <= 0 -> 1/z = inf, NaN z) or behind the camera (wz <= 0 ->
     w / 0) make u, v non-finite, sanitised to the border, so every tap is rejected; z = +inf gives an infinite q.
     """
-    pp, kt, t, one, Wp, idx_dtype = (geo.proj_point, geo.K_src_t, geo.t_src_from_dst, geo.one, geo.padded_width,
-                                     geo.idx_dtype)
+    pp, kt, t, one, Wp, idx_dtype = (
+        geo.proj_point,
+        geo.K_src_t,
+        geo.t_src_from_dst,
+        geo.one,
+        geo.padded_width,
+        geo.idx_dtype,
+    )
     B, h, W = z.shape[0], r1 - r0, geo.proj_point_u.shape[-1]
     N, wdt = h * W, pp.dtype
-    v = sc.views(("geometry", N), [("zc", (B, 1, N), wdt), ("inv", (B, 1, N), wdt), ("base", (B, 6, h, W), wdt),
-                                   ("w", (B, 3, N), wdt), ("point_normal", (B, 6, N), wdt), ("uv", (B, 2, N), wdt),
-                                   ("xy0", (B, 2, N), wdt), ("wa", (B, 2, 2, N), wdt), ("wts", (B, 2, 2, N), wdt),
-                                   ("corner", (B, 1, N), idx_dtype)])
+    v = sc.views(
+        ("geometry", N),
+        [
+            ("zc", (B, 1, N), wdt),
+            ("inv", (B, 1, N), wdt),
+            ("base", (B, 6, h, W), wdt),
+            ("w", (B, 3, N), wdt),
+            ("point_normal", (B, 6, N), wdt),
+            ("uv", (B, 2, N), wdt),
+            ("xy0", (B, 2, N), wdt),
+            ("wa", (B, 2, 2, N), wdt),
+            ("wts", (B, 2, 2, N), wdt),
+            ("corner", (B, 1, N), idx_dtype),
+        ],
+    )
     zc = torch.clamp_min(z.to(wdt), 0.0, out=v["zc"])
     inv = torch.reciprocal(zc, out=v["inv"])
     # proj_point @ [u, v, 1] as in warp_pixels: (c0·u + c1·v) + c2 over the columns c of proj_point, c0·u
@@ -219,8 +250,17 @@ def fast_geometry(geo: _RowGeometry, z: Tensor, n: Tensor, r0: int, r1: int, uv_
     return point_normal, wts, corner
 
 
-def fast_accept(taps: Tensor, point_normal: Tensor, wts: Tensor | None, thr2: Tensor, sc: _Scratch, key,
-                 values: Tensor, valid: Tensor, den: Tensor) -> None:
+def fast_accept(
+    taps: Tensor,
+    point_normal: Tensor,
+    wts: Tensor | None,
+    thr2: Tensor,
+    sc: _Scratch,
+    key,
+    values: Tensor,
+    valid: Tensor,
+    den: Tensor,
+) -> None:
     """Accept tests and the renormalised sum over the taps of N destination pixels (the tail of warp_pixels).
 
     Args:
@@ -231,10 +271,18 @@ def fast_accept(taps: Tensor, point_normal: Tensor, wts: Tensor | None, thr2: Te
     """
     B, F, Ty, Tx, N = taps.shape
     C, T, wdt = F - 6, Ty * Tx, taps.dtype
-    v = sc.views(("accept", key), [("d", (B, 6, Ty, Tx, N), wdt), ("s", (B, 2, Ty, Tx, N), wdt),
-                                   ("a", (B, 2, Ty, Tx, N), wdt), ("ws", (B, Ty, Tx, N), wdt),
-                                   ("prod", (B, C, Ty, Tx, N), wdt), ("num", (B, C, N), wdt),
-                                   ("den_safe", (B, 1, N), wdt)])
+    v = sc.views(
+        ("accept", key),
+        [
+            ("d", (B, 6, Ty, Tx, N), wdt),
+            ("s", (B, 2, Ty, Tx, N), wdt),
+            ("a", (B, 2, Ty, Tx, N), wdt),
+            ("ws", (B, Ty, Tx, N), wdt),
+            ("prod", (B, C, Ty, Tx, N), wdt),
+            ("num", (B, C, N), wdt),
+            ("den_safe", (B, 1, N), wdt),
+        ],
+    )
     # (p_src - q)², (n_src - n_dst)² in one pass (mse_loss without reduction: exactly the square of the difference)
     d = torch.ops.aten.mse_loss.out(taps[:, C:], point_normal[:, :, None, None], 0, out=v["d"]).view(B, 2, 3, Ty, Tx, N)
     s = torch.add(d[:, :, 0], d[:, :, 1], out=v["s"]).add_(d[:, :, 2])  # d_pos2, d_n2 summed as warp_pixels
@@ -259,8 +307,19 @@ def _gather_pixels(x: Tensor, b: int, p: Tensor, yy: Tensor, xx: Tensor) -> Tens
     return xb[:, yy, xx][None]
 
 
-def fast_reasons(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, dst_depth: Tensor, dst_normal: Tensor,
-                 warp: Warp, tests: TapTests, b: int, p: Tensor, uv: Tensor, motion: _Motion | None = None) -> Tensor:
+def fast_reasons(
+    src_values: Tensor,
+    src_depth: Tensor,
+    src_normal: Tensor,
+    dst_depth: Tensor,
+    dst_normal: Tensor,
+    warp: Warp,
+    tests: TapTests,
+    b: int,
+    p: Tensor,
+    uv: Tensor,
+    motion: _Motion | None = None,
+) -> Tensor:
     """Reason codes (K,) uint8 of the invalid destination pixels ``p`` (flat indices) of batch item ``b``.
 
     ``uv`` (2, K) is their unclamped source pixel from :func:`fast_geometry`. No surface, behind the camera and
@@ -289,20 +348,35 @@ def fast_reasons(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, dst_
     rest = torch.nonzero(code == int(Reason.KEPT)).squeeze(1)
     if rest.numel():
         k, p, yy, xx = rest.numel(), p[rest], yy[rest], xx[rest]
-        rotation = None if motion is None or motion.rotation is None else motion.rotation[b:b + 1]
+        rotation = None if motion is None or motion.rotation is None else motion.rotation[b : b + 1]
         source = SourceTaps(raw_reader(src_values, src_depth, src_normal, b, wdt), C, Hs, Ws, rotation)
-        pixels = DstPixels(z[rest].view(1, 1, 1, k), _gather_pixels(dst_normal, b, p, yy, xx).view(1, 3, 1, k),
-                           (xx.to(wdt) + 0.5).view(1, 1, 1, k), (yy.to(wdt) + 0.5).view(1, 1, 1, k),
-                           *(motion.pixels(b, p, yy, xx) if motion is not None else ()))
-        _, _, reason, _ = warp_pixels(source, Warp(*(c[b:b + 1] for c in warp)), pixels, tests, wdt)
+        pixels = DstPixels(
+            z[rest].view(1, 1, 1, k),
+            _gather_pixels(dst_normal, b, p, yy, xx).view(1, 3, 1, k),
+            (xx.to(wdt) + 0.5).view(1, 1, 1, k),
+            (yy.to(wdt) + 0.5).view(1, 1, 1, k),
+            *(motion.pixels(b, p, yy, xx) if motion is not None else ()),
+        )
+        _, _, reason, _ = warp_pixels(source, Warp(*(c[b : b + 1] for c in warp)), pixels, tests, wdt)
         code[rest] = reason.view(k)
     return code
 
 
-def fast_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, dst_depth: Tensor,
-                    dst_normal: Tensor, warp: Warp, thr2: Tensor, position_threshold, normal_threshold,
-                    sampling: str, motion: Tensor | None = None, motion_world: Tensor | None = None,
-                    src_rotation: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+def fast_reproject(
+    src_values: Tensor,
+    src_depth: Tensor,
+    src_normal: Tensor,
+    dst_depth: Tensor,
+    dst_normal: Tensor,
+    warp: Warp,
+    thr2: Tensor,
+    position_threshold,
+    normal_threshold,
+    sampling: str,
+    motion: Tensor | None = None,
+    motion_world: Tensor | None = None,
+    src_rotation: Tensor | None = None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """:func:`backward_reproject` for hard tests without autograd or tracing (see the module notes); ``motion``
     (B, 2, H, W), ``motion_world`` (B, 3, H, W) and ``src_rotation`` (B, 3, 3) as in :func:`general_reproject`."""
     hom = warp.pixel_src_from_pixel_dst
@@ -322,8 +396,21 @@ def fast_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, ds
     u_c, v_c = pixel_centres(0, H, W, wdt, dev)
     mv = None if motion is None else _Motion(motion, motion_world, src_rotation)
     rotation = None if motion_world is None else src_rotation.to(wdt).reshape(B, 3, 3, 1)
-    geo = _RowGeometry(pp, pp[:, :, 0, None, None] * u_c, v_c, warp.K_src_t, warp.t_src_from_dst, lo, hi,
-                       torch.ones((), dtype=wdt, device=dev), sampling, Wp, idx_dtype, u_c, rotation)
+    geo = _RowGeometry(
+        pp,
+        pp[:, :, 0, None, None] * u_c,
+        v_c,
+        warp.K_src_t,
+        warp.t_src_from_dst,
+        lo,
+        hi,
+        torch.ones((), dtype=wdt, device=dev),
+        sampling,
+        Wp,
+        idx_dtype,
+        u_c,
+        rotation,
+    )
     sc = _Scratch(dev)
 
     values = torch.empty(B, C, H, W, dtype=wdt, device=dev)
@@ -334,34 +421,68 @@ def fast_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, ds
     offsets += TABLE_PAD * Wp + TABLE_PAD  # (0, 0) of the source image in the padded table
     # v_s = v + hom[1, 2] for every pixel (hom[1] = (0, 1, ·), hom[2] = (0, 0, 1), K_src_t y = z = 0): bilinear taps
     # may all have fy = 0 (rectified stereo), checked per block; otherwise the check would only cost time
-    rectified = bilinear and bool((hom[:, 1, :2] == torch.tensor([0.0, 1.0], dtype=wdt, device=dev)).all()
-                                  & (hom[:, 2] == torch.tensor([0.0, 0.0, 1.0], dtype=wdt, device=dev)).all()
-                                  & (warp.K_src_t[:, 1:] == 0).all())
+    rectified = bilinear and bool(
+        (hom[:, 1, :2] == torch.tensor([0.0, 1.0], dtype=wdt, device=dev)).all()
+        & (hom[:, 2] == torch.tensor([0.0, 0.0, 1.0], dtype=wdt, device=dev)).all()
+        & (warp.K_src_t[:, 1:] == 0).all()
+    )
     rows = max(1, FAST_BLOCK_PIXELS // max(1, B * W))
     for r0 in range(0, H, rows):
         r1 = min(H, r0 + rows)
         N = (r1 - r0) * W
-        point_normal, wts, corner = fast_geometry(geo, dst_depth[:, :, r0:r1].reshape(B, 1, N),
-                                         dst_normal[:, :, r0:r1].reshape(B, 3, N), r0, r1,
-                                         uv_raw[:, :, r0 * W:r1 * W], sc, None if mv is None else mv.rows(r0, r1))
+        point_normal, wts, corner = fast_geometry(
+            geo,
+            dst_depth[:, :, r0:r1].reshape(B, 1, N),
+            dst_normal[:, :, r0:r1].reshape(B, 3, N),
+            r0,
+            r1,
+            uv_raw[:, :, r0 * W : r1 * W],
+            sc,
+            None if mv is None else mv.rows(r0, r1),
+        )
         offs = offsets
         if rectified and not torch.count_nonzero(wts[:, 1, 0]):  # (1 - fx)·fy, 1 - fx > 0
             # fy = 0 for every pixel (rectified stereo): the y0 + 1 taps weigh 0, the y0 taps give the same sums
             offs, wts = offsets[:1], wts[:, :1]
         T = offs.numel()
-        v = sc.views(("taps", N, T), [("fidx", (B, T, N), idx_dtype), ("idx", (B, T, N), torch.int64),
-                                      ("taps", (B, F, T * N), wdt)])
+        v = sc.views(
+            ("taps", N, T),
+            [("fidx", (B, T, N), idx_dtype), ("idx", (B, T, N), torch.int64), ("taps", (B, F, T * N), wdt)],
+        )
         idx = v["idx"].copy_(torch.add(corner, offs.view(1, T, 1), out=v["fidx"]))
         taps = torch.gather(tab, 2, idx.view(B, 1, T * N).expand(B, F, T * N), out=v["taps"])
-        fast_accept(taps.view(B, F, *offs.shape, N), point_normal, wts, thr2, sc, (N, T),
-                    values[:, :, r0:r1].view(B, C, N), valid[:, :, r0:r1].view(B, 1, N), den[:, :, r0:r1].view(B, 1, N))
+        fast_accept(
+            taps.view(B, F, *offs.shape, N),
+            point_normal,
+            wts,
+            thr2,
+            sc,
+            (N, T),
+            values[:, :, r0:r1].view(B, C, N),
+            valid[:, :, r0:r1].view(B, 1, N),
+            den[:, :, r0:r1].view(B, 1, N),
+        )
 
     reason = torch.zeros(B, 1, H, W, dtype=torch.uint8, device=dev)
     for b in range(B):
         p = torch.nonzero(~valid[b].view(H * W)).squeeze(1)
         if p.numel():
             values[b].view(C, H * W).index_fill_(1, p, 0.0)  # +0 where nothing is accepted, as the general path
-            reason[b].view(H * W).index_copy_(0, p, fast_reasons(
-                src_values, src_depth, src_normal, dst_depth, dst_normal, warp,
-                TapTests(position_threshold, normal_threshold, sampling), b, p, uv_raw[b].index_select(1, p), mv))
+            reason[b].view(H * W).index_copy_(
+                0,
+                p,
+                fast_reasons(
+                    src_values,
+                    src_depth,
+                    src_normal,
+                    dst_depth,
+                    dst_normal,
+                    warp,
+                    TapTests(position_threshold, normal_threshold, sampling),
+                    b,
+                    p,
+                    uv_raw[b].index_select(1, p),
+                    mv,
+                ),
+            )
     return values.to(src_values.dtype), valid, reason, den

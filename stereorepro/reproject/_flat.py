@@ -7,15 +7,23 @@ from __future__ import annotations
 
 from torch import Tensor
 
-from .._checks import (STEREO_NAMES, TEMPORAL_NAMES, check_floating, check_motion, check_reprojection_inputs,
-                       check_shape, tracing)
+from .._checks import (
+    STEREO_NAMES,
+    TEMPORAL_NAMES,
+    check_floating,
+    check_motion,
+    check_reprojection_inputs,
+    check_shape,
+    tracing,
+)
 from .view import History, View
 
 __all__ = ["stereo_views", "temporal_views"]
 
 
-def stereo_views(src_values: Tensor, src: tuple[Tensor, ...], dst: tuple[Tensor, ...], names: dict = STEREO_NAMES,
-                 check: bool = True) -> tuple[View, View]:
+def stereo_views(
+    src_values: Tensor, src: tuple[Tensor, ...], dst: tuple[Tensor, ...], names: dict = STEREO_NAMES, check: bool = True
+) -> tuple[View, View]:
     """Check a source image ``src_values`` (B, C, Hs, Ws) with the source and destination G-buffers and cameras
     ``(depth, normal, K, cam_from_world)`` under the flat names ``names``; return the two views."""
     if check:
@@ -23,9 +31,13 @@ def stereo_views(src_values: Tensor, src: tuple[Tensor, ...], dst: tuple[Tensor,
     return View.unchecked(*src), View.unchecked(*dst)
 
 
-def temporal_views(current_color: Tensor, current: tuple[Tensor, ...], history: History,
-                   previous: tuple[Tensor, ...], motion: tuple[Tensor | None, Tensor | None] = (None, None)
-                   ) -> tuple[View, View]:
+def temporal_views(
+    current_color: Tensor,
+    current: tuple[Tensor, ...],
+    history: History,
+    previous: tuple[Tensor, ...],
+    motion: tuple[Tensor | None, Tensor | None] = (None, None),
+) -> tuple[View, View]:
     """Check a temporal step's flat inputs under the flat names (``current_color``, ``depth``, ..., ``history_color``,
     ``prev_depth``, ..., ``motion``); return (this frame's view with its motion, the previous frame's view)."""
     depth, normal = current[:2]

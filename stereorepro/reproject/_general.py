@@ -94,15 +94,18 @@ def source_features(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, w
     sz = src_depth.to(wdt)
     s_ok = has_surface(sz)
     flags = s_ok.to(wdt) + 2.0 * sv_finite.to(wdt)
-    return torch.cat([torch.where(sv_finite, sv, zero), torch.where(s_ok, sz, one),
-                      finite_or_zero(src_normal.to(wdt)), flags], 1).reshape(B, C + 5, -1)
+    return torch.cat(
+        [torch.where(sv_finite, sv, zero), torch.where(s_ok, sz, one), finite_or_zero(src_normal.to(wdt)), flags], 1
+    ).reshape(B, C + 5, -1)
 
 
 def feature_reader(feats: Tensor):
     """``read_taps`` for :func:`warp_pixels` over the whole source: index (B, T, ...) -> (B, C+5, T·...)."""
+
     def read_taps(index: Tensor) -> Tensor:
         B, Fg = feats.shape[:2]
         return torch.gather(feats, 2, index.reshape(B, 1, -1).expand(B, Fg, index[0].numel()))
+
     return read_taps
 
 
@@ -116,13 +119,16 @@ def raw_reader(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, b: int
         yy, xx = flat // Ws, flat % Ws  # (C, Hs, Ws) inputs of any strides, indexed without a copy
         take = [x[b][:, yy, xx][None, :, None] for x in (src_values, src_depth, src_normal)]  # (1, ·, 1, M)
         return source_features(*take, wdt)
+
     return read_taps
 
 
 def pixel_centres(r0: int, r1: int, W: int, wdt: torch.dtype, dev) -> tuple[Tensor, Tensor]:
     """Pixel centres of destination rows r0 .. r1 - 1: u_c (1, 1, 1, W), v_c (1, 1, h, 1)."""
-    return (torch.arange(W, device=dev, dtype=wdt).view(1, 1, 1, W) + 0.5,
-            torch.arange(r1 - r0, device=dev, dtype=wdt).view(1, 1, r1 - r0, 1) + (r0 + 0.5))
+    return (
+        torch.arange(W, device=dev, dtype=wdt).view(1, 1, 1, W) + 0.5,
+        torch.arange(r1 - r0, device=dev, dtype=wdt).view(1, 1, r1 - r0, 1) + (r0 + 0.5),
+    )
 
 
 class SourceTaps(NamedTuple):
@@ -156,9 +162,17 @@ class TapTests(NamedTuple):
     temperature: float = 0.1
 
 
-def dst_rows(dst_depth: Tensor, dst_normal: Tensor, motion: Tensor | None, motion_world: Tensor | None, r0: int,
-             r1: int, wdt: torch.dtype) -> DstPixels:
+def dst_rows(
+    dst_depth: Tensor,
+    dst_normal: Tensor,
+    motion: Tensor | None,
+    motion_world: Tensor | None,
+    r0: int,
+    r1: int,
+    wdt: torch.dtype,
+) -> DstPixels:
     """Rows r0 .. r1 - 1 of the destination view as :class:`DstPixels`."""
+
     def rows(x):
         return None if x is None else x[:, :, r0:r1]
 
@@ -241,12 +255,13 @@ class _TapTerms(NamedTuple):
     thr_n: Tensor
 
 
-def _tap_terms(g: Tensor, C: int, xi: Tensor, yi: Tensor, K_src_inv: Tensor, q: Tensor, dst_normal: Tensor,
-               tests: TapTests) -> _TapTerms:
+def _tap_terms(
+    g: Tensor, C: int, xi: Tensor, yi: Tensor, K_src_inv: Tensor, q: Tensor, dst_normal: Tensor, tests: TapTests
+) -> _TapTerms:
     """The per-tap position and normal tests on the gathered source rows ``g`` (B, C+5, T, *S)."""
     B = K_src_inv.shape[0]
     z_src = g[:, C]  # BxTxHxW, 1 where no surface
-    n_src = g[:, C + 1:C + 4]  # Bx3xTxHxW
+    n_src = g[:, C + 1 : C + 4]  # Bx3xTxHxW
     g_flags = g[:, C + 4]
     src_ok = (g_flags == 1.0) | (g_flags == 3.0)
     finite = g_flags >= 2.0
@@ -283,8 +298,9 @@ def _reasons(terms: _TapTerms, in_frame: Tensor, wts: Tensor, proj: _Projection,
     return torch.where(valid, u8(Reason.KEPT), reason)
 
 
-def warp_pixels(source: SourceTaps, warp: Warp, pixels: DstPixels, tests: TapTests,
-                out_dtype: torch.dtype) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+def warp_pixels(
+    source: SourceTaps, warp: Warp, pixels: DstPixels, tests: TapTests, out_dtype: torch.dtype
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """The general path (differentiable, traceable): reproject destination pixels; see :func:`backward_reproject`.
 
     ``source.read`` returns :func:`source_features` rows; with ``pixels.motion_world``, ``source.rotation`` is
@@ -311,8 +327,9 @@ def warp_pixels(source: SourceTaps, warp: Warp, pixels: DstPixels, tests: TapTes
     hard = base_ok & terms.pos_ok & terms.nrm_ok
     if tests.soft:
         tau = float(tests.temperature)
-        a_soft = (_soft_accept(_soft_distance2(terms.diff), terms.thr_p * terms.thr_p, tau)
-                  * _soft_accept(terms.d_n2, terms.thr_n * terms.thr_n, tau))
+        a_soft = _soft_accept(_soft_distance2(terms.diff), terms.thr_p * terms.thr_p, tau) * _soft_accept(
+            terms.d_n2, terms.thr_n * terms.thr_n, tau
+        )
         accept_w = torch.where(base_ok, a_soft, zero)
     else:
         accept_w = hard.to(wdt)
@@ -330,8 +347,9 @@ def warp_pixels(source: SourceTaps, warp: Warp, pixels: DstPixels, tests: TapTes
     return values.to(out_dtype), valid, reason, den
 
 
-def _motion_source(motion: Tensor, motion_world: Tensor | None, src_rotation: Tensor, u_c: Tensor, v_c: Tensor,
-                   q: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+def _motion_source(
+    motion: Tensor, motion_world: Tensor | None, src_rotation: Tensor, u_c: Tensor, v_c: Tensor, q: Tensor
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Source coordinates (u, v) = pixel centre + motion, and the expected source-camera point
     ``q + R_src · motion_world``. Non-finite motion (or world motion) sends the pixel out of the frame
     (``OUT_OF_FRAME``); ``front`` is the moved point's ``z > 0``."""
@@ -351,11 +369,23 @@ def _motion_source(motion: Tensor, motion_world: Tensor | None, src_rotation: Te
     return u, v, q, q[:, 2:3] > 0
 
 
-def general_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, dst_depth: Tensor,
-                      dst_normal: Tensor, warp: Warp, position_threshold, normal_threshold, sampling: str, soft: bool,
-                      temperature: float, inference: bool, motion: Tensor | None = None,
-                      motion_world: Tensor | None = None,
-                      src_rotation: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+def general_reproject(
+    src_values: Tensor,
+    src_depth: Tensor,
+    src_normal: Tensor,
+    dst_depth: Tensor,
+    dst_normal: Tensor,
+    warp: Warp,
+    position_threshold,
+    normal_threshold,
+    sampling: str,
+    soft: bool,
+    temperature: float,
+    inference: bool,
+    motion: Tensor | None = None,
+    motion_world: Tensor | None = None,
+    src_rotation: Tensor | None = None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """:func:`~stereorepro.reproject.backward_reproject` on the general path, with the cameras composed.
 
     In inference (``inference``: no autograd graph, nothing traces) on large images, destination rows are
@@ -371,16 +401,18 @@ def general_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor,
     tests = TapTests(position_threshold, normal_threshold, sampling, soft, temperature)
     rows = max(1, BLOCK_PIXELS // max(1, B * W)) if inference else None
     if rows is None or rows >= H:
-        return warp_pixels(source, warp, dst_rows(dst_depth, dst_normal, motion, motion_world, 0, H, wdt), tests,
-                           src_values.dtype)
+        return warp_pixels(
+            source, warp, dst_rows(dst_depth, dst_normal, motion, motion_world, 0, H, wdt), tests, src_values.dtype
+        )
     values = torch.empty(B, C, H, W, dtype=src_values.dtype, device=dev)
     valid = torch.empty(B, 1, H, W, dtype=torch.bool, device=dev)
     reason = torch.empty(B, 1, H, W, dtype=torch.uint8, device=dev)
     den = torch.empty(B, 1, H, W, dtype=wdt, device=dev)
     for r0 in range(0, H, rows):
         r1 = min(H, r0 + rows)
-        out = warp_pixels(source, warp, dst_rows(dst_depth, dst_normal, motion, motion_world, r0, r1, wdt), tests,
-                          src_values.dtype)
+        out = warp_pixels(
+            source, warp, dst_rows(dst_depth, dst_normal, motion, motion_world, r0, r1, wdt), tests, src_values.dtype
+        )
         for buf, o in zip((values, valid, reason, den), out):
             buf[:, :, r0:r1] = o
     return values, valid, reason, den

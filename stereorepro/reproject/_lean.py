@@ -127,8 +127,7 @@ def _finite_or_zero(x: Tensor) -> Tensor:
     return _export_or_eager(_ZeroNonFinite, x)
 
 
-def source_tables(src_values: Tensor, src_depth: Tensor, src_normal: Tensor,
-                  wdt: torch.dtype) -> list[Tensor]:
+def source_tables(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, wdt: torch.dtype) -> list[Tensor]:
     """The source as planar tables of (B, Np) elements, Np = (Hs + 2·TABLE_PAD)·(Ws + 2·TABLE_PAD).
 
     Returns:
@@ -140,7 +139,7 @@ def source_tables(src_values: Tensor, src_depth: Tensor, src_normal: Tensor,
     sv = src_values.to(wdt)
     total = sv[:, 0:1]
     for c in range(1, C):  # left to right, as the sum over channels of the general path and the native kernels
-        total = total + sv[:, c:c + 1]
+        total = total + sv[:, c : c + 1]
     finite = _finite(total)
     sz = src_depth.to(wdt)
     nan = (has_surface(sz) & finite).to(wdt).reciprocal() - 1.0  # 0 where a tap may be accepted, inf elsewhere ...
@@ -152,8 +151,11 @@ def source_tables(src_values: Tensor, src_depth: Tensor, src_normal: Tensor,
     def table(x: Tensor, border: float) -> Tensor:
         return F.pad(x, pad, value=border).reshape(B, -1)
 
-    taps = ([table(vals[:, c:c + 1], 0.0) for c in range(C)] + [table(z_acc, math.nan)]
-            + [table(normal[:, c:c + 1], 0.0) for c in range(3)])
+    taps = (
+        [table(vals[:, c : c + 1], 0.0) for c in range(C)]
+        + [table(z_acc, math.nan)]
+        + [table(normal[:, c : c + 1], 0.0) for c in range(3)]
+    )
     return taps
 
 
@@ -221,8 +223,9 @@ class _Sizes(NamedTuple):
     Wp: object  #: source width with the border of the tables, Ws + 2·TABLE_PAD
 
 
-def _project(warp: Warp, dst_depth: Tensor, size: _Sizes, motion: tuple | None = None
-             ) -> tuple[Tensor, Tensor, list[Tensor], Tensor, Tensor]:
+def _project(
+    warp: Warp, dst_depth: Tensor, size: _Sizes, motion: tuple | None = None
+) -> tuple[Tensor, Tensor, list[Tensor], Tensor, Tensor]:
     """Destination pixels -> source coordinates and source-camera points (warp_pixels' arithmetic), on (B, H, W)
     with the pixel centres broadcast ((1, 1, W) and (1, H, 1)). With ``motion`` = (motion (B, 2, H, W),
     motion_world (B, 3, H, W) or None, source rotation (B, 3, 3)): the coordinates and moved points of
@@ -249,8 +252,7 @@ def _project(warp: Warp, dst_depth: Tensor, size: _Sizes, motion: tuple | None =
     wx = coef(hom, 0, 0) * u_c + coef(hom, 0, 1) * v_c + coef(hom, 0, 2) + coef(kt, 0, 0) * inv_z
     wy = coef(hom, 1, 0) * u_c + coef(hom, 1, 1) * v_c + coef(hom, 1, 2) + coef(kt, 1, 0) * inv_z
     wz = coef(hom, 2, 0) * u_c + coef(hom, 2, 1) * v_c + coef(hom, 2, 2) + coef(kt, 2, 0) * inv_z
-    q = [((coef(ray, i, 0) * u_c + coef(ray, i, 1) * v_c + coef(ray, i, 2)) * z_dst + coef(t, i, 0))
-         for i in range(3)]
+    q = [((coef(ray, i, 0) * u_c + coef(ray, i, 1) * v_c + coef(ray, i, 2)) * z_dst + coef(t, i, 0)) for i in range(3)]
     if motion is None:
         u = wx / wz  # wz <= 0: sent to the border below
         v = wy / wz
@@ -319,7 +321,7 @@ def _accumulate(tap_tables: list[Tensor], C: int, corner: Tensor, taps, geo: _Ta
         index = corner + (dy * Wp + dx) if (dx or dy) else corner
         z = torch.gather(tap_tables[C], 1, index)
         pos_ok = geo.position_ok(z, dx, dy)
-        n = [torch.gather(tab, 1, index) for tab in tap_tables[C + 1:]]
+        n = [torch.gather(tab, 1, index) for tab in tap_tables[C + 1 :]]
         accept = (pos_ok & geo.normal_ok(n)).to(wdt)
         w = geo.weight(dx, dy)
         ws = accept if w is None else w * accept
@@ -329,8 +331,17 @@ def _accumulate(tap_tables: list[Tensor], C: int, corner: Tensor, taps, geo: _Ta
     return num, den
 
 
-def _tap_codes(geo_k: _TapGeometry, taps, steps: tuple[Tensor, ...], index: Tensor, depth_table: Tensor,
-               z_table: Tensor, normal_tables: list[Tensor], Hs, Ws) -> Tensor:
+def _tap_codes(
+    geo_k: _TapGeometry,
+    taps,
+    steps: tuple[Tensor, ...],
+    index: Tensor,
+    depth_table: Tensor,
+    z_table: Tensor,
+    normal_tables: list[Tensor],
+    Hs,
+    Ws,
+) -> Tensor:
     """The reason code (K,) of K picked pixels: the max over their taps (stacked as (T, K): one node per step for
     all taps; each element's arithmetic is that of the tap it stands for) of each tap's first failed test.
 
@@ -356,16 +367,27 @@ def _tap_codes(geo_k: _TapGeometry, taps, steps: tuple[Tensor, ...], index: Tens
     pos_ok = geo_k.position_ok(z_raw, dxs, dys)
     nrm_ok = geo_k.normal_ok([tap_gather(tab) for tab in normal_tables])
     c_ok = _const(TAP_OK_CODE, wdt, dev)
-    code = torch.minimum(torch.minimum(code, torch.where(pos_ok, c_ok, float(Reason.POSITION))),
-                         torch.where(nrm_ok, c_ok, float(Reason.NORMAL)))
+    code = torch.minimum(
+        torch.minimum(code, torch.where(pos_ok, c_ok, float(Reason.POSITION))),
+        torch.where(nrm_ok, c_ok, float(Reason.NORMAL)),
+    )
     if T > 1:  # taps of weight 0 do not report a reason (tap (0, 0) always does)
         w = torch.cat([geo_k.weight(dx, dy) for dx, dy in taps])  # (T, K)
         code = code * ((w > 0) | ((dxi + dyi) == 0)).to(wdt)
     return code.amax(0)
 
 
-def _reasons(geo: _TapGeometry, taps, corner: Tensor, tap_tables: list[Tensor], src_depth: Tensor,
-             dst_ok: Tensor, front: Tensor, inval: Tensor, size: _Sizes) -> Tensor:
+def _reasons(
+    geo: _TapGeometry,
+    taps,
+    corner: Tensor,
+    tap_tables: list[Tensor],
+    src_depth: Tensor,
+    dst_ok: Tensor,
+    front: Tensor,
+    inval: Tensor,
+    size: _Sizes,
+) -> Tensor:
     """Reason codes (B, 1, H, W) uint8: NO_SURFACE_DST (1) / BEHIND_CAMERA (2) from the projection, 0 where valid
     (``inval`` = 0), and the taps' codes (:func:`_tap_codes`) for the K pixels that have a surface in front of the
     source camera but accepted nothing (``Compress`` and ``ScatterElements``: usually a few per cent of the
@@ -393,20 +415,40 @@ def _reasons(geo: _TapGeometry, taps, corner: Tensor, tap_tables: list[Tensor], 
     offsets = dyi * Wp + dxi  # ... and Wp a traced size (a Python int here would be baked into the graph)
     dxs, dys = dxi.to(wdt), dyi.to(wdt)
     x0_k, y0_k = sel(geo.x0).unsqueeze(0), sel(geo.y0).unsqueeze(0)  # (1, K)
-    geo_k = _TapGeometry(x0_k, y0_k, row(sel(geo.fx)), row(sel(geo.fy)), [row(sel(k, True)) for k in geo.ki],
-                         [row(sel(x)) for x in geo.q], [row(sel(x)) for x in geo.nd], geo.thr_p2, geo.thr_n2)
+    geo_k = _TapGeometry(
+        x0_k,
+        y0_k,
+        row(sel(geo.fx)),
+        row(sel(geo.fy)),
+        [row(sel(k, True)) for k in geo.ki],
+        [row(sel(x)) for x in geo.q],
+        [row(sel(x)) for x in geo.nd],
+        geo.thr_p2,
+        geo.thr_n2,
+    )
     depth_table = F.pad(src_depth.to(wdt), (TABLE_PAD,) * 4, value=math.nan).reshape(-1)
     z_table = tap_tables[C].reshape(-1)
-    normal_tables = [tab.reshape(-1) for tab in tap_tables[C + 1:]]
+    normal_tables = [tab.reshape(-1) for tab in tap_tables[C + 1 :]]
     index = (sel(corner).to(torch.int64) + batch * tap_tables[0].shape[1]).unsqueeze(0) + offsets  # (T, K)
     code_max = _tap_codes(geo_k, taps, (dxi, dyi, dxs, dys), index, depth_table, z_table, normal_tables, Hs, Ws)
     return reason.reshape(-1).scatter(0, pick, code_max).reshape(B, 1, H, W).to(torch.uint8)
 
 
-def lean_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, dst_depth: Tensor,
-                   dst_normal: Tensor, warp: Warp, position_threshold, normal_threshold, sampling: str,
-                   rectified: bool = False, motion: Tensor | None = None, motion_world: Tensor | None = None,
-                   src_rotation: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+def lean_reproject(
+    src_values: Tensor,
+    src_depth: Tensor,
+    src_normal: Tensor,
+    dst_depth: Tensor,
+    dst_normal: Tensor,
+    warp: Warp,
+    position_threshold,
+    normal_threshold,
+    sampling: str,
+    rectified: bool = False,
+    motion: Tensor | None = None,
+    motion_world: Tensor | None = None,
+    src_rotation: Tensor | None = None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """:func:`~stereorepro.reproject.backward_reproject` with hard tests, in the export formulation.
 
     Args: as :func:`._general.general_reproject` (``src_values`` (B, C, Hs, Ws), ``dst_depth`` (B, 1, H, W),
@@ -437,7 +479,7 @@ def lean_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, ds
     thr_p, thr_n = as_scalar(position_threshold, like), as_scalar(normal_threshold, like)
     thr_p2, thr_n2 = thr_p * thr_p, thr_n * thr_n
     x0, y0, fx, fy, taps, corner = _tap_corners(u, v, sampling, rectified, size.Wp)
-    ki = [warp.K_src_inv[:, i, j:j + 1] for i in range(3) for j in range(3)]  # (B, 1) each
+    ki = [warp.K_src_inv[:, i, j : j + 1] for i in range(3) for j in range(3)]  # (B, 1) each
     geo = _TapGeometry(x0, y0, fx, fy, ki, q, nd, thr_p2, thr_n2)
     num, den = _accumulate(tap_tables, C, corner, taps, geo, size.Wp, wdt)
     valid = den > 0
@@ -457,8 +499,9 @@ def lean_reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, ds
     return values, valid, reason, den
 
 
-def lean_blend(current_color: Tensor, history_color: Tensor, history_len: Tensor, valid: Tensor, alpha, warmup: bool,
-               max_history) -> tuple[Tensor, Tensor]:
+def lean_blend(
+    current_color: Tensor, history_color: Tensor, history_len: Tensor, valid: Tensor, alpha, warmup: bool, max_history
+) -> tuple[Tensor, Tensor]:
     """:func:`~stereorepro.reproject.temporal_blend` with hard tests in the export formulation, for the history
     :func:`lean_reproject` warps (finite everywhere: its values are sums of finite table entries), with arithmetic
     where the general blend has ``Where`` (dear per element in onnxruntime).

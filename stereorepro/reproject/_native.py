@@ -43,8 +43,9 @@ def _image_contiguous(x: Tensor, name: str) -> Tensor:
     if x.device.type != "cpu":
         raise RuntimeError(f"native: {name} must be on the CPU, got {x.device}")
     if x.dtype not in DTYPES:
-        raise TypeError(f"native: {name} must be float32 or float16, got {x.dtype} "
-                        "(use backend='torch' for other dtypes)")
+        raise TypeError(
+            f"native: {name} must be float32 or float16, got {x.dtype} (use backend='torch' for other dtypes)"
+        )
     return x.contiguous()  # the one visible copy, only when x is not C-contiguous
 
 
@@ -53,13 +54,21 @@ def _warp_args(warp) -> tuple[Tensor, ...]:
     in their order: ``P`` = pixel_src_from_pixel_dst, ``kt`` = K_src_t, ``M`` = ray_src_from_pixel_dst,
     ``t`` = t_src_from_dst, ``Ks_inv`` = K_src_inv)."""
     B = warp.K_src_inv.shape[0]
-    return tuple(x.reshape(B, -1).contiguous().cpu() for x in (warp.pixel_src_from_pixel_dst, warp.K_src_t,
-                                                                warp.ray_src_from_pixel_dst, warp.t_src_from_dst,
-                                                                warp.K_src_inv))
+    return tuple(
+        x.reshape(B, -1).contiguous().cpu()
+        for x in (
+            warp.pixel_src_from_pixel_dst,
+            warp.K_src_t,
+            warp.ray_src_from_pixel_dst,
+            warp.t_src_from_dst,
+            warp.K_src_inv,
+        )
+    )
 
 
-def _motion_args(motion: Tensor | None, motion_world: Tensor | None, src_rotation: Tensor | None
-                 ) -> tuple[Tensor | None, Tensor | None, Tensor | None]:
+def _motion_args(
+    motion: Tensor | None, motion_world: Tensor | None, src_rotation: Tensor | None
+) -> tuple[Tensor | None, Tensor | None, Tensor | None]:
     """The kernels' motion arguments: the motion planes as they are (float32 or float16, contiguous) and the source
     camera's rotation (B, 9) float32, rounded as the torch reference rounds it (only with ``motion_world``)."""
     if motion is None:
@@ -77,10 +86,20 @@ def core_constants() -> dict | None:
     return dict(_core.reproject_constants) if available() and hasattr(_core, "reproject_constants") else None
 
 
-def reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, warp, dst_depth: Tensor,
-              dst_normal: Tensor, thr2: tuple[float, float], bilinear: bool, want_confidence: bool = True,
-              motion: Tensor | None = None, motion_world: Tensor | None = None, src_rotation: Tensor | None = None
-              ) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
+def reproject(
+    src_values: Tensor,
+    src_depth: Tensor,
+    src_normal: Tensor,
+    warp,
+    dst_depth: Tensor,
+    dst_normal: Tensor,
+    thr2: tuple[float, float],
+    bilinear: bool,
+    want_confidence: bool = True,
+    motion: Tensor | None = None,
+    motion_world: Tensor | None = None,
+    src_rotation: Tensor | None = None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
     """Backward reprojection with hard tests.
 
     Args:
@@ -111,16 +130,43 @@ def reproject(src_values: Tensor, src_depth: Tensor, src_normal: Tensor, warp, d
     valid = torch.empty(B, 1, H, W, dtype=torch.bool)
     reason = torch.empty(B, 1, H, W, dtype=torch.uint8)
     confidence = torch.empty(B, 1, H, W, dtype=torch.float32) if want_confidence else None
-    _core.reproject(sv, sd, sn, *_warp_args(warp), dd, dn, float(thr2[0]), float(thr2[1]), bool(bilinear), values,
-                    valid, reason, confidence, *_motion_args(motion, motion_world, src_rotation))
+    _core.reproject(
+        sv,
+        sd,
+        sn,
+        *_warp_args(warp),
+        dd,
+        dn,
+        float(thr2[0]),
+        float(thr2[1]),
+        bool(bilinear),
+        values,
+        valid,
+        reason,
+        confidence,
+        *_motion_args(motion, motion_world, src_rotation),
+    )
     return values, valid, reason, confidence
 
 
-def temporal_reproject(current_color: Tensor, history_color: Tensor, history_len: Tensor, prev_depth: Tensor,
-                       prev_normal: Tensor, warp, depth: Tensor, normal: Tensor, thr2: tuple[float, float],
-                       bilinear: bool, alpha: float, warmup: bool, max_history: float, motion: Tensor | None = None,
-                       motion_world: Tensor | None = None, src_rotation: Tensor | None = None
-                       ) -> tuple[Tensor, Tensor, Tensor]:
+def temporal_reproject(
+    current_color: Tensor,
+    history_color: Tensor,
+    history_len: Tensor,
+    prev_depth: Tensor,
+    prev_normal: Tensor,
+    warp,
+    depth: Tensor,
+    normal: Tensor,
+    thr2: tuple[float, float],
+    bilinear: bool,
+    alpha: float,
+    warmup: bool,
+    max_history: float,
+    motion: Tensor | None = None,
+    motion_world: Tensor | None = None,
+    src_rotation: Tensor | None = None,
+) -> tuple[Tensor, Tensor, Tensor]:
     """Temporal reprojection in one fused pass: warp [history_color, history_len] and blend with the current frame.
 
     Args:
@@ -150,7 +196,24 @@ def temporal_reproject(current_color: Tensor, history_color: Tensor, history_len
     color = torch.empty(B, C, H, W, dtype=cur.dtype)
     n_out = torch.empty(B, 1, H, W, dtype=torch.float32)
     valid = torch.empty(B, 1, H, W, dtype=torch.bool)
-    _core.temporal_reproject(cur, hc, hl, pd, pn, *_warp_args(warp), dd, dn, float(thr2[0]), float(thr2[1]),
-                             bool(bilinear), float(alpha), bool(warmup), float(max_history), color, n_out, valid,
-                             *_motion_args(motion, motion_world, src_rotation))
+    _core.temporal_reproject(
+        cur,
+        hc,
+        hl,
+        pd,
+        pn,
+        *_warp_args(warp),
+        dd,
+        dn,
+        float(thr2[0]),
+        float(thr2[1]),
+        bool(bilinear),
+        float(alpha),
+        bool(warmup),
+        float(max_history),
+        color,
+        n_out,
+        valid,
+        *_motion_args(motion, motion_world, src_rotation),
+    )
     return color, n_out, valid

@@ -42,8 +42,18 @@ import torch
 from torch import Tensor
 
 from .. import _backend
-from .._checks import (STEREO_NAMES, check_blend, check_blend_inputs, check_device, check_floating, check_motion,
-                       check_sampling, check_shape, check_thresholds, tracing)
+from .._checks import (
+    STEREO_NAMES,
+    check_blend,
+    check_blend_inputs,
+    check_device,
+    check_floating,
+    check_motion,
+    check_sampling,
+    check_shape,
+    check_thresholds,
+    tracing,
+)
 from ..camera import compose_warp, rectify_warp
 from ..errors import ShapeError
 from . import _fast, _general, _lean, _native
@@ -52,9 +62,20 @@ from ._constants import NATIVE_MAX_CHANNELS
 from ._general import as_scalar, compute_dtype, inference_only, squared_thresholds
 from .view import Blend, History, ReprojectionResult, TemporalResult, Thresholds, View
 
-__all__ = ["BACKENDS", "backward_reproject", "stereo_reproject", "temporal_blend", "temporal_reproject",
-           "select_backend", "native_unsupported", "warp_values", "reproject_history", "as_thresholds", "stereo_views",
-           "temporal_views"]
+__all__ = [
+    "BACKENDS",
+    "backward_reproject",
+    "stereo_reproject",
+    "temporal_blend",
+    "temporal_reproject",
+    "select_backend",
+    "native_unsupported",
+    "warp_values",
+    "reproject_history",
+    "as_thresholds",
+    "stereo_views",
+    "temporal_views",
+]
 
 #: Backend names the ops accept (:data:`stereorepro._backend.OP_NAMES`; ``STEREOREPRO_BACKEND`` also accepts
 #: ``numpy`` and ``reference`` for torch).
@@ -68,8 +89,9 @@ FAST_PATH = True
 EXPORT_LEAN = True
 
 
-def native_unsupported(images: Iterable[Tensor], others: Iterable = (), soft: bool = False,
-                       motion: bool = False, channels: int = 0) -> str | None:
+def native_unsupported(
+    images: Iterable[Tensor], others: Iterable = (), soft: bool = False, motion: bool = False, channels: int = 0
+) -> str | None:
     """Why the native kernels cannot run these inputs, or None when they can.
 
     Args:
@@ -102,15 +124,23 @@ def native_unsupported(images: Iterable[Tensor], others: Iterable = (), soft: bo
         return f"the native kernels run on the CPU only, got tensors on {sorted(devices)}"
     dtypes = {t.dtype for t in images if t.dtype not in _native.DTYPES}
     if dtypes:
-        return ("the native kernels read float32 or float16 images only (bfloat16 and float64 run on torch), got "
-                f"images of dtype {sorted(map(str, dtypes))}")
+        return (
+            "the native kernels read float32 or float16 images only (bfloat16 and float64 run on torch), got "
+            f"images of dtype {sorted(map(str, dtypes))}"
+        )
     if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
         return "an input requires grad (autograd needs the torch path; use torch.no_grad() for native)"
     return None
 
 
-def select_backend(backend: str, images: Iterable[Tensor], others: Iterable = (), soft: bool = False,
-                   motion: bool = False, channels: int = 0) -> str:
+def select_backend(
+    backend: str,
+    images: Iterable[Tensor],
+    others: Iterable = (),
+    soft: bool = False,
+    motion: bool = False,
+    channels: int = 0,
+) -> str:
     """Resolve ``backend`` (``"auto"`` | ``"torch"`` | ``"native"``) to ``"torch"`` or ``"native"``.
 
     * ``STEREOREPRO_BACKEND`` overrides ``backend`` when set (:mod:`stereorepro._backend`: the rule the tracer
@@ -129,14 +159,18 @@ def select_backend(backend: str, images: Iterable[Tensor], others: Iterable = ()
         >>> select_backend("auto", [torch.ones(1, 1, 2, 2, dtype=torch.float64)])  # float64 images run on torch
         'torch'
     """
-    chosen = _backend.resolve(backend, BACKENDS, lambda: native_unsupported(images, others, soft, motion, channels),
-                              reference_only=tracing())
+    chosen = _backend.resolve(
+        backend, BACKENDS, lambda: native_unsupported(images, others, soft, motion, channels), reference_only=tracing()
+    )
     return "native" if chosen == "native" else "torch"
 
 
 def _deprecated(name: str, new: str) -> None:
-    warnings.warn(f"{name} with flat tensor arguments is deprecated and will be removed in the next release: call "
-                  f"{new}", DeprecationWarning, stacklevel=3)
+    warnings.warn(
+        f"{name} with flat tensor arguments is deprecated and will be removed in the next release: call {new}",
+        DeprecationWarning,
+        stacklevel=3,
+    )
 
 
 def _given(**pairs) -> dict:
@@ -163,8 +197,10 @@ def as_thresholds(thresholds) -> Thresholds:
         return thresholds
     if isinstance(thresholds, (tuple, list)) and len(thresholds) in (2, 3):
         return Thresholds(*thresholds)
-    raise TypeError(f"thresholds: expected Thresholds(position, normal) or a (position, normal) pair, got "
-                    f"{type(thresholds).__name__}")
+    raise TypeError(
+        f"thresholds: expected Thresholds(position, normal) or a (position, normal) pair, got "
+        f"{type(thresholds).__name__}"
+    )
 
 
 def _as_pair(x, cls, what: str):
@@ -175,8 +211,9 @@ def _as_pair(x, cls, what: str):
     raise TypeError(f"{what}: expected {cls.__name__}({', '.join(cls._fields)}), got {type(x).__name__}")
 
 
-def _check_op_inputs(op: str, values: Tensor, values_name: str, channels: str, src: View, dst: View,
-                     thr: Thresholds, sampling: str) -> None:
+def _check_op_inputs(
+    op: str, values: Tensor, values_name: str, channels: str, src: View, dst: View, thr: Thresholds, sampling: str
+) -> None:
     """Checks of an op's arguments beyond what each :class:`View` checked at construction: the values against the
     source view, the two views against each other, the sampling and the thresholds."""
     if not isinstance(src, View) or not isinstance(dst, View):
@@ -185,14 +222,16 @@ def _check_op_inputs(op: str, values: Tensor, values_name: str, channels: str, s
     check_sampling(sampling)
     if tracing():
         return
-    check_shape(values, ["B", channels, "H", "W"], values_name, {"B": src.batch_size, "H": src.height,
-                                                                 "W": src.width}, False)
+    check_shape(
+        values, ["B", channels, "H", "W"], values_name, {"B": src.batch_size, "H": src.height, "W": src.width}, False
+    )
     if values.shape[-2] == 0 or values.shape[-1] == 0:
         raise ShapeError(f"{values_name}: the source image needs at least one pixel, got shape {tuple(values.shape)}")
     check_floating(values, values_name, False)
     if dst.batch_size != src.batch_size:
-        raise ShapeError(f"{op}: the views' batch sizes differ: {src.batch_size} (source) and {dst.batch_size} "
-                         f"(destination)")
+        raise ShapeError(
+            f"{op}: the views' batch sizes differ: {src.batch_size} (source) and {dst.batch_size} (destination)"
+        )
     check_device({values_name: values, "source view": src.depth, "destination view": dst.depth}, op, False)
     check_thresholds(thr.position, thr.normal, False)
 
@@ -257,23 +296,46 @@ def backward_reproject(
         (True, True, 1.0)
     """
     if not isinstance(src, View):
-        _deprecated("backward_reproject", "backward_reproject(values, src: View, dst: View, (position_threshold, "
-                    "normal_threshold), ...)")
-        return _flat_backward(values, src, dst, thresholds, *legacy_args, **_given(
-            sampling=(sampling, "bilinear"), soft=(soft, False), backend=(backend, "auto"),
-            rectified=(rectified, False)), **legacy_kwargs)
+        _deprecated(
+            "backward_reproject",
+            "backward_reproject(values, src: View, dst: View, (position_threshold, normal_threshold), ...)",
+        )
+        return _flat_backward(
+            values,
+            src,
+            dst,
+            thresholds,
+            *legacy_args,
+            **_given(
+                sampling=(sampling, "bilinear"),
+                soft=(soft, False),
+                backend=(backend, "auto"),
+                rectified=(rectified, False),
+            ),
+            **legacy_kwargs,
+        )
     _no_extra("backward_reproject", legacy_args, legacy_kwargs)
     thr = as_thresholds(thresholds)
     _check_op_inputs("backward_reproject", values, "values", "C", src, dst, thr, sampling)
     if rectified and dst.motion is not None:
-        raise ValueError("backward_reproject: rectified=True declares a same-instant stereo pair; it cannot be "
-                         "combined with motion vectors (dst.motion)")
+        raise ValueError(
+            "backward_reproject: rectified=True declares a same-instant stereo pair; it cannot be "
+            "combined with motion vectors (dst.motion)"
+        )
     return warp_values(values, src, dst, thr, sampling, soft, backend, rectified)
 
 
-def warp_values(values: Tensor, src: View, dst: View, thresholds: Thresholds, sampling: str = "bilinear",
-                soft: bool = False, backend: str = "auto", rectified: bool = False,
-                confidence: bool = True) -> ReprojectionResult:
+def warp_values(
+    values: Tensor,
+    src: View,
+    dst: View,
+    thresholds: Thresholds,
+    sampling: str = "bilinear",
+    soft: bool = False,
+    backend: str = "auto",
+    rectified: bool = False,
+    confidence: bool = True,
+) -> ReprojectionResult:
     """:func:`backward_reproject` of arguments the caller has checked; without ``confidence`` the result's
     confidence is None (the native kernel then does not write it). The stereo op, the temporal op and the
     combined scheme's stereo step call it.
@@ -317,8 +379,9 @@ def _warp(src: View, dst: View, dtype: torch.dtype, rectified: bool):
     return rectify_warp(warp, *dst.depth.shape[-2:]) if rectified else warp
 
 
-def _torch_backward(values: Tensor, src: View, dst: View, thr: Thresholds, sampling: str, soft: bool,
-                    rectified: bool = False) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+def _torch_backward(
+    values: Tensor, src: View, dst: View, thr: Thresholds, sampling: str, soft: bool, rectified: bool = False
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """The torch backend of :func:`backward_reproject` (arguments checked): the fast path where it applies, and
     the export formulation (:mod:`._lean`) while exporting to ONNX with hard tests."""
     wdt = compute_dtype(values, src.depth, src.normal, dst.depth, dst.normal)
@@ -326,19 +389,73 @@ def _torch_backward(values: Tensor, src: View, dst: View, thr: Thresholds, sampl
     motion, motion_world = dst.motion, dst.motion_world
     src_rotation = src.cam_from_world[:, :3, :3] if motion is not None else None
     if _exporting_lean(soft):
-        return _lean.lean_reproject(values, src.depth, src.normal, dst.depth, dst.normal, warp, thr.position,
-                                    thr.normal, sampling, rectified, motion, motion_world, src_rotation)
-    inference = inference_only((values, src.depth, src.normal, dst.depth, dst.normal, src.K, dst.K,
-                                src.cam_from_world, dst.cam_from_world, thr.position, thr.normal, motion,
-                                motion_world))
+        return _lean.lean_reproject(
+            values,
+            src.depth,
+            src.normal,
+            dst.depth,
+            dst.normal,
+            warp,
+            thr.position,
+            thr.normal,
+            sampling,
+            rectified,
+            motion,
+            motion_world,
+            src_rotation,
+        )
+    inference = inference_only(
+        (
+            values,
+            src.depth,
+            src.normal,
+            dst.depth,
+            dst.normal,
+            src.K,
+            dst.K,
+            src.cam_from_world,
+            dst.cam_from_world,
+            thr.position,
+            thr.normal,
+            motion,
+            motion_world,
+        )
+    )
     if inference and not soft and FAST_PATH:  # the usual inference case: same results, less memory traffic
         thr2 = squared_thresholds(thr.position, thr.normal, wdt, dst.depth.device)
         if bool(torch.isfinite(thr2).all()):
-            return _fast.fast_reproject(values, src.depth, src.normal, dst.depth, dst.normal, warp, thr2,
-                                        thr.position, thr.normal, sampling, motion, motion_world, src_rotation)
-    return _general.general_reproject(values, src.depth, src.normal, dst.depth, dst.normal, warp, thr.position,
-                                      thr.normal, sampling, soft, thr.temperature, inference, motion, motion_world,
-                                      src_rotation)
+            return _fast.fast_reproject(
+                values,
+                src.depth,
+                src.normal,
+                dst.depth,
+                dst.normal,
+                warp,
+                thr2,
+                thr.position,
+                thr.normal,
+                sampling,
+                motion,
+                motion_world,
+                src_rotation,
+            )
+    return _general.general_reproject(
+        values,
+        src.depth,
+        src.normal,
+        dst.depth,
+        dst.normal,
+        warp,
+        thr.position,
+        thr.normal,
+        sampling,
+        soft,
+        thr.temperature,
+        inference,
+        motion,
+        motion_world,
+        src_rotation,
+    )
 
 
 def _native_thresholds(thr: Thresholds) -> tuple[float, float]:
@@ -347,28 +464,60 @@ def _native_thresholds(thr: Thresholds) -> tuple[float, float]:
     return float(thr2[0]), float(thr2[1])
 
 
-def _native_backward(values: Tensor, src: View, dst: View, thr: Thresholds, sampling: str,
-                     want_confidence: bool = True, rectified: bool = False):
+def _native_backward(
+    values: Tensor,
+    src: View,
+    dst: View,
+    thr: Thresholds,
+    sampling: str,
+    want_confidence: bool = True,
+    rectified: bool = False,
+):
     """The native backend of :func:`backward_reproject` (arguments checked, hard tests, float32 compute on the CPU;
     float32 or float16 images)."""
     warp = _warp(src, dst, torch.float32, rectified)
-    return _native.reproject(values, src.depth, src.normal, warp, dst.depth, dst.normal, _native_thresholds(thr),
-                             sampling == "bilinear", want_confidence, dst.motion, dst.motion_world,
-                             src.cam_from_world[:, :3, :3])
+    return _native.reproject(
+        values,
+        src.depth,
+        src.normal,
+        warp,
+        dst.depth,
+        dst.normal,
+        _native_thresholds(thr),
+        sampling == "bilinear",
+        want_confidence,
+        dst.motion,
+        dst.motion_world,
+        src.cam_from_world[:, :3, :3],
+    )
 
 
-def _native_temporal(current_color: Tensor, view: View, history: History, prev_view: View, thr: Thresholds,
-                     blend: Blend, sampling: str):
+def _native_temporal(
+    current_color: Tensor, view: View, history: History, prev_view: View, thr: Thresholds, blend: Blend, sampling: str
+):
     """The native backend of :func:`temporal_reproject` (arguments checked): one fused warp-and-blend pass."""
     like = torch.empty((), dtype=torch.float32)
     alpha = blend.alpha
     a = as_scalar(alpha.detach() if isinstance(alpha, Tensor) else alpha, like).clamp(0.0, 1.0)
     warp = compose_warp(prev_view.K, prev_view.cam_from_world, view.K, view.cam_from_world, torch.float32)
-    return _native.temporal_reproject(current_color, history.color, history.length, prev_view.depth,
-                                      prev_view.normal, warp, view.depth, view.normal, _native_thresholds(thr),
-                                      sampling == "bilinear", float(a), bool(blend.warmup),
-                                      float(as_scalar(blend.max_history, like)), view.motion, view.motion_world,
-                                      prev_view.cam_from_world[:, :3, :3])
+    return _native.temporal_reproject(
+        current_color,
+        history.color,
+        history.length,
+        prev_view.depth,
+        prev_view.normal,
+        warp,
+        view.depth,
+        view.normal,
+        _native_thresholds(thr),
+        sampling == "bilinear",
+        float(a),
+        bool(blend.warmup),
+        float(as_scalar(blend.max_history, like)),
+        view.motion,
+        view.motion_world,
+        prev_view.cam_from_world[:, :3, :3],
+    )
 
 
 def stereo_reproject(
@@ -410,11 +559,24 @@ def stereo_reproject(
         (True, True, 0)
     """
     if not isinstance(src, View):
-        _deprecated("stereo_reproject", "stereo_reproject(src_color, src: View, dst: View, (position_threshold, "
-                    "normal_threshold), ...)")
-        return _flat_stereo(color, src, dst, thresholds, *legacy_args, **_given(
-            sampling=(sampling, "bilinear"), soft=(soft, False), backend=(backend, "auto"),
-            rectified=(rectified, False)), **legacy_kwargs)
+        _deprecated(
+            "stereo_reproject",
+            "stereo_reproject(src_color, src: View, dst: View, (position_threshold, normal_threshold), ...)",
+        )
+        return _flat_stereo(
+            color,
+            src,
+            dst,
+            thresholds,
+            *legacy_args,
+            **_given(
+                sampling=(sampling, "bilinear"),
+                soft=(soft, False),
+                backend=(backend, "auto"),
+                rectified=(rectified, False),
+            ),
+            **legacy_kwargs,
+        )
     _no_extra("stereo_reproject", legacy_args, legacy_kwargs)
     thr = as_thresholds(thresholds)
     _check_op_inputs("stereo_reproject", color, "color", "3", src, dst, thr, sampling)
@@ -430,8 +592,11 @@ def _empty_outputs(values_like: Tensor, dst_depth: Tensor, confidence: bool = Fa
     """(values (B, C, H, W), valid, reason[, confidence] (B, 1, H, W)) for an empty destination."""
     B, _, H, W = dst_depth.shape
     dev = dst_depth.device
-    out = (values_like.new_zeros(B, values_like.shape[1], H, W), torch.zeros(B, 1, H, W, dtype=torch.bool, device=dev),
-           torch.zeros(B, 1, H, W, dtype=torch.uint8, device=dev))
+    out = (
+        values_like.new_zeros(B, values_like.shape[1], H, W),
+        torch.zeros(B, 1, H, W, dtype=torch.bool, device=dev),
+        torch.zeros(B, 1, H, W, dtype=torch.uint8, device=dev),
+    )
     if confidence:
         out += (torch.zeros(B, 1, H, W, dtype=compute_dtype(values_like, dst_depth), device=dev),)
     return out
@@ -558,31 +723,61 @@ def temporal_reproject(
         (0.5, 2.0)
     """
     if not isinstance(view, View):
-        _deprecated("temporal_reproject", "temporal_reproject(current_color, view: View, history: History, "
-                    "prev_view: View, (position_threshold, normal_threshold), ...)")
-        return _flat_temporal(current_color, view, history, prev_view, thresholds, *legacy_args, **_given(
-            sampling=(sampling, "bilinear"), soft=(soft, False), backend=(backend, "auto"),
-            return_reason=(return_reason, False)), **legacy_kwargs)
+        _deprecated(
+            "temporal_reproject",
+            "temporal_reproject(current_color, view: View, history: History, "
+            "prev_view: View, (position_threshold, normal_threshold), ...)",
+        )
+        return _flat_temporal(
+            current_color,
+            view,
+            history,
+            prev_view,
+            thresholds,
+            *legacy_args,
+            **_given(
+                sampling=(sampling, "bilinear"),
+                soft=(soft, False),
+                backend=(backend, "auto"),
+                return_reason=(return_reason, False),
+            ),
+            **legacy_kwargs,
+        )
     _no_extra("temporal_reproject", legacy_args, legacy_kwargs)
     thr = as_thresholds(thresholds)
     history = _as_pair(history, History, "temporal_reproject: history")
     blend = _as_pair(blend, Blend, "temporal_reproject: blend")
-    check_shape(current_color, ["B", "3", "H", "W"], "current_color",
-                {"B": view.batch_size, "H": view.height, "W": view.width})
+    check_shape(
+        current_color, ["B", "3", "H", "W"], "current_color", {"B": view.batch_size, "H": view.height, "W": view.width}
+    )
     check_floating(current_color, "current_color")
     _check_op_inputs("temporal_reproject", history.color, "history.color", "3", prev_view, view, thr, sampling)
-    check_shape(history.length, ["B", "1", "H", "W"], "history.length",
-                {"B": prev_view.batch_size, "H": prev_view.height, "W": prev_view.width})
+    check_shape(
+        history.length,
+        ["B", "1", "H", "W"],
+        "history.length",
+        {"B": prev_view.batch_size, "H": prev_view.height, "W": prev_view.width},
+    )
     check_floating(history.length, "history.length")
     if not tracing():
         check_blend(blend.alpha, blend.max_history)
-    return reproject_history(current_color, view, history, prev_view, thr, blend, sampling, soft, backend,
-                             return_reason)
+    return reproject_history(
+        current_color, view, history, prev_view, thr, blend, sampling, soft, backend, return_reason
+    )
 
 
-def reproject_history(current_color: Tensor, view: View, history: History, prev_view: View, thr: Thresholds,
-                      blend: Blend, sampling: str = "bilinear", soft: bool = False, backend: str = "auto",
-                      return_reason: bool = False) -> TemporalResult:
+def reproject_history(
+    current_color: Tensor,
+    view: View,
+    history: History,
+    prev_view: View,
+    thr: Thresholds,
+    blend: Blend,
+    sampling: str = "bilinear",
+    soft: bool = False,
+    backend: str = "auto",
+    return_reason: bool = False,
+) -> TemporalResult:
     """:func:`temporal_reproject` of arguments the caller has checked.
 
     Examples:
@@ -601,10 +796,16 @@ def reproject_history(current_color: Tensor, view: View, history: History, prev_
         color, valid, reason = _empty_outputs(current_color, view.depth)
         n = torch.zeros(view.depth.shape, dtype=compute_dtype(*history), device=view.depth.device)
         return TemporalResult(color, n, valid, reason if return_reason else None)
-    images = (current_color, view.depth, view.normal, history.color, history.length, prev_view.depth,
-              prev_view.normal) + _motion_of(view)
-    others = (view.K, view.cam_from_world, prev_view.K, prev_view.cam_from_world, thr.position, thr.normal,
-              blend.alpha)
+    images = (
+        current_color,
+        view.depth,
+        view.normal,
+        history.color,
+        history.length,
+        prev_view.depth,
+        prev_view.normal,
+    ) + _motion_of(view)
+    others = (view.K, view.cam_from_world, prev_view.K, prev_view.cam_from_world, thr.position, thr.normal, blend.alpha)
     channels = history.color.shape[1] + 1  # the history length rides along
     native = select_backend(backend, images, others, soft, view.motion is not None, channels) == "native"
     if native and not return_reason:
@@ -626,53 +827,129 @@ def reproject_history(current_color: Tensor, view: View, history: History, prev_
 # The flat forms of the ops (deprecated): checks under the flat argument names, then the View forms' code.
 
 
-def _flat_backward(src_values, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal, dst_K,
-                       dst_cam_from_world, position_threshold, normal_threshold, sampling="bilinear", soft=False,
-                       temperature=0.1, check=True, backend="auto", motion=None, motion_world=None,
-                       rectified=False) -> ReprojectionResult:
+def _flat_backward(
+    src_values,
+    src_depth,
+    src_normal,
+    src_K,
+    src_cam_from_world,
+    dst_depth,
+    dst_normal,
+    dst_K,
+    dst_cam_from_world,
+    position_threshold,
+    normal_threshold,
+    sampling="bilinear",
+    soft=False,
+    temperature=0.1,
+    check=True,
+    backend="auto",
+    motion=None,
+    motion_world=None,
+    rectified=False,
+) -> ReprojectionResult:
     """The flat form of :func:`~stereorepro.reproject.backward_reproject` (deprecated)."""
     check_sampling(sampling)
-    src, dst = stereo_views(src_values, (src_depth, src_normal, src_K, src_cam_from_world),
-                            (dst_depth, dst_normal, dst_K, dst_cam_from_world), dict(STEREO_NAMES,
-                                                                                    src_values="src_values"), check)
+    src, dst = stereo_views(
+        src_values,
+        (src_depth, src_normal, src_K, src_cam_from_world),
+        (dst_depth, dst_normal, dst_K, dst_cam_from_world),
+        dict(STEREO_NAMES, src_values="src_values"),
+        check,
+    )
     if check:
         check_thresholds(position_threshold, normal_threshold)
         check_motion(motion, motion_world, dst_depth, "motion", "motion_world")
     if rectified and motion is not None:
-        raise ValueError("backward_reproject: rectified=True declares a same-instant stereo pair; it cannot be "
-                         "combined with motion vectors")
+        raise ValueError(
+            "backward_reproject: rectified=True declares a same-instant stereo pair; it cannot be "
+            "combined with motion vectors"
+        )
     dst = View.unchecked(dst_depth, dst_normal, dst_K, dst_cam_from_world, motion, motion_world)
     thr = Thresholds(position_threshold, normal_threshold, temperature)
     return warp_values(src_values, src, dst, thr, sampling, soft, backend, rectified)
 
 
-def _flat_stereo(src_color, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal, dst_K,
-                     dst_cam_from_world, position_threshold, normal_threshold, sampling="bilinear", soft=False,
-                     temperature=0.1, backend="auto", rectified=False) -> tuple[Tensor, Tensor, Tensor]:
+def _flat_stereo(
+    src_color,
+    src_depth,
+    src_normal,
+    src_K,
+    src_cam_from_world,
+    dst_depth,
+    dst_normal,
+    dst_K,
+    dst_cam_from_world,
+    position_threshold,
+    normal_threshold,
+    sampling="bilinear",
+    soft=False,
+    temperature=0.1,
+    backend="auto",
+    rectified=False,
+) -> tuple[Tensor, Tensor, Tensor]:
     """The flat form of :func:`~stereorepro.reproject.stereo_reproject` (deprecated)."""
     check_shape(src_color, ["B", "3", "H", "W"], "src_color")
     check_sampling(sampling)
-    src, dst = stereo_views(src_color, (src_depth, src_normal, src_K, src_cam_from_world),
-                            (dst_depth, dst_normal, dst_K, dst_cam_from_world))
+    src, dst = stereo_views(
+        src_color,
+        (src_depth, src_normal, src_K, src_cam_from_world),
+        (dst_depth, dst_normal, dst_K, dst_cam_from_world),
+    )
     check_thresholds(position_threshold, normal_threshold)
     thr = Thresholds(position_threshold, normal_threshold, temperature)
     out = warp_values(src_color, src, dst, thr, sampling, soft, backend, rectified, confidence=False)
     return out[0], out[1], out[2]
 
 
-def _flat_temporal(current_color, depth, normal, K, cam_from_world, history_color, history_len, prev_depth,
-                       prev_normal, prev_K, prev_cam_from_world, position_threshold, normal_threshold, alpha=0.2,
-                       warmup=True, max_history=255.0, sampling="bilinear", soft=False, temperature=0.1,
-                       backend="auto", return_reason=False, motion=None, motion_world=None) -> tuple[Tensor, ...]:
+def _flat_temporal(
+    current_color,
+    depth,
+    normal,
+    K,
+    cam_from_world,
+    history_color,
+    history_len,
+    prev_depth,
+    prev_normal,
+    prev_K,
+    prev_cam_from_world,
+    position_threshold,
+    normal_threshold,
+    alpha=0.2,
+    warmup=True,
+    max_history=255.0,
+    sampling="bilinear",
+    soft=False,
+    temperature=0.1,
+    backend="auto",
+    return_reason=False,
+    motion=None,
+    motion_world=None,
+) -> tuple[Tensor, ...]:
     """The flat form of :func:`~stereorepro.reproject.temporal_reproject` (deprecated)."""
     history = History(history_color, history_len)
-    view, prev_view = temporal_views(current_color, (depth, normal, K, cam_from_world), history,
-                                     (prev_depth, prev_normal, prev_K, prev_cam_from_world), (motion, motion_world))
+    view, prev_view = temporal_views(
+        current_color,
+        (depth, normal, K, cam_from_world),
+        history,
+        (prev_depth, prev_normal, prev_K, prev_cam_from_world),
+        (motion, motion_world),
+    )
     check_sampling(sampling)
     if not tracing():
         check_thresholds(position_threshold, normal_threshold)
         check_blend(alpha, max_history)
-    out = reproject_history(current_color, view, history, prev_view,
-                                       Thresholds(position_threshold, normal_threshold, temperature),
-                                       Blend(alpha, warmup, max_history), sampling, soft, backend, return_reason)
+    out = reproject_history(
+        current_color,
+        view,
+        history,
+        prev_view,
+        Thresholds(position_threshold, normal_threshold, temperature),
+        Blend(alpha, warmup, max_history),
+        sampling,
+        soft,
+        backend,
+        return_reason,
+    )
     return tuple(out) if return_reason else tuple(out[:3])

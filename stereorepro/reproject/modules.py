@@ -27,8 +27,15 @@ def _image(name: str, channels: str, height: str = "H", width: str = "W") -> Fie
 
 
 class _ReprojectionBase(nn.Module):
-    def __init__(self, position_threshold: float, normal_threshold: float, sampling: str, soft: bool,
-                 temperature: float, backend: str = "auto"):
+    def __init__(
+        self,
+        position_threshold: float,
+        normal_threshold: float,
+        sampling: str,
+        soft: bool,
+        temperature: float,
+        backend: str = "auto",
+    ):
         super().__init__()
         self.backend = _backend.check(backend, BACKENDS)
         check_sampling(sampling)
@@ -51,8 +58,10 @@ class _ReprojectionBase(nn.Module):
         return Thresholds(self.position_threshold, self.normal_threshold, self.temperature)
 
     def extra_repr(self) -> str:
-        return (f"position_threshold={float(self.position_threshold):g}, "
-                f"normal_threshold={float(self.normal_threshold):g}, sampling={self.sampling!r}, soft={self.soft}")
+        return (
+            f"position_threshold={float(self.position_threshold):g}, "
+            f"normal_threshold={float(self.normal_threshold):g}, sampling={self.sampling!r}, soft={self.soft}"
+        )
 
 
 class StereoReprojection(_ReprojectionBase):
@@ -93,21 +102,49 @@ class StereoReprojection(_ReprojectionBase):
     input_names = [f.name for f in input_fields]
     output_names = ["color", "valid", "reason"]
 
-    def __init__(self, position_threshold: float, normal_threshold: float, sampling: str = "bilinear",
-                 soft: bool = False, temperature: float = 0.1, backend: str = "auto", rectified: bool = False):
+    def __init__(
+        self,
+        position_threshold: float,
+        normal_threshold: float,
+        sampling: str = "bilinear",
+        soft: bool = False,
+        temperature: float = 0.1,
+        backend: str = "auto",
+        rectified: bool = False,
+    ):
         super().__init__(position_threshold, normal_threshold, sampling, soft, temperature, backend)
         self.rectified = bool(rectified)
 
     def extra_repr(self) -> str:
         return super().extra_repr() + (", rectified=True" if self.rectified else "")
 
-    def forward(self, src_color: Tensor, src_depth: Tensor, src_normal: Tensor, src_K: Tensor,
-                src_cam_from_world: Tensor, dst_depth: Tensor, dst_normal: Tensor, dst_K: Tensor,
-                dst_cam_from_world: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        src, dst = _flat.stereo_views(src_color, (src_depth, src_normal, src_K, src_cam_from_world),
-                                      (dst_depth, dst_normal, dst_K, dst_cam_from_world))
-        out = stereo_reproject(src_color, src, dst, self.thresholds, sampling=self.sampling, soft=self.soft,
-                               backend=self.backend, rectified=self.rectified)
+    def forward(
+        self,
+        src_color: Tensor,
+        src_depth: Tensor,
+        src_normal: Tensor,
+        src_K: Tensor,
+        src_cam_from_world: Tensor,
+        dst_depth: Tensor,
+        dst_normal: Tensor,
+        dst_K: Tensor,
+        dst_cam_from_world: Tensor,
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        src, dst = _flat.stereo_views(
+            src_color,
+            (src_depth, src_normal, src_K, src_cam_from_world),
+            (dst_depth, dst_normal, dst_K, dst_cam_from_world),
+        )
+        out = stereo_reproject(
+            src_color,
+            src,
+            dst,
+            self.thresholds,
+            sampling=self.sampling,
+            soft=self.soft,
+            backend=self.backend,
+            rectified=self.rectified,
+        )
         return out.values, out.valid, out.reason
 
 
@@ -144,14 +181,29 @@ class TemporalReprojection(_ReprojectionBase):
 
     #: The forward's inputs without motion vectors: name and symbolic shape (what ONNX export reads); with
     #: ``motion_vectors`` the motion fields follow.
-    input_fields = (_image("current_color", "3"), *view_fields(""), _image("history_color", "3", "Hp", "Wp"),
-                    _image("history_len", "1", "Hp", "Wp"), *view_fields("prev_", "Hp", "Wp"))
+    input_fields = (
+        _image("current_color", "3"),
+        *view_fields(""),
+        _image("history_color", "3", "Hp", "Wp"),
+        _image("history_len", "1", "Hp", "Wp"),
+        *view_fields("prev_", "Hp", "Wp"),
+    )
     input_names = [f.name for f in input_fields]
     output_names = ["color", "history_len_out", "valid"]
 
-    def __init__(self, position_threshold: float, normal_threshold: float, alpha: float = 0.2,
-                 warmup: bool = True, max_history: float = 255.0, sampling: str = "bilinear", soft: bool = False,
-                 temperature: float = 0.1, backend: str = "auto", motion_vectors: bool = False):
+    def __init__(
+        self,
+        position_threshold: float,
+        normal_threshold: float,
+        alpha: float = 0.2,
+        warmup: bool = True,
+        max_history: float = 255.0,
+        sampling: str = "bilinear",
+        soft: bool = False,
+        temperature: float = 0.1,
+        backend: str = "auto",
+        motion_vectors: bool = False,
+    ):
         super().__init__(position_threshold, normal_threshold, sampling, soft, temperature, backend)
         self.motion_vectors = bool(motion_vectors)
         if self.motion_vectors:
@@ -167,22 +219,50 @@ class TemporalReprojection(_ReprojectionBase):
             self.register_buffer("alpha", torch.as_tensor(float(alpha), dtype=torch.float32))
 
     def extra_repr(self) -> str:
-        return (super().extra_repr() + f", alpha={float(self.alpha):g}, warmup={self.warmup}, "
-                f"max_history={self.max_history:g}" + (", motion_vectors=True" if self.motion_vectors else ""))
+        return (
+            super().extra_repr() + f", alpha={float(self.alpha):g}, warmup={self.warmup}, "
+            f"max_history={self.max_history:g}" + (", motion_vectors=True" if self.motion_vectors else "")
+        )
 
-    def forward(self, current_color: Tensor, depth: Tensor, normal: Tensor, K: Tensor, cam_from_world: Tensor,
-                history_color: Tensor, history_len: Tensor, prev_depth: Tensor, prev_normal: Tensor,
-                prev_K: Tensor, prev_cam_from_world: Tensor, motion: Tensor | None = None,
-                motion_world: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    def forward(
+        self,
+        current_color: Tensor,
+        depth: Tensor,
+        normal: Tensor,
+        K: Tensor,
+        cam_from_world: Tensor,
+        history_color: Tensor,
+        history_len: Tensor,
+        prev_depth: Tensor,
+        prev_normal: Tensor,
+        prev_K: Tensor,
+        prev_cam_from_world: Tensor,
+        motion: Tensor | None = None,
+        motion_world: Tensor | None = None,
+    ) -> tuple[Tensor, Tensor, Tensor]:
         if self.motion_vectors and motion is None and not torch.jit.is_tracing():
-            raise ParameterTypeError("TemporalReprojection(motion_vectors=True).forward needs `motion` (and "
-                                     "motion_world)")
+            raise ParameterTypeError(
+                "TemporalReprojection(motion_vectors=True).forward needs `motion` (and motion_world)"
+            )
         history = History(history_color, history_len)
-        view, prev_view = _flat.temporal_views(current_color, (depth, normal, K, cam_from_world), history,
-                                               (prev_depth, prev_normal, prev_K, prev_cam_from_world),
-                                               (motion, motion_world))
-        out = temporal_reproject(current_color, view, history, prev_view, self.thresholds, blend=self.blend,
-                                 sampling=self.sampling, soft=self.soft, backend=self.backend)
+        view, prev_view = _flat.temporal_views(
+            current_color,
+            (depth, normal, K, cam_from_world),
+            history,
+            (prev_depth, prev_normal, prev_K, prev_cam_from_world),
+            (motion, motion_world),
+        )
+        out = temporal_reproject(
+            current_color,
+            view,
+            history,
+            prev_view,
+            self.thresholds,
+            blend=self.blend,
+            sampling=self.sampling,
+            soft=self.soft,
+            backend=self.backend,
+        )
         return out.color, out.history_len, out.valid
 
     @property

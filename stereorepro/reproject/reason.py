@@ -64,7 +64,8 @@ def reason_to_rgb(reason: Tensor) -> Tensor:
         ((1, 3, 1, 4), [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 1.0, 1.0]])
     """
     check_shape(reason, ["B", "1", "H", "W"], "reason")
-    lut = torch.tensor([REASON_COLORS[Reason(i)] for i in range(len(Reason))], dtype=torch.float32,
-                       device=reason.device)  # Rx3
+    lut = torch.tensor(
+        [REASON_COLORS[Reason(i)] for i in range(len(Reason))], dtype=torch.float32, device=reason.device
+    )  # Rx3
     rgb = lut[reason[:, 0].long().clamp(0, len(Reason) - 1)]  # BxHxWx3
     return rgb.permute(0, 3, 1, 2).contiguous()

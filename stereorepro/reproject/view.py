@@ -18,8 +18,18 @@ from torch import Tensor
 
 from .._checks import check_camera, check_device, check_floating, check_motion, check_shape, tracing
 
-__all__ = ["View", "Thresholds", "Blend", "History", "ReprojectionResult", "TemporalResult", "Field",
-           "VIEW_FIELDS", "MOTION_FIELDS", "view_fields"]
+__all__ = [
+    "View",
+    "Thresholds",
+    "Blend",
+    "History",
+    "ReprojectionResult",
+    "TemporalResult",
+    "Field",
+    "VIEW_FIELDS",
+    "MOTION_FIELDS",
+    "view_fields",
+]
 
 
 class Field(NamedTuple):
@@ -42,8 +52,12 @@ class Field(NamedTuple):
 
 #: The tensors of every view, in this order: camera-z depth, unit world-space shading normals, intrinsics,
 #: extrinsics.
-VIEW_FIELDS = (Field("depth", ("B", "1", "H", "W")), Field("normal", ("B", "3", "H", "W")),
-               Field("K", ("B", "3", "3")), Field("cam_from_world", ("B", "4", "4")))
+VIEW_FIELDS = (
+    Field("depth", ("B", "1", "H", "W")),
+    Field("normal", ("B", "3", "H", "W")),
+    Field("K", ("B", "3", "3")),
+    Field("cam_from_world", ("B", "4", "4")),
+)
 #: The optional motion of a view to the other instant: screen-space (pixels) and world-space.
 MOTION_FIELDS = (Field("motion", ("B", "2", "H", "W")), Field("motion_world", ("B", "3", "H", "W")))
 
@@ -108,28 +122,48 @@ class View:
         check_floating(self.normal, f"{name}.normal", False)
         check_camera(self.K, self.cam_from_world, name, {"B": bind["B"]}, False)
         check_motion(self.motion, self.motion_world, self.depth, f"{name}.motion", f"{name}.motion_world", False)
-        check_device({f"{name}.depth": self.depth, f"{name}.normal": self.normal, f"{name}.K": self.K,
-                      f"{name}.cam_from_world": self.cam_from_world}, name, False)
+        check_device(
+            {
+                f"{name}.depth": self.depth,
+                f"{name}.normal": self.normal,
+                f"{name}.K": self.K,
+                f"{name}.cam_from_world": self.cam_from_world,
+            },
+            name,
+            False,
+        )
 
     @classmethod
-    def unchecked(cls, depth: Tensor, normal: Tensor, K: Tensor, cam_from_world: Tensor,
-                  motion: Tensor | None = None, motion_world: Tensor | None = None) -> "View":
+    def unchecked(
+        cls,
+        depth: Tensor,
+        normal: Tensor,
+        K: Tensor,
+        cam_from_world: Tensor,
+        motion: Tensor | None = None,
+        motion_world: Tensor | None = None,
+    ) -> "View":
         """A view of tensors the caller has already checked (no checks run)."""
         view = object.__new__(cls)
-        for f, v in zip(("depth", "normal", "K", "cam_from_world", "motion", "motion_world"),
-                        (depth, normal, K, cam_from_world, motion, motion_world)):
+        for f, v in zip(
+            ("depth", "normal", "K", "cam_from_world", "motion", "motion_world"),
+            (depth, normal, K, cam_from_world, motion, motion_world),
+        ):
             object.__setattr__(view, f, v)
         return view
 
     @classmethod
-    def from_camera(cls, camera, depth: Tensor, normal: Tensor, motion: Tensor | None = None,
-                    motion_world: Tensor | None = None) -> "View":
+    def from_camera(
+        cls, camera, depth: Tensor, normal: Tensor, motion: Tensor | None = None, motion_world: Tensor | None = None
+    ) -> "View":
         """A view from a :class:`~stereorepro.camera.PinholeCamera` (whose image size must match) and G-buffers."""
         if not tracing() and tuple(depth.shape[-2:]) != (camera.height, camera.width):
             from ..errors import ShapeError
 
-            raise ShapeError(f"View.from_camera: depth is {tuple(depth.shape[-2:])} (H, W) but the camera is "
-                             f"{camera.height}x{camera.width} (HxW)")
+            raise ShapeError(
+                f"View.from_camera: depth is {tuple(depth.shape[-2:])} (H, W) but the camera is "
+                f"{camera.height}x{camera.width} (HxW)"
+            )
         return cls(depth, normal, camera.K, camera.cam_from_world, motion, motion_world)
 
     @classmethod
@@ -174,11 +208,18 @@ class View:
 
     def to(self, *args, **kwargs) -> "View":
         """Every tensor moved / cast like :meth:`torch.Tensor.to` (cameras too: pass float64 for far scenes)."""
+
         def move(x):
             return None if x is None else x.to(*args, **kwargs)
 
-        return View(move(self.depth), move(self.normal), move(self.K), move(self.cam_from_world), move(self.motion),
-                    move(self.motion_world))
+        return View(
+            move(self.depth),
+            move(self.normal),
+            move(self.K),
+            move(self.cam_from_world),
+            move(self.motion),
+            move(self.motion_world),
+        )
 
     def flat(self, motion: bool = False) -> tuple[Tensor | None, ...]:
         """The tensors in :data:`VIEW_FIELDS` order (and the motion fields with ``motion``): a module's inputs."""

@@ -22,6 +22,21 @@ from .loader import (
     threshold_scale,
 )
 
-__all__ = ["Scene", "SceneError", "SceneGeometry", "list_scenes", "load_scene", "scenes_dir", "shared_scenes_dir",
-           "KNOWN_EFFECTS", "BUILTIN_SCENES", "EXTERNAL_SCENES", "SCENES_ENV", "SHARED_ENV", "THRESHOLD_ROWS",
-           "threshold_scale", "catmull_rom", "expand_path"]
+__all__ = [
+    "Scene",
+    "SceneError",
+    "SceneGeometry",
+    "list_scenes",
+    "load_scene",
+    "scenes_dir",
+    "shared_scenes_dir",
+    "KNOWN_EFFECTS",
+    "BUILTIN_SCENES",
+    "EXTERNAL_SCENES",
+    "SCENES_ENV",
+    "SHARED_ENV",
+    "THRESHOLD_ROWS",
+    "threshold_scale",
+    "catmull_rom",
+    "expand_path",
+]

@@ -77,9 +77,13 @@ def quat_to_matrix(q: np.ndarray) -> np.ndarray:
         [0.0, 1.0, 0.0]
     """
     w, x, y, z = q
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 @dataclass(frozen=True)
@@ -148,7 +152,7 @@ def parse_animations(data: dict, file: str, materials: list, num_frames: int) ->
     effects = set(data.get("effects", []))
     entries = data.get("animations", [])
     if entries and "moving_objects" not in effects:
-        raise SceneError(f"{file}: animations: moving objects need effects = [\"moving_objects\"]")
+        raise SceneError(f'{file}: animations: moving objects need effects = ["moving_objects"]')
     if "moving_objects" in effects and not entries:
         raise SceneError(f"{file}: key 'effects': declares 'moving_objects' but there are no [[animations]]")
     by_name = {m.name: m for m in materials}

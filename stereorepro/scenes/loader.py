@@ -65,12 +65,30 @@ from ..camera import PinholeCamera, StereoRig, intrinsics_from_fov, look_at
 from ..errors import SceneError
 from .animation import parse_animations
 
-__all__ = ["Scene", "SceneError", "SceneGeometry", "list_scenes", "load_scene", "scenes_dir",
-           "shared_scenes_dir", "SCENES_ENV", "KNOWN_EFFECTS", "THRESHOLD_ROWS", "threshold_scale"]
+__all__ = [
+    "Scene",
+    "SceneError",
+    "SceneGeometry",
+    "list_scenes",
+    "load_scene",
+    "scenes_dir",
+    "shared_scenes_dir",
+    "SCENES_ENV",
+    "KNOWN_EFFECTS",
+    "THRESHOLD_ROWS",
+    "threshold_scale",
+]
 
 KNOWN_EFFECTS = frozenset({"glossy", "moving_light", "moving_objects"})
-BUILTIN_SCENES = ("atrium", "atrium_glossy", "atrium_moving_light", "living_room", "living_room_glossy",
-                  "living_room_moving_light", "classroom")
+BUILTIN_SCENES = (
+    "atrium",
+    "atrium_glossy",
+    "atrium_moving_light",
+    "living_room",
+    "living_room_glossy",
+    "living_room_moving_light",
+    "classroom",
+)
 #: Built-in scenes beyond the paper's seven (effects the paper does not have).
 BEYOND_PAPER_SCENES = ("living_room_moving_objects",)
 EXTERNAL_SCENES = ("shared_sponza", "shared_living_room", "shared_classroom")
@@ -150,32 +168,63 @@ def list_scenes(include_external: bool = False, beyond_paper: bool = False) -> l
         >>> list_scenes()[:3], "living_room" in list_scenes(), len(list_scenes())
         (['atrium', 'atrium_glossy', 'atrium_moving_light'], True, 7)
     """
-    return (list(BUILTIN_SCENES) + (list(BEYOND_PAPER_SCENES) if beyond_paper else [])
-            + (list(EXTERNAL_SCENES) if include_external else []))
+    return (
+        list(BUILTIN_SCENES)
+        + (list(BEYOND_PAPER_SCENES) if beyond_paper else [])
+        + (list(EXTERNAL_SCENES) if include_external else [])
+    )
 
 
 _VEC3 = "vec3"
 _SCHEMA = {
-    "name": "str", "extends": "str", "description": "str", "effects": "strlist", "num_frames": "int",
-    "geometry": ("table", {
-        "generator": "str", "mesh": "str", "sidecar": "str", "scale": "float",
-        "quads": ("tablelist", {"corner": _VEC3, "edge_u": _VEC3, "edge_v": _VEC3, "material": "str"}),
-        "boxes": ("tablelist", {"min": _VEC3, "max": _VEC3, "material": "str"}),
-    }),
+    "name": "str",
+    "extends": "str",
+    "description": "str",
+    "effects": "strlist",
+    "num_frames": "int",
+    "geometry": (
+        "table",
+        {
+            "generator": "str",
+            "mesh": "str",
+            "sidecar": "str",
+            "scale": "float",
+            "quads": ("tablelist", {"corner": _VEC3, "edge_u": _VEC3, "edge_v": _VEC3, "material": "str"}),
+            "boxes": ("tablelist", {"min": _VEC3, "max": _VEC3, "material": "str"}),
+        },
+    ),
     "materials": ("tablemap", {"albedo": _VEC3, "specular": _VEC3, "exponent": "float", "emission": _VEC3}),
     "lights": ("tablelist", {"type": "str", "intensity": _VEC3, "position": _VEC3, "keyframes": "vec3list"}),
     "camera": ("table", {"vfov_deg": "float", "up": _VEC3, "positions": "vec3list", "targets": "vec3list"}),
     "rig": ("table", {"eye_separation": "float", "convergence_distance": "float"}),
     "reprojection": ("table", {"position_threshold": "float", "normal_threshold": "float"}),
     "render": ("table", {"radiance_clamp": "float", "point_light_min_distance": "float"}),
-    "animations": ("tablelist", {"materials": "strlist", "pivot": _VEC3, "frames": "intlist",
-                                 "translate": "vec3list", "rotate": "vec4list", "scale": "floatlist"}),
+    "animations": (
+        "tablelist",
+        {
+            "materials": "strlist",
+            "pivot": _VEC3,
+            "frames": "intlist",
+            "translate": "vec3list",
+            "rotate": "vec4list",
+            "scale": "floatlist",
+        },
+    ),
 }
-_DESCR = {"str": "a string", "int": "an integer", "float": "a number", "strlist": "a list of strings",
-          _VEC3: "a list of 3 numbers", "vec3list": "a non-empty list of [x, y, z] lists",
-          "intlist": "a non-empty list of integers", "floatlist": "a non-empty list of numbers",
-          "vec4list": "a non-empty list of [axis_x, axis_y, axis_z, angle_deg] lists",
-          "table": "a table", "tablelist": "an array of tables ([[...]])", "tablemap": "a table of tables"}
+_DESCR = {
+    "str": "a string",
+    "int": "an integer",
+    "float": "a number",
+    "strlist": "a list of strings",
+    _VEC3: "a list of 3 numbers",
+    "vec3list": "a non-empty list of [x, y, z] lists",
+    "intlist": "a non-empty list of integers",
+    "floatlist": "a non-empty list of numbers",
+    "vec4list": "a non-empty list of [axis_x, axis_y, axis_z, angle_deg] lists",
+    "table": "a table",
+    "tablelist": "an array of tables ([[...]])",
+    "tablemap": "a table of tables",
+}
 
 
 def _num(x) -> bool:
@@ -196,8 +245,11 @@ def _type_ok(kind: str, v) -> bool:
     if kind == "vec3list":
         return isinstance(v, list) and len(v) > 0 and all(_type_ok(_VEC3, p) for p in v)
     if kind == "vec4list":
-        return isinstance(v, list) and len(v) > 0 and all(isinstance(p, list) and len(p) == 4
-                                                           and all(_num(a) for a in p) for p in v)
+        return (
+            isinstance(v, list)
+            and len(v) > 0
+            and all(isinstance(p, list) and len(p) == 4 and all(_num(a) for a in p) for p in v)
+        )
     if kind == "intlist":
         return isinstance(v, list) and len(v) > 0 and all(_type_ok("int", a) for a in v)
     if kind == "floatlist":
@@ -320,8 +372,8 @@ class _Material:
 
 @dataclass(frozen=True)
 class _PointLight:
-    intensity: np.ndarray        # (3,)
-    keyframes: np.ndarray        # (P, 3); one row = static
+    intensity: np.ndarray  # (3,)
+    keyframes: np.ndarray  # (P, 3); one row = static
 
 
 @dataclass
@@ -413,11 +465,13 @@ class Scene:
     def material_table(self) -> dict:
         """Materials as arrays: ``names`` (M,), ``albedo``/``specular``/``emission`` (M, 3), ``exponent`` (M,)."""
         ms = self._materials
-        return {"names": [m.name for m in ms],
-                "albedo": np.array([m.albedo for m in ms], np.float32).reshape(-1, 3),
-                "specular": np.array([m.specular for m in ms], np.float32).reshape(-1, 3),
-                "exponent": np.array([m.exponent for m in ms], np.float32).reshape(-1),
-                "emission": np.array([m.emission for m in ms], np.float32).reshape(-1, 3)}
+        return {
+            "names": [m.name for m in ms],
+            "albedo": np.array([m.albedo for m in ms], np.float32).reshape(-1, 3),
+            "specular": np.array([m.specular for m in ms], np.float32).reshape(-1, 3),
+            "exponent": np.array([m.exponent for m in ms], np.float32).reshape(-1),
+            "emission": np.array([m.emission for m in ms], np.float32).reshape(-1, 3),
+        }
 
     def face_objects(self) -> np.ndarray:
         """(F,) int32: for each face of :meth:`geometry`, the index of the animation that moves it (its object),
@@ -446,8 +500,9 @@ class Scene:
             for o in range(len(self._animations)):
                 v = geo.vertices[geo.faces[objs == o].reshape(-1)].astype(np.float64)
                 if len(v) == 0:
-                    raise SceneError(f"{self.source}: animations[{o}]: no faces have materials "
-                                     f"{list(self._animations[o].materials)}")
+                    raise SceneError(
+                        f"{self.source}: animations[{o}]: no faces have materials {list(self._animations[o].materials)}"
+                    )
                 piv[o] = 0.5 * (v.min(0) + v.max(0))
             self._pivots = piv
         return self._pivots
@@ -504,8 +559,7 @@ def _sidecar_materials(path: Path, glossy: bool, file: str) -> tuple[list[_Mater
 def expand_path(s: str, base: Path) -> Path:
     """A path as a scene file writes it: ``$STEREOREPRO_SHARED_SCENES`` (or ``${...}``) and ``~`` expanded; a
     relative path is relative to ``base`` (the scene file's folder)."""
-    s = s.replace("${" + SHARED_ENV + "}", str(shared_scenes_dir())).replace("$" + SHARED_ENV,
-                                                                              str(shared_scenes_dir()))
+    s = s.replace("${" + SHARED_ENV + "}", str(shared_scenes_dir())).replace("$" + SHARED_ENV, str(shared_scenes_dir()))
     p = Path(os.path.expanduser(s))
     return p if p.is_absolute() else (base / p)
 
@@ -521,8 +575,10 @@ def _build_geometry(scene: Scene) -> SceneGeometry:
     if "generator" in geo:
         gen = geo["generator"]
         if gen not in GENERATORS:
-            raise SceneError(f"{file}: geometry.generator: unknown generator {gen!r} "
-                             f"(expected one of: {', '.join(sorted(GENERATORS))})")
+            raise SceneError(
+                f"{file}: geometry.generator: unknown generator {gen!r} "
+                f"(expected one of: {', '.join(sorted(GENERATORS))})"
+            )
         b = GENERATORS[gen]()
         try:
             v, f, m = b.build(names)
@@ -559,8 +615,10 @@ def _load_mesh(scene: Scene, geo: dict, file: str):
 
     path = expand_path(geo["mesh"], scene.source.parent)
     if not path.is_file():
-        raise SceneError(f"{file}: geometry.mesh: file not found: {path} (set {SHARED_ENV} to the folder of the "
-                         "shared scenes, or pass --shared-scenes to the CLI)")
+        raise SceneError(
+            f"{file}: geometry.mesh: file not found: {path} (set {SHARED_ENV} to the folder of the "
+            "shared scenes, or pass --shared-scenes to the CLI)"
+        )
     try:
         loaded = trimesh.load(str(path), process=False)
     except Exception as e:  # trimesh raises many types
@@ -582,8 +640,9 @@ def _load_mesh(scene: Scene, geo: dict, file: str):
             if len(m) != len(f):
                 raise SceneError(f"{file}: geometry.mesh: {path} has {len(f)} faces but {len(m)} material ids")
             if len(m) and m.max() >= scene._mesh_material_count:
-                raise SceneError(f"{file}: geometry.mesh: material id {int(m.max())} in {path} has no material in "
-                                 "the sidecar")
+                raise SceneError(
+                    f"{file}: geometry.mesh: material id {int(m.max())} in {path} has no material in the sidecar"
+                )
             m = m + offset
         else:
             m = np.full(len(f), offset)
@@ -612,8 +671,9 @@ def load_scene(name_or_path: str | os.PathLike) -> Scene:
         raise SceneError(f"{file}: key 'geometry': expected 'generator', 'mesh', 'quads' or 'boxes'")
     glossy = "glossy" in effects
     materials, mesh_count, mesh_dropped = _mesh_materials(geo, path, glossy, file)
-    materials += [_parse_material(m, f"{file}: materials.{name}", name, glossy)
-                  for name, m in data.get("materials", {}).items()]
+    materials += [
+        _parse_material(m, f"{file}: materials.{name}", name, glossy) for name, m in data.get("materials", {}).items()
+    ]
     if glossy and not any(max(m.specular) > 0 for m in materials):
         raise SceneError(f"{file}: key 'effects': declares 'glossy' but no material has a specular lobe")
     lights = [_parse_light(li, f"{file}: lights[{i}]", effects) for i, li in enumerate(data.get("lights", []))]
@@ -622,10 +682,22 @@ def load_scene(name_or_path: str | os.PathLike) -> Scene:
     vfov, stereo = _camera_and_rig(data, file)
     pt, nt = _thresholds(data, file)
     clamp, dmin = _render_settings(data, file)
-    scene = Scene(name=data.get("name", path.stem), effects=effects, num_frames=num_frames, vfov_deg=vfov,
-                  rig=stereo, position_threshold=pt, normal_threshold=nt, source=path,
-                  description=data.get("description", ""), radiance_clamp=clamp, point_light_min_distance=dmin,
-                  _data=data, _materials=materials, _lights=lights)
+    scene = Scene(
+        name=data.get("name", path.stem),
+        effects=effects,
+        num_frames=num_frames,
+        vfov_deg=vfov,
+        rig=stereo,
+        position_threshold=pt,
+        normal_threshold=nt,
+        source=path,
+        description=data.get("description", ""),
+        radiance_clamp=clamp,
+        point_light_min_distance=dmin,
+        _data=data,
+        _materials=materials,
+        _lights=lights,
+    )
     scene._mesh_material_offset = 0  # the mesh's materials come first
     scene._mesh_material_count = mesh_count
     scene._mesh_dropped = mesh_dropped
@@ -653,8 +725,9 @@ def _effects_and_frames(data: dict, file: str) -> tuple[frozenset, int]:
     effects = frozenset(data.get("effects", []))
     bad = sorted(effects - KNOWN_EFFECTS)
     if bad:
-        raise SceneError(f"{file}: key 'effects': unknown effect(s) {bad} (expected a subset of "
-                         f"{sorted(KNOWN_EFFECTS)})")
+        raise SceneError(
+            f"{file}: key 'effects': unknown effect(s) {bad} (expected a subset of {sorted(KNOWN_EFFECTS)})"
+        )
     num_frames = int(data.get("num_frames", 60))
     if num_frames < 1:
         raise SceneError(f"{file}: key 'num_frames': expected a positive integer, got {num_frames}")
@@ -684,10 +757,12 @@ def _parse_material(m: dict, where: str, name: str, glossy: bool) -> _Material:
     albedo = _vec(m.get("albedo", [0.0, 0.0, 0.0]))
     spec = _vec(m.get("specular", [0.0, 0.0, 0.0]))
     if min(albedo + spec) < 0 or max(a + b for a, b in zip(albedo, spec)) > 1.0:
-        raise SceneError(f"{where}: expected albedo + specular in [0, 1] per channel (energy conservation), "
-                         f"got albedo {albedo} and specular {spec}")
+        raise SceneError(
+            f"{where}: expected albedo + specular in [0, 1] per channel (energy conservation), "
+            f"got albedo {albedo} and specular {spec}"
+        )
     if max(spec) > 0 and not glossy:
-        raise SceneError(f"{where}.specular: a glossy lobe needs the scene to declare effects = [\"glossy\"]")
+        raise SceneError(f'{where}.specular: a glossy lobe needs the scene to declare effects = ["glossy"]')
     exponent = float(m.get("exponent", 1.0))
     if exponent < 0:
         raise SceneError(f"{where}.exponent: expected a number >= 0, got {exponent}")
@@ -706,7 +781,7 @@ def _parse_light(li: dict, where: str, effects: frozenset) -> _PointLight:
         raise SceneError(f"{where}: expected either 'position' or 'keyframes', not both")
     if "keyframes" in li:
         if "moving_light" not in effects:
-            raise SceneError(f"{where}.keyframes: a moving light needs effects = [\"moving_light\"]")
+            raise SceneError(f'{where}.keyframes: a moving light needs effects = ["moving_light"]')
         kf = np.array(li["keyframes"], np.float64)
     else:
         kf = np.array([_req(li, "position", where, "position or keyframes")], np.float64)

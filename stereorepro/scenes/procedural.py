@@ -47,14 +47,42 @@ class MeshBuilder:
     def box(self, lo, hi, material: str):
         """Axis-aligned box (12 triangles)."""
         (x0, y0, z0), (x1, y1, z1) = lo, hi
-        v = [[x0, y0, z0], [x1, y0, z0], [x1, y1, z0], [x0, y1, z0],
-             [x0, y0, z1], [x1, y0, z1], [x1, y1, z1], [x0, y1, z1]]
-        f = [[0, 2, 1], [0, 3, 2], [4, 5, 6], [4, 6, 7], [0, 1, 5], [0, 5, 4],
-             [3, 7, 6], [3, 6, 2], [0, 4, 7], [0, 7, 3], [1, 2, 6], [1, 6, 5]]
+        v = [
+            [x0, y0, z0],
+            [x1, y0, z0],
+            [x1, y1, z0],
+            [x0, y1, z0],
+            [x0, y0, z1],
+            [x1, y0, z1],
+            [x1, y1, z1],
+            [x0, y1, z1],
+        ]
+        f = [
+            [0, 2, 1],
+            [0, 3, 2],
+            [4, 5, 6],
+            [4, 6, 7],
+            [0, 1, 5],
+            [0, 5, 4],
+            [3, 7, 6],
+            [3, 6, 2],
+            [0, 4, 7],
+            [0, 7, 3],
+            [1, 2, 6],
+            [1, 6, 5],
+        ]
         return self.add(v, f, material)
 
-    def cylinder(self, base, radius: float, height: float, material: str, segments: int = 16,
-                 caps: bool = True, radius_top: float | None = None):
+    def cylinder(
+        self,
+        base,
+        radius: float,
+        height: float,
+        material: str,
+        segments: int = 16,
+        caps: bool = True,
+        radius_top: float | None = None,
+    ):
         """Vertical (frustum of a) cylinder standing on ``base``."""
         rt = radius if radius_top is None else radius_top
         a = np.linspace(0, 2 * math.pi, segments, endpoint=False)
@@ -69,12 +97,13 @@ class MeshBuilder:
         if caps:
             verts.append(np.array([[bx, by, bz], [bx, by + height, bz]]))
             cb, ct = 2 * segments, 2 * segments + 1
-            faces += [np.stack([np.full_like(i, cb), j, i], 1), np.stack([np.full_like(i, ct), segments + i,
-                                                                            segments + j], 1)]
+            faces += [
+                np.stack([np.full_like(i, cb), j, i], 1),
+                np.stack([np.full_like(i, ct), segments + i, segments + j], 1),
+            ]
         return self.add(np.concatenate(verts), np.concatenate(faces), material)
 
-    def arch(self, center, r_in: float, r_out: float, depth: float, axis: str, material: str,
-             segments: int = 12):
+    def arch(self, center, r_in: float, r_out: float, depth: float, axis: str, material: str, segments: int = 12):
         """Semicircular arch (half annulus) above ``center`` spanning along ``axis`` ('x' or 'z'), extruded by
         ``depth`` across it (centred)."""
         a = np.linspace(0, math.pi, segments + 1)
@@ -102,8 +131,11 @@ class MeshBuilder:
         missing = sorted({m for m, _ in self._mats} - set(index))
         if missing:
             raise KeyError(f"geometry uses materials not defined in the scene: {', '.join(missing)}")
-        ids = np.concatenate([np.full(c, index[m], np.int32) for m, c in self._mats]) if self._mats else \
-            np.zeros(0, np.int32)
+        ids = (
+            np.concatenate([np.full(c, index[m], np.int32) for m, c in self._mats])
+            if self._mats
+            else np.zeros(0, np.int32)
+        )
         verts = np.concatenate(self._verts).astype(np.float32) if self._verts else np.zeros((0, 3), np.float32)
         faces = np.concatenate(self._faces).astype(np.int32) if self._faces else np.zeros((0, 3), np.int32)
         return verts, faces, ids
@@ -113,8 +145,17 @@ class MeshBuilder:
         return {m for m, _ in self._mats}
 
 
-def _luminaire(b: MeshBuilder, x0: float, z0: float, size_x: float, size_z: float, ceiling_y: float, drop: float,
-               emitter: str, housing: str):
+def _luminaire(
+    b: MeshBuilder,
+    x0: float,
+    z0: float,
+    size_x: float,
+    size_z: float,
+    ceiling_y: float,
+    drop: float,
+    emitter: str,
+    housing: str,
+):
     """Ceiling panel light: an emitting quad ``drop`` below the ceiling, closed above by four housing sides.
 
     Area lights are two-sided; a bare panel just under the ceiling lights the ceiling from its back side at grazing
@@ -123,8 +164,12 @@ def _luminaire(b: MeshBuilder, x0: float, z0: float, size_x: float, size_z: floa
     """
     y = ceiling_y - drop
     b.quad((x0, y, z0), (size_x, 0, 0), (0, 0, size_z), emitter)
-    for p0, u in (((x0, y, z0), (size_x, 0, 0)), ((x0, y, z0 + size_z), (size_x, 0, 0)),
-                  ((x0, y, z0), (0, 0, size_z)), ((x0 + size_x, y, z0), (0, 0, size_z))):
+    for p0, u in (
+        ((x0, y, z0), (size_x, 0, 0)),
+        ((x0, y, z0 + size_z), (size_x, 0, 0)),
+        ((x0, y, z0), (0, 0, size_z)),
+        ((x0 + size_x, y, z0), (0, 0, size_z)),
+    ):
         b.quad(p0, u, (0, drop, 0), housing)
 
 
@@ -161,8 +206,8 @@ def atrium() -> MeshBuilder:
         z = side * Zc
         zin, zout = (z, side * Zo)
         lo, hi = min(zin, zout), max(zin, zout)
-        b.box((-X, 5.6, lo), (X, 6.0, hi), "stone")            # gallery ceiling / upper floor
-        b.box((-X, 9.6, lo), (X, 10.0, hi), "stone")           # roof over the upper gallery
+        b.box((-X, 5.6, lo), (X, 6.0, hi), "stone")  # gallery ceiling / upper floor
+        b.box((-X, 9.6, lo), (X, 10.0, hi), "stone")  # roof over the upper gallery
         b.box((-X, 9.6, min(z, z + side * 0.0) - 0.3), (X, 10.4, max(z, z) + 0.3), "stone")  # cornice
         b.box((-X, 5.0, z - 0.3), (X, 5.6, z + 0.3), "stone")  # beam over the lower arches
         b.box((-X, 6.0, z - 0.15), (X, 6.9, z + 0.15), "stone")  # parapet of the upper gallery
@@ -170,7 +215,7 @@ def atrium() -> MeshBuilder:
         for x in xs:
             b.cylinder((x, 0.0, z), 0.3, 3.6, "column", segments=24)
             b.box((x - 0.4, 0.0, z - 0.4), (x + 0.4, 0.25, z + 0.4), "stone")  # plinth
-            b.box((x - 0.4, 3.6, z - 0.4), (x + 0.4, 3.8, z + 0.4), "stone")   # capital
+            b.box((x - 0.4, 3.6, z - 0.4), (x + 0.4, 3.8, z + 0.4), "stone")  # capital
             b.cylinder((x, 6.9, z), 0.2, 2.0, "column", segments=24)
             b.box((x - 0.3, 8.9, z - 0.3), (x + 0.3, 9.05, z + 0.3), "stone")
         for x0, x1 in zip(xs[:-1], xs[1:]):
@@ -188,7 +233,7 @@ def atrium() -> MeshBuilder:
         s = 1 if x < 0 else -1
         for zc in (-2.5, 2.5):
             b.box((x, 0.0, zc - 0.8), (x + s * 0.3, 2.8, zc + 0.8), "door")
-    b.cylinder((-8.0, 0.0, 0.0), 1.2, 0.6, "stone", segments=32)   # fountain basin at the far end
+    b.cylinder((-8.0, 0.0, 0.0), 1.2, 0.6, "stone", segments=32)  # fountain basin at the far end
     b.cylinder((-8.0, 0.6, 0.0), 0.2, 1.2, "column", segments=16)
     b.cylinder((-8.0, 1.8, 0.0), 0.6, 0.15, "stone", segments=24)
     # sky above the courtyard opening (area light)
@@ -207,7 +252,7 @@ def living_room() -> MeshBuilder:
     b.box((W, 0.0, -D), (W + 0.1, Ht, D), "wall")
     b.box((-W, 0.0, -D - 0.1), (W, Ht, -D), "wall")
     b.box((-W, 0.0, D), (W, Ht, D + 0.1), "wall")
-    b.quad((W - 0.01, 0.9, -1.0), (0, 0, 2.0), (0, 1.4, 0), "window")            # window (sky light)
+    b.quad((W - 0.01, 0.9, -1.0), (0, 0, 2.0), (0, 1.4, 0), "window")  # window (sky light)
     # casing: sill, head and jambs touch the window's edges and close the 1 cm gap behind it (the emitter is
     # two-sided: open, its back lit the wall around it at grazing angles - a halo of fireflies)
     b.box((W - 0.08, 0.85, -1.05), (W, 0.9, 1.05), "trim")
@@ -248,12 +293,16 @@ def living_room() -> MeshBuilder:
     b.cylinder((2.3, 0.0, -2.9), 0.18, 0.04, "metal", segments=16)
     b.cylinder((2.3, 0.04, -2.9), 0.02, 1.5, "metal", segments=8)
     b.cylinder((2.3, 1.5, -2.9), 0.25, 0.3, "shade", segments=20, radius_top=0.15)
-    for (x, z) in ((2.5, 2.9), (-2.5, -3.0)):
+    for x, z in ((2.5, 2.9), (-2.5, -3.0)):
         b.cylinder((x, 0.0, z), 0.2, 0.4, "ceramic", segments=16, radius_top=0.25)
         for k in range(6):
             a = k * math.pi / 3
-            b.quad((x, 0.4, z), (0.35 * math.cos(a), 0.6, 0.35 * math.sin(a)),
-                   (-0.1 * math.sin(a), 0.0, 0.1 * math.cos(a)), "plant")
+            b.quad(
+                (x, 0.4, z),
+                (0.35 * math.cos(a), 0.6, 0.35 * math.sin(a)),
+                (-0.1 * math.sin(a), 0.0, 0.1 * math.cos(a)),
+                "plant",
+            )
     # pictures on the walls
     b.box((-0.8, 1.4, -3.5), (0.4, 2.1, -3.47), "picture")
     b.box((2.97, 1.3, 1.6), (3.0, 2.0, 2.6), "picture")

@@ -44,9 +44,9 @@ POSITION_SHARE_ALARM = 0.15
 HYPOTHESES = {
     "swapped": "the left and right images look swapped against their cameras (left.exr holds the right eye)",
     "inverted": "cam_from_world looks inverted (world_from_cam given: the camera-to-world pose instead of the "
-                "world-to-camera transform)",
+    "world-to-camera transform)",
     "axes": "the camera axes look flipped (x left / y up, as Mitsuba's camera frame or an OpenGL view matrix; "
-            "ours are OpenCV's: x right, y down, z forward)",
+    "ours are OpenCV's: x right, y down, z forward)",
     "ray_length": "Z looks like the distance along the ray, not the camera-space z",
 }
 
@@ -60,8 +60,9 @@ def _variant(frame: Frame, hypothesis: str | None) -> Frame:
     if hypothesis == "ray_length":
         K = frame.K[0].double()
         H, W = frame.depth.shape[-2:]
-        v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64) + 0.5, torch.arange(W, dtype=torch.float64) + 0.5,
-                              indexing="ij")
+        v, u = torch.meshgrid(
+            torch.arange(H, dtype=torch.float64) + 0.5, torch.arange(W, dtype=torch.float64) + 0.5, indexing="ij"
+        )
         x, y = (u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1]
         return replace(frame, depth=(frame.depth.double() / torch.sqrt(1 + x * x + y * y)).to(frame.depth.dtype))
     return frame
@@ -77,8 +78,15 @@ def _position_share(src: Frame, dst: Frame, pos: float, nrm: float, sampling: st
     return float(((reason == int(Reason.POSITION)) & surf).sum()) / n if n else 0.0
 
 
-def diagnose_conventions(seq: FrameSequence, mode: str, eyes: tuple[str, ...], pos: float, nrm: float,
-                         sampling: str = "bilinear", device=None) -> list[dict]:
+def diagnose_conventions(
+    seq: FrameSequence,
+    mode: str,
+    eyes: tuple[str, ...],
+    pos: float,
+    nrm: float,
+    sampling: str = "bilinear",
+    device=None,
+) -> list[dict]:
     """Warnings for likely convention mistakes (see the module docstring), from up to two frame pairs per test.
 
     Returns:
@@ -116,6 +124,7 @@ def diagnose_conventions(seq: FrameSequence, mode: str, eyes: tuple[str, ...], p
     out = []
     with torch.no_grad():
         for test, pairs, hypotheses in tests:
+
             def share(h):
                 vals = []
                 for (se, si), (de, di) in pairs:
@@ -137,26 +146,42 @@ def diagnose_conventions(seq: FrameSequence, mode: str, eyes: tuple[str, ...], p
                 # the same as swapped eyes; the temporal test tells them apart)
                 alike = [h for h in hypotheses if tried[h] <= given / 2 and tried[h] <= 1.5 * tried[best] + 0.002]
                 alike.sort(key=tried.get)
-                out.append({"test": test, "position_pct": pct, "suspect": best, "suspects": alike,
-                            "position_pct_if_fixed": 100.0 * tried[best],
-                            "position_pct_by_hypothesis": {h: 100.0 * v for h, v in tried.items()},
-                            "message": f"{test}: {pct:.1f} % of the surface pixels fail the position test; "
-                                       + "; or ".join(HYPOTHESES[h] for h in alike)
-                                       + f": undoing that gives {100.0 * tried[best]:.1f} %"})
+                out.append(
+                    {
+                        "test": test,
+                        "position_pct": pct,
+                        "suspect": best,
+                        "suspects": alike,
+                        "position_pct_if_fixed": 100.0 * tried[best],
+                        "position_pct_by_hypothesis": {h: 100.0 * v for h, v in tried.items()},
+                        "message": f"{test}: {pct:.1f} % of the surface pixels fail the position test; "
+                        + "; or ".join(HYPOTHESES[h] for h in alike)
+                        + f": undoing that gives {100.0 * tried[best]:.1f} %",
+                    }
+                )
             elif given > POSITION_SHARE_ALARM:
-                out.append({"test": test, "position_pct": pct, "suspect": None, "suspects": [],
-                            "position_pct_if_fixed": None,
-                            "position_pct_by_hypothesis": {h: 100.0 * v for h, v in tried.items()},
-                            "message": f"{test}: {pct:.1f} % of the surface pixels fail the position test: check "
-                                       "the conventions (cam_from_world, OpenCV axes, Z = camera z, eye order; "
-                                       "docs/conventions.md) and the thresholds"})
+                out.append(
+                    {
+                        "test": test,
+                        "position_pct": pct,
+                        "suspect": None,
+                        "suspects": [],
+                        "position_pct_if_fixed": None,
+                        "position_pct_by_hypothesis": {h: 100.0 * v for h, v in tried.items()},
+                        "message": f"{test}: {pct:.1f} % of the surface pixels fail the position test: check "
+                        "the conventions (cam_from_world, OpenCV axes, Z = camera z, eye order; "
+                        "docs/conventions.md) and the thresholds",
+                    }
+                )
     stereo = [w for w in out if w["test"] == "stereo" and w["suspects"]]
     if stereo and mode == "both" and not any(w["test"] == "temporal" for w in out) and n > 1:
         # the cameras are consistent over time, so the stereo failure is between the eyes: their order
         w = stereo[0]
         w["suspects"], w["suspect"] = ["swapped"], "swapped"
         w["position_pct_if_fixed"] = w["position_pct_by_hypothesis"]["swapped"]
-        w["message"] = (f"stereo: {w['position_pct']:.1f} % of the surface pixels fail the position test while the "
-                        f"temporal test passes; {HYPOTHESES['swapped']}: swapping them gives "
-                        f"{w['position_pct_if_fixed']:.1f} %")
+        w["message"] = (
+            f"stereo: {w['position_pct']:.1f} % of the surface pixels fail the position test while the "
+            f"temporal test passes; {HYPOTHESES['swapped']}: swapping them gives "
+            f"{w['position_pct_if_fixed']:.1f} %"
+        )
     return out

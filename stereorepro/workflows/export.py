@@ -19,8 +19,9 @@ def _json_matrix(t: Tensor) -> list:
     return [[float(x) for x in row] for row in t[0].double().tolist()]
 
 
-def export_sequence(scene, frames, width: int, height: int, out_dir, spp: int = 1, seed: int = 0,
-                    workers: int | None = None) -> Path:
+def export_sequence(
+    scene, frames, width: int, height: int, out_dir, spp: int = 1, seed: int = 0, workers: int | None = None
+) -> Path:
     """Write an input directory for ``stereorepro reproject`` from our path tracer.
 
     Frame ``i`` of the directory is scene frame ``frames[i]``; both eyes are traced at ``spp`` (RNG eye keys 0 =
@@ -72,16 +73,30 @@ def export_sequence(scene, frames, width: int, height: int, out_dir, spp: int = 
             rec = {}
             prev = scene.stereo_cameras(frame_ids[i - 1], width, height) if i and moving else None
             for eye, cam, key in (("left", left, 0), ("right", right, 1)):
-                res = tracer.render(cam, f, spp, eye=key, prev_camera=None if prev is None else prev[key],
-                                    prev_frame=frame_ids[i - 1] if prev is not None else None)
+                res = tracer.render(
+                    cam,
+                    f,
+                    spp,
+                    eye=key,
+                    prev_camera=None if prev is None else prev[key],
+                    prev_frame=frame_ids[i - 1] if prev is not None else None,
+                )
                 write_exr(stage / f"{i:04d}_{eye}.exr", res)
                 rec[eye] = {"K": _json_matrix(cam.K), "cam_from_world": _json_matrix(cam.cam_from_world)}
             records.append(rec)
         position_threshold, normal_threshold = scene.thresholds(height)
-        doc = {"frames": records,
-               "reprojection": {"position_threshold": position_threshold, "normal_threshold": normal_threshold},
-               "meta": {"scene": scene.name, "scene_frames": frame_ids, "spp": int(spp), "seed": int(seed),
-                        "width": int(width), "height": int(height),
-                        "writer": "stereorepro.workflows.export.export_sequence"}}
+        doc = {
+            "frames": records,
+            "reprojection": {"position_threshold": position_threshold, "normal_threshold": normal_threshold},
+            "meta": {
+                "scene": scene.name,
+                "scene_frames": frame_ids,
+                "spp": int(spp),
+                "seed": int(seed),
+                "width": int(width),
+                "height": int(height),
+                "writer": "stereorepro.workflows.export.export_sequence",
+            },
+        }
         atomic_write(stage / "cameras.json", json.dumps(doc, indent=1))
     return out

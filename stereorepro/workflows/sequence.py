@@ -56,10 +56,12 @@ def _stats(valid: Tensor, reason: Tensor, frame: Frame | None = None) -> dict:
     names[NO_HISTORY] = "NO_HISTORY"
     surface = reason != int(Reason.NO_SURFACE_DST)
     n_surface = int(surface.sum())
-    out = {"discard_pct": 100.0 * (1.0 - float(valid.float().mean())),
-           "surface_discard_pct": 100.0 * float((~valid & surface).sum()) / n_surface if n_surface else None,
-           "reasons": {names.get(c, str(c)): n for c, n in enumerate(codes) if n and c != 0},
-           "no_history": bool((reason == NO_HISTORY).all())}
+    out = {
+        "discard_pct": 100.0 * (1.0 - float(valid.float().mean())),
+        "surface_discard_pct": 100.0 * float((~valid & surface).sum()) / n_surface if n_surface else None,
+        "reasons": {names.get(c, str(c)): n for c, n in enumerate(codes) if n and c != 0},
+        "no_history": bool((reason == NO_HISTORY).all()),
+    }
     if frame is not None:
         out["normals"] = frame.normal_stats
     return out
@@ -67,8 +69,13 @@ def _stats(valid: Tensor, reason: Tensor, frame: Frame | None = None) -> dict:
 
 def _channels(color: Tensor, valid: Tensor, reason: Tensor, history_len: Tensor | None) -> dict:
     c = color[0].detach().float().cpu().numpy()
-    out = {"R": c[0], "G": c[1], "B": c[2], "valid": valid[0, 0].float().cpu().numpy(),
-           "reason": reason[0, 0].float().cpu().numpy()}
+    out = {
+        "R": c[0],
+        "G": c[1],
+        "B": c[2],
+        "valid": valid[0, 0].float().cpu().numpy(),
+        "reason": reason[0, 0].float().cpu().numpy(),
+    }
     if history_len is not None:
         out["history_len"] = history_len[0, 0].detach().float().cpu().numpy()
     return out
@@ -79,8 +86,18 @@ def _view(frame: Frame) -> View:
     return View(frame.depth, frame.normal, frame.K, frame.cam_from_world, frame.motion, frame.motion_world)
 
 
-def _process(seq: FrameSequence, mode: str, eyes: tuple[str, ...], pos: float, nrm: float, alpha: float,
-             sampling: str, device, emit, log) -> list[dict]:
+def _process(
+    seq: FrameSequence,
+    mode: str,
+    eyes: tuple[str, ...],
+    pos: float,
+    nrm: float,
+    alpha: float,
+    sampling: str,
+    device,
+    emit,
+    log,
+) -> list[dict]:
     """Run the mode over the sequence; ``emit(frame, eye, channels)`` receives every output frame."""
     per_frame = []
     if mode == "stereo":
@@ -98,8 +115,9 @@ def _process(seq: FrameSequence, mode: str, eyes: tuple[str, ...], pos: float, n
             rec = {"frame": i}
             for eye in eyes:
                 cur = read_frame(seq, i, eye, device)
-                states[eye], valid, reason = temporal_step(module, states[eye], cur.color,
-                                                           *_view(cur).flat(motion=True))
+                states[eye], valid, reason = temporal_step(
+                    module, states[eye], cur.color, *_view(cur).flat(motion=True)
+                )
                 emit(i, eye, _channels(states[eye].color, valid, reason, states[eye].history_len))
                 rec[eye] = dict(_stats(valid, reason, cur), motion=cur.motion is not None)
             per_frame.append(rec)
@@ -117,13 +135,18 @@ def _process(seq: FrameSequence, mode: str, eyes: tuple[str, ...], pos: float, n
             driver.left_trace_mask(*_view(L).flat(motion=True))
             out_l = driver.left(L.color)  # the left EXR's own colour stands in for the traced discards
             emit(i, "right", _channels(out_r, valid_r, reason_r, driver.right_state.history_len))
-            emit(i, "left", _channels(out_l, driver.stereo_valid, driver.stereo_reason,
-                                      driver.left_state.history_len))
-            per_frame.append({"frame": i, "right": dict(_stats(valid_r, reason_r, R), motion=R.motion is not None),
-                              "left": dict(_stats(driver.stereo_valid, driver.stereo_reason, L),
-                                           motion=L.motion is not None)})
-            log(f"frame {i:4d}: right {per_frame[-1]['right']['discard_pct']:5.1f} %, "
-                f"left (stereo) {per_frame[-1]['left']['discard_pct']:5.1f} % discarded")
+            emit(i, "left", _channels(out_l, driver.stereo_valid, driver.stereo_reason, driver.left_state.history_len))
+            per_frame.append(
+                {
+                    "frame": i,
+                    "right": dict(_stats(valid_r, reason_r, R), motion=R.motion is not None),
+                    "left": dict(_stats(driver.stereo_valid, driver.stereo_reason, L), motion=L.motion is not None),
+                }
+            )
+            log(
+                f"frame {i:4d}: right {per_frame[-1]['right']['discard_pct']:5.1f} %, "
+                f"left (stereo) {per_frame[-1]['left']['discard_pct']:5.1f} % discarded"
+            )
     return per_frame
 
 
@@ -147,15 +170,17 @@ def _check_options(mode: str, eye: str, sampling: str, alpha: float) -> None:
         raise SequenceError(f"alpha must be in (0, 1], got {alpha}")
 
 
-def _thresholds(seq: FrameSequence, position_threshold: float | None,
-                normal_threshold: float | None) -> tuple[float, float]:
+def _thresholds(
+    seq: FrameSequence, position_threshold: float | None, normal_threshold: float | None
+) -> tuple[float, float]:
     """The thresholds given, else those of ``cameras.json``; each required and positive."""
     pos = position_threshold if position_threshold is not None else seq.position_threshold
     nrm = normal_threshold if normal_threshold is not None else seq.normal_threshold
     for name, v in (("position_threshold", pos), ("normal_threshold", nrm)):
         if v is None:
-            raise SequenceError(f"--{name.replace('_', '-')} is required ({seq.root / 'cameras.json'} has no "
-                                f"reprojection.{name})")
+            raise SequenceError(
+                f"--{name.replace('_', '-')} is required ({seq.root / 'cameras.json'} has no reprojection.{name})"
+            )
         if not (math.isfinite(v) and 0 < v <= FLOAT32_MAX):
             raise SequenceError(f"{name} must be a positive number within float32's range, got {v}")
     return pos, nrm
@@ -168,17 +193,33 @@ def _normal_warnings(per_frame: list[dict], eyes: tuple[str, ...]) -> list[dict]
         for e in eyes:
             ns = f[e]["normals"]
             if ns["surface"] and ns["invalid"] > 0.01 * ns["surface"]:
-                out.append({"test": "normals", "frame": f["frame"], "eye": e, "message":
-                            f"frame {f['frame']} {e}: normals are zero or not finite on "
-                            f"{100.0 * ns['invalid'] / ns['surface']:.1f} % of the surface pixels "
-                            "(those pixels fail the normal test)"})
+                out.append(
+                    {
+                        "test": "normals",
+                        "frame": f["frame"],
+                        "eye": e,
+                        "message": f"frame {f['frame']} {e}: normals are zero or not finite on "
+                        f"{100.0 * ns['invalid'] / ns['surface']:.1f} % of the surface pixels "
+                        "(those pixels fail the normal test)",
+                    }
+                )
     return out
 
 
-def reproject_sequence(input_dir, out_dir, mode: str = "both", eye: str = "right",
-                       position_threshold: float | None = None, normal_threshold: float | None = None,
-                       alpha: float = 0.2, sampling: str = "bilinear", device="cpu", log=None, warn=None,
-                       source: str = "stereorepro") -> dict:
+def reproject_sequence(
+    input_dir,
+    out_dir,
+    mode: str = "both",
+    eye: str = "right",
+    position_threshold: float | None = None,
+    normal_threshold: float | None = None,
+    alpha: float = 0.2,
+    sampling: str = "bilinear",
+    device="cpu",
+    log=None,
+    warn=None,
+    source: str = "stereorepro",
+) -> dict:
     """Reproject a directory of frames (see the module docstring for the format and the modes).
 
     Args:
@@ -233,26 +274,35 @@ def reproject_sequence(input_dir, out_dir, mode: str = "both", eye: str = "right
     out = Path(out_dir)
     _check_output_dir(out, seq.root)
     with staged_outputs(out, last=["summary.json"]) as staging:  # summary.json last: it marks a complete output
+
         def emit(frame, e, chans):
             write_exr(staging / f"{frame:04d}_{e}_reprojected.exr", chans)
 
         with torch.no_grad():
-            per_frame = _process(seq, mode, eyes, float(pos), float(nrm), float(alpha), sampling, device, emit,
-                                 log)
+            per_frame = _process(seq, mode, eyes, float(pos), float(nrm), float(alpha), sampling, device, emit, log)
         eyes_out = ("left",) if mode == "stereo" else eyes
         warnings += _normal_warnings(per_frame, eyes_out)
         for w in warnings:
             warn(w["message"])
+
         def mean_over_history(key: str) -> dict:
-            vals = {e: [f[e][key] for f in per_frame if not f[e]["no_history"] and f[e][key] is not None]
-                    for e in eyes_out}
+            vals = {
+                e: [f[e][key] for f in per_frame if not f[e]["no_history"] and f[e][key] is not None] for e in eyes_out
+            }
             return {e: float(np.mean(v)) if v else None for e, v in vals.items()}
 
         summary = {
-            "mode": mode, "eyes": list(eyes_out), "input": str(seq.root), "frames": len(seq),
-            "width": seq.width, "height": seq.height, "position_threshold": float(pos),
-            "normal_threshold": float(nrm), "alpha": float(alpha) if mode != "stereo" else None,
-            "sampling": sampling, "source": source,
+            "mode": mode,
+            "eyes": list(eyes_out),
+            "input": str(seq.root),
+            "frames": len(seq),
+            "width": seq.width,
+            "height": seq.height,
+            "position_threshold": float(pos),
+            "normal_threshold": float(nrm),
+            "alpha": float(alpha) if mode != "stereo" else None,
+            "sampling": sampling,
+            "source": source,
             "mean_discard_pct": mean_over_history("discard_pct"),
             "mean_surface_discard_pct": mean_over_history("surface_discard_pct"),
             "no_history_frames": {e: [f["frame"] for f in per_frame if f[e]["no_history"]] for e in eyes_out},

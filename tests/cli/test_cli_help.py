@@ -51,8 +51,11 @@ class TestHelp:
     def test_every_default_is_shown(self, command):
         """Every option with a default (not a flag, not None) says it in its help."""
         parser = _subparsers(build_parser())[command]
-        silent = [a.option_strings[0] for a in parser._actions
-                  if _shown_default(a) is not None and "default" not in (a.help or "").lower()]
+        silent = [
+            a.option_strings[0]
+            for a in parser._actions
+            if _shown_default(a) is not None and "default" not in (a.help or "").lower()
+        ]
         assert silent == []
 
     def test_defaults_as_written(self, capsys):
@@ -82,13 +85,18 @@ class TestMessages:
         from stereorepro.cli import demo
 
         def missing(args):
-            raise MissingDependencyError("the experiment needs matplotlib, not installed: pip install "
-                                         "'stereorepro[experiment]'", name="matplotlib", extra="experiment")
+            raise MissingDependencyError(
+                "the experiment needs matplotlib, not installed: pip install 'stereorepro[experiment]'",
+                name="matplotlib",
+                extra="experiment",
+            )
 
         monkeypatch.setattr(demo, "run_command", missing)
         assert main(["demo"]) == 2
-        assert one_line(capsys) == ("stereorepro demo: error: the experiment needs matplotlib, not installed: "
-                                    "pip install 'stereorepro[experiment]'")
+        assert one_line(capsys) == (
+            "stereorepro demo: error: the experiment needs matplotlib, not installed: "
+            "pip install 'stereorepro[experiment]'"
+        )
 
 
 class TestScenes:

@@ -18,8 +18,21 @@ import pytest
 from stereorepro.cli import main
 from stereorepro.io import atomic
 
-TINY_EXPERIMENT = ["--scene", "living_room", "--frames", "3", "--resolution", "32x18", "--reference-spp", "8",
-                   "--ladder-spp", "2", "--alphas", "", "--no-progress"]
+TINY_EXPERIMENT = [
+    "--scene",
+    "living_room",
+    "--frames",
+    "3",
+    "--resolution",
+    "32x18",
+    "--reference-spp",
+    "8",
+    "--ladder-spp",
+    "2",
+    "--alphas",
+    "",
+    "--no-progress",
+]
 
 
 def one_line(capsys) -> str:
@@ -30,32 +43,55 @@ def one_line(capsys) -> str:
 
 def leftovers(folder: Path) -> list[str]:
     """Temporaries or staging folders of ours anywhere under ``folder``."""
-    return [str(p) for p in folder.rglob("*") if p.name.endswith(atomic.TMP_SUFFIX)
-            or p.name.startswith(atomic.STAGING_PREFIX)]
+    return [
+        str(p)
+        for p in folder.rglob("*")
+        if p.name.endswith(atomic.TMP_SUFFIX) or p.name.startswith(atomic.STAGING_PREFIX)
+    ]
 
 
 @pytest.fixture(scope="module")
 def sequence(tmp_path_factory) -> Path:
     d = tmp_path_factory.mktemp("seq") / "in"
-    assert main(["export-sequence", "--scene", "living_room", "--frames", "2", "--resolution", "32x18",
-                 "--out", str(d), "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "export-sequence",
+                "--scene",
+                "living_room",
+                "--frames",
+                "2",
+                "--resolution",
+                "32x18",
+                "--out",
+                str(d),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     return d
 
 
 class TestOptions:
     """Options that gave tracebacks or were silently accepted."""
 
-    @pytest.mark.parametrize("argv, needle", [
-        (["render", "--scene", "living_room", "--workers", "0"], "argument --workers: expected an integer >= 1"),
-        (["render", "--scene", "living_room", "--sample-offset", "-5"],
-         "argument --sample-offset: expected an integer >= 0"),
-        (["render", "--scene", "living_room", "--spp", "many"], "argument --spp"),
-        (["experiment", *TINY_EXPERIMENT, "--alphas", "nan"], "argument --alphas: expected numbers in (0, 1]"),
-        (["experiment", *TINY_EXPERIMENT, "--alphas", "0.1,x"], "argument --alphas"),
-        (["experiment", *TINY_EXPERIMENT, "--workers", "0"], "argument --workers"),
-        (["experiment", *TINY_EXPERIMENT, "--threshold-scale", "-1"], "argument --threshold-scale"),
-        (["experiment", *TINY_EXPERIMENT, "--frames", "0"], "argument --frames"),
-    ])
+    @pytest.mark.parametrize(
+        "argv, needle",
+        [
+            (["render", "--scene", "living_room", "--workers", "0"], "argument --workers: expected an integer >= 1"),
+            (
+                ["render", "--scene", "living_room", "--sample-offset", "-5"],
+                "argument --sample-offset: expected an integer >= 0",
+            ),
+            (["render", "--scene", "living_room", "--spp", "many"], "argument --spp"),
+            (["experiment", *TINY_EXPERIMENT, "--alphas", "nan"], "argument --alphas: expected numbers in (0, 1]"),
+            (["experiment", *TINY_EXPERIMENT, "--alphas", "0.1,x"], "argument --alphas"),
+            (["experiment", *TINY_EXPERIMENT, "--workers", "0"], "argument --workers"),
+            (["experiment", *TINY_EXPERIMENT, "--threshold-scale", "-1"], "argument --threshold-scale"),
+            (["experiment", *TINY_EXPERIMENT, "--frames", "0"], "argument --frames"),
+        ],
+    )
     def test_bad_option_one_line(self, tmp_path, capsys, argv, needle):
         out = tmp_path / "out"
         argv = argv + ["--out", str(out / "a.exr" if argv[0] == "render" else out)]
@@ -110,10 +146,20 @@ def _out_arg(cmd: str, out: Path) -> list[str]:
 
 
 #: Each command with the options it needs to start (``--out`` follows).
-COMMANDS = {"render": ["render", "--scene", "living_room", "--resolution", "16x9", "--quiet"],
-            "export-sequence": ["export-sequence", "--scene", "living_room", "--frames", "1", "--resolution", "16x9",
-                                "--quiet"],
-            "experiment": ["experiment", *TINY_EXPERIMENT]}
+COMMANDS = {
+    "render": ["render", "--scene", "living_room", "--resolution", "16x9", "--quiet"],
+    "export-sequence": [
+        "export-sequence",
+        "--scene",
+        "living_room",
+        "--frames",
+        "1",
+        "--resolution",
+        "16x9",
+        "--quiet",
+    ],
+    "experiment": ["experiment", *TINY_EXPERIMENT],
+}
 
 
 class TestEnvironment:
@@ -126,10 +172,12 @@ class TestEnvironment:
     def test_bad_backend_variable(self, sequence, tmp_path, capsys, monkeypatch, cmd):
         monkeypatch.setenv("STEREOREPRO_BACKEND", "bogus")
         out = tmp_path / "out"
-        argv = (["reproject", "--input", str(sequence), "--quiet"] if cmd == "reproject" else COMMANDS[cmd])
+        argv = ["reproject", "--input", str(sequence), "--quiet"] if cmd == "reproject" else COMMANDS[cmd]
         assert main(argv + _out_arg(cmd, out)) == 2
-        assert one_line(capsys) == (f"stereorepro {cmd}: error: STEREOREPRO_BACKEND must be one of ('auto', "
-                                    "'native', 'reference', 'torch', 'numpy'), got 'bogus'")
+        assert one_line(capsys) == (
+            f"stereorepro {cmd}: error: STEREOREPRO_BACKEND must be one of ('auto', "
+            "'native', 'reference', 'torch', 'numpy'), got 'bogus'"
+        )
         assert not out.exists()
 
     @pytest.mark.parametrize("cmd", ["render", "export-sequence", "experiment"])
@@ -152,8 +200,9 @@ class TestEnvironment:
     def test_threshold_beyond_float32(self, sequence, tmp_path, capsys, option):
         out = tmp_path / "o"
         assert main(["reproject", "--input", str(sequence), "--out", str(out), option, "1e300", "--quiet"]) == 2
-        assert one_line(capsys) == (f"stereorepro reproject: error: {option}: 1e+300 is beyond float32's range "
-                                    "(|x| <= 3.402823e+38)")
+        assert one_line(capsys) == (
+            f"stereorepro reproject: error: {option}: 1e+300 is beyond float32's range (|x| <= 3.402823e+38)"
+        )
         assert not out.exists()
 
     @pytest.mark.parametrize("scheduler", ["tcp://127.0.0.1:99999", "tcp://127.0.0.1:0", "tcp://:8786", "local:0"])
@@ -163,13 +212,20 @@ class TestEnvironment:
         assert "scheduler must be 'local:N' (N >= 1) or 'tcp://HOST:PORT' (PORT in 1..65535)" in one_line(capsys)
         assert not out.exists()
 
-    @pytest.mark.parametrize("options, option", [
-        (["--reference-spp", "2", "--ladder-spp", "2"], "reference_spp (--reference-spp) must be >= 4, got 2"),
-        (["--reference-spp", "16", "--ladder-spp", "4", "--reference-chunk-spp", "1"],
-         "reference_chunk_spp (--reference-chunk-spp) must be >= 4, got 1"),
-        (["--reference-spp", "8", "--ladder-spp", "2", "--reference-chunk-spp", "2"],
-         "reference_chunk_spp (--reference-chunk-spp) must be >= 4, got 2"),
-    ])
+    @pytest.mark.parametrize(
+        "options, option",
+        [
+            (["--reference-spp", "2", "--ladder-spp", "2"], "reference_spp (--reference-spp) must be >= 4, got 2"),
+            (
+                ["--reference-spp", "16", "--ladder-spp", "4", "--reference-chunk-spp", "1"],
+                "reference_chunk_spp (--reference-chunk-spp) must be >= 4, got 1",
+            ),
+            (
+                ["--reference-spp", "8", "--ladder-spp", "2", "--reference-chunk-spp", "2"],
+                "reference_chunk_spp (--reference-chunk-spp) must be >= 4, got 2",
+            ),
+        ],
+    )
     def test_experiment_too_small_to_measure(self, tmp_path, capsys, options, option):
         """Ladders scored against references of 1 or 2 spp exited 2 only after rendering everything
         ("effective_spp: ladder error does not decrease"): refused first, naming the option."""
@@ -185,8 +241,23 @@ class TestEnvironment:
         pytest.importorskip("stereorepro._core")
         monkeypatch.setenv("STEREOREPRO_BACKEND", "native")
         out = tmp_path / "out"
-        assert main(["experiment", *TINY_EXPERIMENT, "--scene", "living_room_moving_objects", "--frames", "2",
-                     "--no-flip", "--no-ssim", "--out", str(out)]) == 0
+        assert (
+            main(
+                [
+                    "experiment",
+                    *TINY_EXPERIMENT,
+                    "--scene",
+                    "living_room_moving_objects",
+                    "--frames",
+                    "2",
+                    "--no-flip",
+                    "--no-ssim",
+                    "--out",
+                    str(out),
+                ]
+            )
+            == 0
+        )
         assert (out / "results.json").is_file()
 
     def test_shared_scenes_missing_are_unavailable(self, capsys, monkeypatch, tmp_path):
@@ -200,6 +271,7 @@ class TestEnvironment:
 
 def _disk_full_at_fsync(monkeypatch):
     """Every file write fails as on a full disk (at the sync before the atomic rename)."""
+
     def full(path, directory=False):
         if directory:
             return
@@ -224,8 +296,23 @@ class TestDiskFull:
     def test_export_sequence(self, tmp_path, capsys, monkeypatch):
         _disk_full_at_fsync(monkeypatch)
         out = tmp_path / "seq"
-        assert main(["export-sequence", "--scene", "living_room", "--frames", "2", "--resolution", "16x9",
-                     "--out", str(out), "--quiet"]) == 2
+        assert (
+            main(
+                [
+                    "export-sequence",
+                    "--scene",
+                    "living_room",
+                    "--frames",
+                    "2",
+                    "--resolution",
+                    "16x9",
+                    "--out",
+                    str(out),
+                    "--quiet",
+                ]
+            )
+            == 2
+        )
         assert "no space left on the device" in one_line(capsys)
         assert not out.exists()
 
@@ -266,25 +353,61 @@ class TestDiskFull:
         """The same on a real 200 KiB tmpfs (a user + mount namespace; skipped where that is not allowed)."""
         if not shutil.which("unshare"):
             pytest.skip("unshare(1) is not installed")
-        probe = subprocess.run(["unshare", "--user", "--map-root-user", "--mount", "sh", "-c",
-                                f"mount -t tmpfs -o size=8k tmpfs {tmp_path}"], capture_output=True)
+        probe = subprocess.run(
+            [
+                "unshare",
+                "--user",
+                "--map-root-user",
+                "--mount",
+                "sh",
+                "-c",
+                f"mount -t tmpfs -o size=8k tmpfs {tmp_path}",
+            ],
+            capture_output=True,
+        )
         if probe.returncode != 0:
             pytest.skip(f"cannot mount a tmpfs in a user namespace here: {probe.stderr.decode().strip()}")
         mnt = tmp_path / "full"
         mnt.mkdir()
-        argv = {"render": ["render", "--scene", "living_room", "--resolution", "160x90", "--out", f"{mnt}/a.exr",
-                           "--quiet"],
-                "export-sequence": ["export-sequence", "--scene", "living_room", "--frames", "2", "--resolution",
-                                    "64x36", "--out", f"{mnt}/seq", "--quiet"],
-                "reproject": ["reproject", "--input", str(sequence), "--out", f"{mnt}/rep", "--quiet"],
-                "experiment": ["experiment", *TINY_EXPERIMENT, "--resolution", "64x36", "--out", f"{mnt}/exp"]}[cmd]
+        argv = {
+            "render": [
+                "render",
+                "--scene",
+                "living_room",
+                "--resolution",
+                "160x90",
+                "--out",
+                f"{mnt}/a.exr",
+                "--quiet",
+            ],
+            "export-sequence": [
+                "export-sequence",
+                "--scene",
+                "living_room",
+                "--frames",
+                "2",
+                "--resolution",
+                "64x36",
+                "--out",
+                f"{mnt}/seq",
+                "--quiet",
+            ],
+            "reproject": ["reproject", "--input", str(sequence), "--out", f"{mnt}/rep", "--quiet"],
+            "experiment": ["experiment", *TINY_EXPERIMENT, "--resolution", "64x36", "--out", f"{mnt}/exp"],
+        }[cmd]
         size = "12k" if cmd == "reproject" else "200k"  # the reprojected 32x18 frames are small
-        script = (f"mount -t tmpfs -o size={size} tmpfs {mnt} && "
-                  f"{shlex.join([sys.executable, '-m', 'stereorepro', *argv])}; rc=$?; "
-                  f"find {mnt} -name '*.tmp' -o -name '.staging-*' | sed 's/^/LEFT: /'; "
-                  f"ls {mnt} | sed 's/^/TOP: /'; exit $rc")
-        r = subprocess.run(["unshare", "--user", "--map-root-user", "--mount", "sh", "-c", script],
-                           capture_output=True, text=True, timeout=300)
+        script = (
+            f"mount -t tmpfs -o size={size} tmpfs {mnt} && "
+            f"{shlex.join([sys.executable, '-m', 'stereorepro', *argv])}; rc=$?; "
+            f"find {mnt} -name '*.tmp' -o -name '.staging-*' | sed 's/^/LEFT: /'; "
+            f"ls {mnt} | sed 's/^/TOP: /'; exit $rc"
+        )
+        r = subprocess.run(
+            ["unshare", "--user", "--map-root-user", "--mount", "sh", "-c", script],
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
         err = r.stderr.strip().splitlines()
         assert r.returncode == 2, (r.returncode, r.stderr[-2000:])
         assert len(err) == 1 and "no space left on the device" in err[0], err
@@ -294,14 +417,18 @@ class TestDiskFull:
 
 
 def _experiment_proc(out: Path) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "stereorepro", "experiment", *TINY_EXPERIMENT, "--out", str(out)],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    return subprocess.Popen(
+        [sys.executable, "-m", "stereorepro", "experiment", *TINY_EXPERIMENT, "--out", str(out)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
 
 
 def _tables(out: Path) -> dict:
     r = json.loads((out / "results.json").read_text())
     return {k: r[k] for k in ("table1", "table2", "table2_variants")} | {
-        "per_frame": [{k: f[k] for k in ("discard_pct", "rmse", "effective_spp")} for f in r["per_frame"]]}
+        "per_frame": [{k: f[k] for k in ("discard_pct", "rmse", "effective_spp")} for f in r["per_frame"]]
+    }
 
 
 class TestCrash:
@@ -335,8 +462,9 @@ class TestCrash:
         if moment == "renders":  # a few cache entries in: the renders are under way
             ready = lambda o: len(list((o / "cache").glob("*.npz"))) >= 5  # noqa: E731
         else:  # the staging folder of the figures exists: they are being written
-            ready = lambda o: o.is_dir() and any(p.name.startswith(atomic.STAGING_PREFIX)  # noqa: E731
-                                                 for p in o.iterdir())
+            ready = lambda o: (  # noqa: E731
+                o.is_dir() and any(p.name.startswith(atomic.STAGING_PREFIX) for p in o.iterdir())
+            )
         self._kill_when(out, ready)
         assert not (out / "results.json").exists()
         assert main(["experiment", *TINY_EXPERIMENT, "--out", str(out)]) == 0

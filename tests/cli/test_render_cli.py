@@ -14,8 +14,25 @@ class TestRenderCli:
         out = capsys.readouterr().out
         assert "atrium_glossy" in out and "classroom" in out
         p = tmp_path / "f.exr"
-        assert main(["render", "--scene", "living_room", "--frame", "3", "--spp", "1", "--resolution", "16x9",
-                     "--out", str(p), "--quiet"]) == 0
+        assert (
+            main(
+                [
+                    "render",
+                    "--scene",
+                    "living_room",
+                    "--frame",
+                    "3",
+                    "--spp",
+                    "1",
+                    "--resolution",
+                    "16x9",
+                    "--out",
+                    str(p),
+                    "--quiet",
+                ]
+            )
+            == 0
+        )
         t = exr_to_tensors(read_exr(p))
         assert t["radiance"].shape == (1, 3, 9, 16) and torch.isfinite(t["depth"]).all()
 

@@ -38,7 +38,8 @@ def blender_python() -> str:
     return str(cand)
 
 
-SCRIPT = textwrap.dedent('''
+SCRIPT = (
+    textwrap.dedent("""
     import importlib.util, sys
     import bpy
     out, mode, pivot, spp, frames = sys.argv[1], sys.argv[2], sys.argv[3], int(sys.argv[4]), int(sys.argv[5])
@@ -67,15 +68,31 @@ SCRIPT = textwrap.dedent('''
     cam.keyframe_insert("location", frame=1); cam.location.x += 0.1; cam.keyframe_insert("location", frame=frames)
     bpy.ops.render.render(animation=True)
     blender.write_cameras(out + "/cameras.json", position_threshold=0.05, normal_threshold=0.25)
-''').replace("{W}", str(W)).replace("{H}", str(H))
+""")
+    .replace("{W}", str(W))
+    .replace("{H}", str(H))
+)
 
 
 def render(tmp_path: Path, name: str, mode="PARALLEL", pivot="CENTER", spp=1, frames=2) -> Path:
     out = tmp_path / name
     script = tmp_path / "render.py"
     script.write_text(SCRIPT)
-    r = subprocess.run([blender_python(), str(script), str(out), mode, pivot, str(spp), str(frames),
-                        str(ROOT / "stereorepro" / "io" / "blender.py")], capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [
+            blender_python(),
+            str(script),
+            str(out),
+            mode,
+            pivot,
+            str(spp),
+            str(frames),
+            str(ROOT / "stereorepro" / "io" / "blender.py"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode == 0, r.stderr[-3000:]
     return out
 
@@ -124,8 +141,12 @@ class TestReprojectFromBlender:
         d = render(tmp_path, "one", spp=1)
         ref = render(tmp_path, "ref", spp=64)
         out = tmp_path / "out"
-        assert main(["reproject", "--from", "blender", "--input", str(d), "--out", str(out), "--mode", "stereo",
-                     "--quiet"]) == 0
+        assert (
+            main(
+                ["reproject", "--from", "blender", "--input", str(d), "--out", str(out), "--mode", "stereo", "--quiet"]
+            )
+            == 0
+        )
         assert capsys.readouterr().err == ""
         for i, n in enumerate((1, 2)):
             res = read_exr(out / f"{i:04d}_left_reprojected.exr")
@@ -140,16 +161,46 @@ class TestReprojectFromBlender:
             rmse_one = float(np.sqrt(np.mean((rgb(src)[sel] - left_ref[sel]) ** 2)))
             assert rmse_rep < rmse_one, (rmse_rep, rmse_one)
         # noise-free: the right reference warped into the left, with the rig as written and mirrored
-        assert main(["reproject", "--from", "blender", "--input", str(ref), "--out", str(tmp_path / "ref_out"),
-                     "--mode", "stereo", "--quiet"]) == 0
+        assert (
+            main(
+                [
+                    "reproject",
+                    "--from",
+                    "blender",
+                    "--input",
+                    str(ref),
+                    "--out",
+                    str(tmp_path / "ref_out"),
+                    "--mode",
+                    "stereo",
+                    "--quiet",
+                ]
+            )
+            == 0
+        )
         mirrored = tmp_path / "mirrored"
         shutil.copytree(ref, mirrored)
         doc = json.loads((mirrored / "cameras.json").read_text())
         for fr in doc["frames"]:
             fr["left"], fr["right"] = fr["right"], fr["left"]
         (mirrored / "cameras.json").write_text(json.dumps(doc))
-        assert main(["reproject", "--from", "blender", "--input", str(mirrored), "--out", str(tmp_path / "mir_out"),
-                     "--mode", "stereo", "--quiet"]) == 0
+        assert (
+            main(
+                [
+                    "reproject",
+                    "--from",
+                    "blender",
+                    "--input",
+                    str(mirrored),
+                    "--out",
+                    str(tmp_path / "mir_out"),
+                    "--mode",
+                    "stereo",
+                    "--quiet",
+                ]
+            )
+            == 0
+        )
         assert "swapped" in capsys.readouterr().err  # the diagnosis names it
         left_ref = rgb(read_exr(ref / "0001_L.exr"))
         good = read_exr(tmp_path / "ref_out" / "0000_left_reprojected.exr")
@@ -162,7 +213,6 @@ class TestReprojectFromBlender:
         assert err(good) < 0.5 * err(bad), (err(good), err(bad))
 
 
-
 def blender_file(path, shift=(0, 0), prefix="ViewLayer.", normal_size=(H, W)):
     """A Blender-like multilayer EXR (one part per pass) of a plane at depth 2; the Normal part's data window
     shifted by ``shift`` (x, y) and of ``normal_size``."""
@@ -172,10 +222,14 @@ def blender_file(path, shift=(0, 0), prefix="ViewLayer.", normal_size=(H, W)):
     nh, nw = normal_size
     window = (np.array(shift, np.int32), np.array([shift[0] + nw - 1, shift[1] + nh - 1], np.int32))
     display = (np.array([0, 0], np.int32), np.array([W - 1, H - 1], np.int32))
-    parts = [OpenEXR.Part({"name": prefix + "Combined"}, {f"{prefix}Combined.{c}": full * 0.5 for c in "RGBA"}),
-             OpenEXR.Part({"name": prefix + "Depth"}, {f"{prefix}Depth.Z": full * 2}),
-             OpenEXR.Part({"name": prefix + "Normal", "dataWindow": window, "displayWindow": display},
-                          {f"{prefix}Normal.{c}": np.full((nh, nw), v, np.float32) for c, v in zip("XYZ", (0, 0, 1))})]
+    parts = [
+        OpenEXR.Part({"name": prefix + "Combined"}, {f"{prefix}Combined.{c}": full * 0.5 for c in "RGBA"}),
+        OpenEXR.Part({"name": prefix + "Depth"}, {f"{prefix}Depth.Z": full * 2}),
+        OpenEXR.Part(
+            {"name": prefix + "Normal", "dataWindow": window, "displayWindow": display},
+            {f"{prefix}Normal.{c}": np.full((nh, nw), v, np.float32) for c, v in zip("XYZ", (0, 0, 1))},
+        ),
+    ]
     OpenEXR.File(parts).write(str(path))
 
 
@@ -185,8 +239,9 @@ def blender_dir(d, numbers=(1, 2), **kw):
     for n in numbers:
         for e in "LR":
             blender_file(d / f"{n:04d}_{e}.exr", **kw)
-    (d / "cameras.json").write_text(json.dumps({"frames": [{"left": cam, "right": cam}] * len(numbers),
-                                                "meta": {"frame_numbers": list(numbers)}}))
+    (d / "cameras.json").write_text(
+        json.dumps({"frames": [{"left": cam, "right": cam}] * len(numbers), "meta": {"frame_numbers": list(numbers)}})
+    )
     return d
 
 
@@ -214,9 +269,13 @@ class TestBlenderFilesRefused:
         d = blender_dir(tmp_path / "in")
 
         ch = read_exr(d / "0001_L.exr")
-        OpenEXR.File({"dataWindow": (np.array([2, 1], np.int32), np.array([W + 1, H], np.int32)),
-                      "displayWindow": (np.array([0, 0], np.int32), np.array([W - 1, H - 1], np.int32))},
-                     ch).write(str(d / "0001_L.exr"))
+        OpenEXR.File(
+            {
+                "dataWindow": (np.array([2, 1], np.int32), np.array([W + 1, H], np.int32)),
+                "displayWindow": (np.array([0, 0], np.int32), np.array([W - 1, H - 1], np.int32)),
+            },
+            ch,
+        ).write(str(d / "0001_L.exr"))
         with pytest.raises(SequenceError, match=r"0001_L\.exr: data window .* differs from the display window"):
             load_sequence(d, source="blender")
 

@@ -15,10 +15,14 @@ def _result(H=5, W=7):
     g = torch.Generator().manual_seed(0)
     depth = torch.rand(1, 1, H, W, generator=g) * 10
     depth[0, 0, 0, :3] = float("inf")
-    return RenderResult(radiance=torch.rand(1, 3, H, W, generator=g) * 100, depth=depth,
-                        normal=torch.randn(1, 3, H, W, generator=g), position=torch.randn(1, 3, H, W, generator=g),
-                        albedo=torch.rand(1, 3, H, W, generator=g),
-                        material_id=torch.zeros(1, 1, H, W, dtype=torch.int32))
+    return RenderResult(
+        radiance=torch.rand(1, 3, H, W, generator=g) * 100,
+        depth=depth,
+        normal=torch.randn(1, 3, H, W, generator=g),
+        position=torch.randn(1, 3, H, W, generator=g),
+        albedo=torch.rand(1, 3, H, W, generator=g),
+        material_id=torch.zeros(1, 1, H, W, dtype=torch.int32),
+    )
 
 
 class TestExr:
@@ -76,7 +80,7 @@ def _forge_data_window(path, width: int, height: int) -> None:
     data = bytearray(path.read_bytes())
     key = b"dataWindow\x00box2i\x00" + (16).to_bytes(4, "little")
     at = data.index(key) + len(key)
-    data[at:at + 16] = np.array([0, 0, width - 1, height - 1], "<i4").tobytes()
+    data[at : at + 16] = np.array([0, 0, width - 1, height - 1], "<i4").tobytes()
     path.write_bytes(bytes(data))
 
 
@@ -105,7 +109,7 @@ class TestReadExrHardCases:
         rng = np.random.default_rng(0)
         p = _write(tmp_path, {"R": rng.random((64, 64)).astype(np.float32)})
         data = bytearray(p.read_bytes())
-        data[len(data) // 2:] = rng.integers(0, 256, len(data) - len(data) // 2, dtype=np.uint8).tobytes()
+        data[len(data) // 2 :] = rng.integers(0, 256, len(data) - len(data) // 2, dtype=np.uint8).tobytes()
         p.write_bytes(bytes(data))
         with pytest.raises(ValueError, match=r"cannot read .*c\.exr as EXR"):
             read_exr(p)
@@ -118,14 +122,23 @@ class TestReadExrHardCases:
         import OpenEXR
 
         z = np.full((3, 5), 1e10, np.float32)
-        parts = [OpenEXR.Part({"name": "ViewLayer.Combined"},
-                              {f"ViewLayer.Combined.{c}": np.full((3, 5), i, np.float16) for i, c in enumerate("RGBA")}),
-                 OpenEXR.Part({"name": "ViewLayer.Depth"}, {"ViewLayer.Depth.Z": z})]
+        parts = [
+            OpenEXR.Part(
+                {"name": "ViewLayer.Combined"},
+                {f"ViewLayer.Combined.{c}": np.full((3, 5), i, np.float16) for i, c in enumerate("RGBA")},
+            ),
+            OpenEXR.Part({"name": "ViewLayer.Depth"}, {"ViewLayer.Depth.Z": z}),
+        ]
         p = tmp_path / "blender.exr"
         OpenEXR.File(parts).write(str(p))
         ch = read_exr(p)
-        assert sorted(ch) == ["ViewLayer.Combined.A", "ViewLayer.Combined.B", "ViewLayer.Combined.G",
-                              "ViewLayer.Combined.R", "ViewLayer.Depth.Z"]
+        assert sorted(ch) == [
+            "ViewLayer.Combined.A",
+            "ViewLayer.Combined.B",
+            "ViewLayer.Combined.G",
+            "ViewLayer.Combined.R",
+            "ViewLayer.Depth.Z",
+        ]
         assert all(v.dtype == np.float32 and v.shape == (3, 5) for v in ch.values())
         assert np.array_equal(ch["ViewLayer.Combined.B"], np.full((3, 5), 2.0, np.float32))
         assert np.array_equal(ch["ViewLayer.Depth.Z"], z)
@@ -185,9 +198,10 @@ class TestReadExrThreads:
         good = _write(tmp_path, {"R": rng.random((64, 64)).astype(np.float32)})
         bad = tmp_path / "bad.exr"
         data = bytearray(good.read_bytes())
-        data[len(data) // 2:] = rng.integers(0, 256, len(data) - len(data) // 2, dtype=np.uint8).tobytes()
+        data[len(data) // 2 :] = rng.integers(0, 256, len(data) - len(data) // 2, dtype=np.uint8).tobytes()
         bad.write_bytes(bytes(data))
-        r = subprocess.run([sys.executable, "-c", READ_FROM_THREADS, str(good), str(bad)], capture_output=True,
-                           text=True, timeout=120)
+        r = subprocess.run(
+            [sys.executable, "-c", READ_FROM_THREADS, str(good), str(bad)], capture_output=True, text=True, timeout=120
+        )
         assert r.returncode == 0, r.stderr[-2000:]
         assert r.stdout == "after True\nfd1\n" and r.stderr == "err\nfd2\n", (r.stdout, r.stderr)

@@ -20,13 +20,27 @@ W, H = 8, 6
 def _channels(value: float = 1.0, motion: bool = False) -> dict:
     ch = {c: np.full((H, W), value, np.float32) for c in ("R", "G", "B")}
     ch["Z"] = np.full((H, W), 2.0, np.float32)
-    ch.update({"N.X": np.zeros((H, W), np.float32), "N.Y": np.zeros((H, W), np.float32),
-               "N.Z": np.full((H, W), -1.0, np.float32)})
+    ch.update(
+        {
+            "N.X": np.zeros((H, W), np.float32),
+            "N.Y": np.zeros((H, W), np.float32),
+            "N.Z": np.full((H, W), -1.0, np.float32),
+        }
+    )
     if motion:
         ch.update({"M.X": np.full((H, W), 0.5, np.float32), "M.Y": np.zeros((H, W), np.float32)})
     # Mitsuba's AOVs too (extra channels for our format): the same directory reads --from mitsuba
-    ch.update({"dd.T": ch["Z"], "nn.X": ch["N.X"], "nn.Y": ch["N.Y"], "nn.Z": ch["N.Z"], "pp.X": ch["N.X"],
-               "pp.Y": ch["N.Y"], "pp.Z": ch["Z"]})
+    ch.update(
+        {
+            "dd.T": ch["Z"],
+            "nn.X": ch["N.X"],
+            "nn.Y": ch["N.Y"],
+            "nn.Z": ch["N.Z"],
+            "pp.X": ch["N.X"],
+            "pp.Y": ch["N.Y"],
+            "pp.Z": ch["Z"],
+        }
+    )
     return ch
 
 
@@ -40,9 +54,14 @@ def write_sequence(d, n: int = 2, motion: bool = False):
     for i in range(n):
         for e in EYES:
             write_exr(d / f"{i:04d}_{e}.exr", _channels(i + 1.0, motion and i > 0))
-    (d / "cameras.json").write_text(json.dumps({"frames": [{"left": _camera(), "right": _camera()}] * n,
-                                                "reprojection": {"position_threshold": 0.1,
-                                                                 "normal_threshold": 0.25}}))
+    (d / "cameras.json").write_text(
+        json.dumps(
+            {
+                "frames": [{"left": _camera(), "right": _camera()}] * n,
+                "reprojection": {"position_threshold": 0.1, "normal_threshold": 0.25},
+            }
+        )
+    )
     return d
 
 
@@ -87,12 +106,17 @@ class TestFramesRefused:
         import OpenEXR
 
         d = write_sequence(tmp_path / "in")
-        shifted = {"dataWindow": (np.array([5, 3], np.int32), np.array([W + 4, H + 2], np.int32)),
-                   "displayWindow": (np.array([0, 0], np.int32), np.array([W - 1, H - 1], np.int32))}
+        shifted = {
+            "dataWindow": (np.array([5, 3], np.int32), np.array([W + 4, H + 2], np.int32)),
+            "displayWindow": (np.array([0, 0], np.int32), np.array([W - 1, H - 1], np.int32)),
+        }
         OpenEXR.File(shifted, _channels()).write(str(d / "0001_left.exr"))
         for source in ("stereorepro", "mitsuba"):
-            with pytest.raises(SequenceError, match=r"0001_left\.exr: data window \(\(5, 3\), .* differs from the "
-                                                    r"display window \(\(0, 0\)"):
+            with pytest.raises(
+                SequenceError,
+                match=r"0001_left\.exr: data window \(\(5, 3\), .* differs from the "
+                r"display window \(\(0, 0\)",
+            ):
                 load_sequence(d, source=source)
 
     def test_mitsuba_channel_shapes(self):
@@ -101,8 +125,12 @@ class TestFramesRefused:
         from stereorepro.camera import PinholeCamera
         from stereorepro.io.mitsuba import MITSUBA_CHANNELS, frame_from_channels
 
-        cam = PinholeCamera(torch.tensor([[[8.0, 0, W / 2], [0, 8.0, H / 2], [0, 0, 1]]], dtype=torch.float64),
-                            torch.eye(4, dtype=torch.float64)[None], H, W)
+        cam = PinholeCamera(
+            torch.tensor([[[8.0, 0, W / 2], [0, 8.0, H / 2], [0, 0, 1]]], dtype=torch.float64),
+            torch.eye(4, dtype=torch.float64)[None],
+            H,
+            W,
+        )
         ch = {c: np.ones((H, W), np.float32) for c in MITSUBA_CHANNELS}
         assert frame_from_channels(ch, cam, "f.exr")["depth"].shape == (1, 1, H, W)
         ch["nn.Y"] = np.ones((H, W + 1), np.float32)

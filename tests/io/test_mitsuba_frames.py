@@ -34,30 +34,52 @@ def _scene(cam, spp: int, aov: bool):
     x_fov = math.degrees(2 * math.atan(W / 2 / fx))
     to_world = np.linalg.inv(cam.cam_from_world[0].double().numpy()) @ FLIP  # our camera -> Mitsuba's frame
     integ = {"type": "path", "max_depth": 3}
-    return mi.load_dict({
-        "type": "scene",
-        "integrator": {"type": "aov", "aovs": AOVS, "img": integ} if aov else integ,
-        "sensor": {"type": "perspective", "fov_axis": "x", "fov": x_fov, "to_world": mi.ScalarTransform4f(to_world),
-                   "sampler": {"type": "stratified" if aov else "independent", "sample_count": spp,
-                               **({"jitter": False} if aov else {})},
-                   "film": {"type": "hdrfilm", "width": W, "height": H, "rfilter": {"type": "box"},
-                            "pixel_format": "rgb", "component_format": "float32"}},
-        "cube": {"type": "cube", "to_world": mi.ScalarTransform4f().translate([0.0, 0.5, 0.0]).scale(0.5),
-                 "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.7, 0.3, 0.2]}}},
-        "floor": {"type": "rectangle",
-                  "to_world": mi.ScalarTransform4f().rotate([1.0, 0.0, 0.0], -90.0).scale(4.0),
-                  "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.5, 0.5, 0.5]}}},
-        "light": {"type": "point", "position": [1.0, 2.5, -1.0], "intensity": {"type": "rgb", "value": 6.0}},
-        "sky": {"type": "constant", "radiance": {"type": "rgb", "value": 0.2}},
-    })
+    return mi.load_dict(
+        {
+            "type": "scene",
+            "integrator": {"type": "aov", "aovs": AOVS, "img": integ} if aov else integ,
+            "sensor": {
+                "type": "perspective",
+                "fov_axis": "x",
+                "fov": x_fov,
+                "to_world": mi.ScalarTransform4f(to_world),
+                "sampler": {
+                    "type": "stratified" if aov else "independent",
+                    "sample_count": spp,
+                    **({"jitter": False} if aov else {}),
+                },
+                "film": {
+                    "type": "hdrfilm",
+                    "width": W,
+                    "height": H,
+                    "rfilter": {"type": "box"},
+                    "pixel_format": "rgb",
+                    "component_format": "float32",
+                },
+            },
+            "cube": {
+                "type": "cube",
+                "to_world": mi.ScalarTransform4f().translate([0.0, 0.5, 0.0]).scale(0.5),
+                "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.7, 0.3, 0.2]}},
+            },
+            "floor": {
+                "type": "rectangle",
+                "to_world": mi.ScalarTransform4f().rotate([1.0, 0.0, 0.0], -90.0).scale(4.0),
+                "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.5, 0.5, 0.5]}},
+            },
+            "light": {"type": "point", "position": [1.0, 2.5, -1.0], "intensity": {"type": "rgb", "value": 6.0}},
+            "sky": {"type": "constant", "radiance": {"type": "rgb", "value": 0.2}},
+        }
+    )
 
 
 class TestMitsubaAdapter:
     def test_sensor_to_camera_round_trip(self):
         left, _ = _eye_cameras(0)
         got = sensor_to_camera(_scene(left, 1, False).sensors()[0])
-        assert torch.allclose(got.K, left.K, atol=1e-4) and torch.allclose(got.cam_from_world, left.cam_from_world,
-                                                                              atol=1e-5)
+        assert torch.allclose(got.K, left.K, atol=1e-4) and torch.allclose(
+            got.cam_from_world, left.cam_from_world, atol=1e-5
+        )
 
     def test_render_gbuffer_positions_at_pixel_centres(self):
         left, _ = _eye_cameras(0)
@@ -84,8 +106,12 @@ class TestMitsubaAdapter:
         refs = {}
         for i in range(2):
             left, right = _eye_cameras(i)
-            frames.append({e: {"K": c.K[0].tolist(), "cam_from_world": c.cam_from_world[0].tolist()}
-                           for e, c in (("left", left), ("right", right))})
+            frames.append(
+                {
+                    e: {"K": c.K[0].tolist(), "cam_from_world": c.cam_from_world[0].tolist()}
+                    for e, c in (("left", left), ("right", right))
+                }
+            )
             for e, c in (("left", left), ("right", right)):
                 # Mitsuba's own film: AOVs at the pixel centres (one unjittered stratified sample), written by
                 # bitmap.write; its R, G, B replaced by a noisy 1-spp render (an unjittered sample gives the same
@@ -99,11 +125,16 @@ class TestMitsubaAdapter:
                 ch.update(R=noisy[..., 0], G=noisy[..., 1], B=noisy[..., 2])
                 write_exr(p, ch)
             refs[i] = np.array(mi.render(_scene(left, 64, False), spp=64, seed=99), dtype=np.float32)[..., :3]
-        (d / "cameras.json").write_text(json.dumps({"frames": frames, "reprojection": {
-            "position_threshold": 0.03, "normal_threshold": 0.25}}))
+        (d / "cameras.json").write_text(
+            json.dumps({"frames": frames, "reprojection": {"position_threshold": 0.03, "normal_threshold": 0.25}})
+        )
         out = tmp_path / "out"
-        assert main(["reproject", "--from", "mitsuba", "--input", str(d), "--out", str(out), "--mode", "stereo",
-                     "--quiet"]) == 0
+        assert (
+            main(
+                ["reproject", "--from", "mitsuba", "--input", str(d), "--out", str(out), "--mode", "stereo", "--quiet"]
+            )
+            == 0
+        )
         assert capsys.readouterr().err == ""  # no convention warning on a correct sequence
         for i in range(2):
             res = read_exr(out / f"{i:04d}_left_reprojected.exr")
@@ -127,10 +158,36 @@ class TestMitsubaAdapter:
             scene = _scene(c, 1, False)
             mi.render(scene, spp=1)
             scene.sensors()[0].film().bitmap().write(str(d / f"0000_{e}.exr"))
-        (d / "cameras.json").write_text(json.dumps({"frames": [
-            {e: {"K": c.K[0].tolist(), "cam_from_world": c.cam_from_world[0].tolist()}
-             for e, c in (("left", left), ("right", right))}]}))
-        assert main(["reproject", "--from", "mitsuba", "--input", str(d), "--out", str(tmp_path / "o"),
-                     "--position-threshold", "0.03", "--normal-threshold", "0.25", "--quiet"]) == 2
+        (d / "cameras.json").write_text(
+            json.dumps(
+                {
+                    "frames": [
+                        {
+                            e: {"K": c.K[0].tolist(), "cam_from_world": c.cam_from_world[0].tolist()}
+                            for e, c in (("left", left), ("right", right))
+                        }
+                    ]
+                }
+            )
+        )
+        assert (
+            main(
+                [
+                    "reproject",
+                    "--from",
+                    "mitsuba",
+                    "--input",
+                    str(d),
+                    "--out",
+                    str(tmp_path / "o"),
+                    "--position-threshold",
+                    "0.03",
+                    "--normal-threshold",
+                    "0.25",
+                    "--quiet",
+                ]
+            )
+            == 2
+        )
         err = capsys.readouterr().err
         assert "missing channel(s) dd.T" in err and "--from mitsuba" in err

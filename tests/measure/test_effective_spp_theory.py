@@ -24,8 +24,11 @@ def test_stereo_effective_spp_is_one_and_a_half():
     H, W = 120, 160
     g = torch.Generator().manual_seed(0)
     K = torch.tensor([[[100.0, 0, 80], [0, 100.0, 60], [0, 0, 1]]], dtype=torch.float64)
-    head = look_at(torch.zeros(1, 3, dtype=torch.float64), torch.tensor([[0.0, 0.0, 5.0]], dtype=torch.float64),
-                   torch.tensor([[0.0, -1.0, 0.0]], dtype=torch.float64))
+    head = look_at(
+        torch.zeros(1, 3, dtype=torch.float64),
+        torch.tensor([[0.0, 0.0, 5.0]], dtype=torch.float64),
+        torch.tensor([[0.0, -1.0, 0.0]], dtype=torch.float64),
+    )
     left, right = StereoRig(0.3).cameras(head, K, H, W)  # wide baseline: disparities of many pixels
     depth_l, normal_l = _tilted_wall(H, W, K, left.cam_from_world)
     depth_r, normal_r = _tilted_wall(H, W, K, right.cam_from_world)

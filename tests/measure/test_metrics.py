@@ -348,8 +348,14 @@ class TestEffectiveSpp:
         assert 1.0 < spp < 2.0
 
     def test_flags_are_documented(self):
-        assert EFFECTIVE_SPP_FLAGS == ("exact", "interpolated", "extrapolated_low", "extrapolated_high",
-                                       "beyond_floor", "fitted_nonmonotonic")
+        assert EFFECTIVE_SPP_FLAGS == (
+            "exact",
+            "interpolated",
+            "extrapolated_low",
+            "extrapolated_high",
+            "beyond_floor",
+            "fitted_nonmonotonic",
+        )
 
     def test_exact_hit_of_rung(self):
         R = _ideal_rmse(SPP16)
@@ -463,13 +469,14 @@ class TestEffectiveSpp:
         assert effective_spp(0.5, [1], [1.0]) == (pytest.approx(4.0), "extrapolated_high")
         assert effective_spp(2.0, [1], [1.0]) == (pytest.approx(0.25), "extrapolated_low")
         # Tensor inputs of other dtypes are accepted.
-        spp, flag = effective_spp(torch.tensor(0.5, dtype=torch.float32), torch.arange(1, 17),
-                                  torch.tensor(R, dtype=torch.float32))
+        spp, flag = effective_spp(
+            torch.tensor(0.5, dtype=torch.float32), torch.arange(1, 17), torch.tensor(R, dtype=torch.float32)
+        )
         assert (spp, flag) == (4.0, "exact")  # 0.5 is the 4-spp rung in float32 as well
-        spp, flag = effective_spp(torch.tensor(0.45, dtype=torch.float32), torch.arange(1, 17),
-                                  torch.tensor(R, dtype=torch.float32))
-        assert flag == "interpolated" and spp == pytest.approx(1 / 0.45 ** 2, rel=1e-6)
-
+        spp, flag = effective_spp(
+            torch.tensor(0.45, dtype=torch.float32), torch.arange(1, 17), torch.tensor(R, dtype=torch.float32)
+        )
+        assert flag == "interpolated" and spp == pytest.approx(1 / 0.45**2, rel=1e-6)
 
     @pytest.mark.parametrize("scale", [1e-300, 1e-160, 1e-155, 1e155, 1e160, 1e300])
     def test_ladders_near_the_float64_range(self, scale, capfd):
@@ -478,8 +485,7 @@ class TestEffectiveSpp:
         ASSERT at 1e155). Inside the range the scaling is bit-exact."""
         R = _ideal_rmse(SPP16)
         want, flags = effective_spp_many([0.6, 0.2, 0.05], SPP16, R)
-        got, got_flags = effective_spp_many([0.6 * scale, 0.2 * scale, 0.05 * scale], SPP16,
-                                            [r * scale for r in R])
+        got, got_flags = effective_spp_many([0.6 * scale, 0.2 * scale, 0.05 * scale], SPP16, [r * scale for r in R])
         assert got_flags == flags and torch.allclose(got, want, rtol=1e-12), (got, want)
         spp, flag = effective_spp(0.6 * scale, SPP16, [r * scale for r in R])
         assert flag == "interpolated" and spp == pytest.approx(1 / 0.36, rel=1e-12)
@@ -491,12 +497,13 @@ class TestEffectiveSpp:
     def test_power_of_two_scaling_is_bit_exact(self):
         """Scaling a ladder and its values by 2^k changes nothing, bit for bit (the estimator's unit scaling)."""
         g = torch.Generator().manual_seed(5)
-        R = torch.tensor(_ideal_rmse(SPP16), dtype=torch.float64) * (1 + 0.03 * torch.randn(16, generator=g,
-                                                                                           dtype=torch.float64))
+        R = torch.tensor(_ideal_rmse(SPP16), dtype=torch.float64) * (
+            1 + 0.03 * torch.randn(16, generator=g, dtype=torch.float64)
+        )
         r = torch.rand(8, generator=g, dtype=torch.float64) * 1.2
         want = effective_spp_many(r, SPP16, R)
         for k in (-900, -40, 40, 900):
-            got = effective_spp_many(r * 2.0 ** k, SPP16, R * 2.0 ** k)
+            got = effective_spp_many(r * 2.0**k, SPP16, R * 2.0**k)
             assert torch.equal(got[0], want[0]) and got[1] == want[1], k
 
     def test_ladder_wider_than_float64_squares(self):
@@ -506,7 +513,7 @@ class TestEffectiveSpp:
 
 class TestEffectiveSppMany:
     def test_smoke(self):
-        spp, flags = effective_spp_many([0.5, 0.3], [1, 2, 4], [1.0, 2 ** -0.5, 0.5])
+        spp, flags = effective_spp_many([0.5, 0.3], [1, 2, 4], [1.0, 2**-0.5, 0.5])
         assert flags == ["exact", "extrapolated_high"]
         torch.testing.assert_close(spp, torch.tensor([4.0, 1 / 0.09], dtype=F64))
 
@@ -515,8 +522,14 @@ class TestEffectiveSppMany:
         values = torch.tensor([2.0, 1.0, 0.7, 0.3, 0.2, 0.0], dtype=F64)
         spp, flags = effective_spp_many(values, SPP16, R)
         assert spp.shape == (6,) and spp.dtype == F64 and len(flags) == 6
-        assert flags == ["extrapolated_low", "exact", "interpolated", "interpolated", "extrapolated_high",
-                         "beyond_floor"]
+        assert flags == [
+            "extrapolated_low",
+            "exact",
+            "interpolated",
+            "interpolated",
+            "extrapolated_high",
+            "beyond_floor",
+        ]
         # Same as the scalar version, value by value.
         for v, s_, f in zip(values.tolist(), spp.tolist(), flags):
             assert effective_spp(v, SPP16, R) == (s_, f)
@@ -607,8 +620,13 @@ class TestSyntheticValidation:
     """truth + Gaussian noise; a "k-spp" method image must measure k spp (module docstring for the tolerance)."""
 
     N_MAX = 16
-    CASES = [(0.5, "extrapolated_low"), (1.6, "interpolated"), (4.0, "interpolated"), (9.0, "interpolated"),
-             (24.0, "extrapolated_high")]
+    CASES = [
+        (0.5, "extrapolated_low"),
+        (1.6, "interpolated"),
+        (4.0, "interpolated"),
+        (9.0, "interpolated"),
+        (24.0, "extrapolated_high"),
+    ]
 
     def _measure(self, seed, n_ref, ks):
         gen = torch.Generator().manual_seed(seed)
@@ -690,8 +708,12 @@ def _monotonic_ladders(draw):
 
 class TestMonotonicityProperty:
     @settings(max_examples=150, deadline=None)
-    @given(ladder=_monotonic_ladders(), u=st.floats(0.0, 1.0), v=st.floats(0.0, 1.0),
-           interpolation=st.sampled_from(["inverse_mse", "linear"]))
+    @given(
+        ladder=_monotonic_ladders(),
+        u=st.floats(0.0, 1.0),
+        v=st.floats(0.0, 1.0),
+        interpolation=st.sampled_from(["inverse_mse", "linear"]),
+    )
     def test_lower_rmse_never_lower_spp(self, ladder, u, v, interpolation):
         spp_list, R = ladder
         lo_r, hi_r = sorted((u, v))

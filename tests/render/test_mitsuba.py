@@ -27,14 +27,15 @@ BLOCKS = 4  # BLOCKS x BLOCKS image regions
 
 # Albedo per material. The light quad is level with the tops of the walls, so nothing lies above it and our two-sided
 # emitter's back face lights nothing (Mitsuba's is one-sided); its winding gives Mitsuba a downward normal.
-MATERIALS = {"floor": (0.7, 0.7, 0.7), "back": (0.6, 0.6, 0.55), "left": (0.7, 0.12, 0.1),
-             "block": (0.2, 0.5, 0.7)}
+MATERIALS = {"floor": (0.7, 0.7, 0.7), "back": (0.6, 0.6, 0.55), "left": (0.7, 0.12, 0.1), "block": (0.2, 0.5, 0.7)}
 EMISSION = (9.0, 8.0, 6.5)
 
 
 def _scene_file(tmp_path):
     mats = "\n".join(f"[materials.{k}]\nalbedo = {list(v)}" for k, v in MATERIALS.items())
-    return write_scene(tmp_path, f"""
+    return write_scene(
+        tmp_path,
+        f"""
         effects = []
         num_frames = 1
         [geometry]
@@ -49,20 +50,27 @@ def _scene_file(tmp_path):
         [materials.light]
         albedo = [0.0, 0.0, 0.0]
         emission = {list(EMISSION)}
-        """, "mitsuba_xcheck")
+        """,
+        "mitsuba_xcheck",
+    )
 
 
 def _mitsuba_scene(scene, tmp_path):
     """The same triangles as OBJ files (one per material), two-sided diffuse BSDFs, one area emitter."""
     geo = scene.geometry()
     names = scene.material_table()["names"]
-    d = {"type": "scene",
-         "integrator": {"type": "path", "max_depth": 3, "hide_emitters": False},
-         "sensor": {"type": "perspective", "fov_axis": "y", "fov": VFOV,
-                    "to_world": mi.ScalarTransform4f().look_at(origin=list(EYE), target=list(TARGET), up=list(UP)),
-                    "sampler": {"type": "independent", "sample_count": SPP},
-                    "film": {"type": "hdrfilm", "width": W, "height": H, "pixel_format": "rgb",
-                             "rfilter": {"type": "box"}}}}
+    d = {
+        "type": "scene",
+        "integrator": {"type": "path", "max_depth": 3, "hide_emitters": False},
+        "sensor": {
+            "type": "perspective",
+            "fov_axis": "y",
+            "fov": VFOV,
+            "to_world": mi.ScalarTransform4f().look_at(origin=list(EYE), target=list(TARGET), up=list(UP)),
+            "sampler": {"type": "independent", "sample_count": SPP},
+            "film": {"type": "hdrfilm", "width": W, "height": H, "pixel_format": "rgb", "rfilter": {"type": "box"}},
+        },
+    }
     for m, name in enumerate(names):
         faces = geo.faces[geo.material_ids == m]
         if len(faces) == 0:
@@ -78,8 +86,10 @@ def _mitsuba_scene(scene, tmp_path):
             shape["bsdf"] = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.0, 0.0, 0.0]}}
             shape["emitter"] = {"type": "area", "radiance": {"type": "rgb", "value": list(EMISSION)}}
         else:
-            shape["bsdf"] = {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": {
-                "type": "rgb", "value": list(MATERIALS[name])}}}
+            shape["bsdf"] = {
+                "type": "twosided",
+                "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": list(MATERIALS[name])}},
+            }
         d[name] = shape
     return mi.load_dict(d)
 
@@ -109,8 +119,9 @@ def test_matches_mitsuba_path_depth3(tmp_path):
     scene = load_scene(_scene_file(tmp_path))
     tr = PathTracer(scene, seed=11, clamp=None)
     cam = camera_looking(EYE, TARGET, UP, width=W, height=H, vfov=VFOV)
-    ours = np.stack([tr.render(cam, 0, SPP, sample_offset=k * SPP, gbuffers=False).radiance[0].mean(0).numpy()
-                     for k in range(RUNS)]).astype(np.float64)  # (RUNS, H, W), channel mean
+    ours = np.stack(
+        [tr.render(cam, 0, SPP, sample_offset=k * SPP, gbuffers=False).radiance[0].mean(0).numpy() for k in range(RUNS)]
+    ).astype(np.float64)  # (RUNS, H, W), channel mean
     msc = _mitsuba_scene(scene, tmp_path)
     theirs = np.stack([np.asarray(mi.render(msc, seed=k), np.float64).mean(-1) for k in range(RUNS)])
 

@@ -21,14 +21,22 @@ from stereorepro.render.rng import path_keys, stream_key, uniform
 from stereorepro.render.tracer import ENV_VAR, native_available
 from stereorepro.scenes import SceneError, load_scene
 
-from conftest_render import (box_scene, camera_looking, plane_point_light_scene, plane_radiance)
+from conftest_render import box_scene, camera_looking, plane_point_light_scene, plane_radiance
 
 W, H = 48, 27
 
 
-@pytest.fixture(scope="module", autouse=True,
-                params=["numpy", pytest.param("native", marks=pytest.mark.skipif(
-                    not native_available(), reason="stereorepro._core without the tracer kernels"))])
+@pytest.fixture(
+    scope="module",
+    autouse=True,
+    params=[
+        "numpy",
+        pytest.param(
+            "native",
+            marks=pytest.mark.skipif(not native_available(), reason="stereorepro._core without the tracer kernels"),
+        ),
+    ],
+)
 def backend(request):
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv(ENV_VAR, request.param)
@@ -57,9 +65,14 @@ class TestRender:
         scene, tr = living
         left, _ = scene.stereo_cameras(5, W, H)
         r = tr.render(left, 5, 2)
-        for name, c, dtype in [("radiance", 3, torch.float32), ("depth", 1, torch.float32),
-                               ("normal", 3, torch.float32), ("position", 3, torch.float32),
-                               ("albedo", 3, torch.float32), ("material_id", 1, torch.int32)]:
+        for name, c, dtype in [
+            ("radiance", 3, torch.float32),
+            ("depth", 1, torch.float32),
+            ("normal", 3, torch.float32),
+            ("position", 3, torch.float32),
+            ("albedo", 3, torch.float32),
+            ("material_id", 1, torch.int32),
+        ]:
             t = getattr(r, name)
             assert t.shape == (1, c, H, W), name
             assert t.dtype == dtype, name
@@ -123,8 +136,14 @@ class TestRender:
     def test_batches_bounded_by_max_batch(self, living):
         # pixel ranges cover the frame once, are no longer than max_batch, and give every worker one at least
         scene, _ = living
-        for workers, max_batch, n in [(1, 1 << 15, 57600), (2, 1 << 14, 57600), (2, 1 << 16, 921600), (3, 7, 5),
-                                      (2, 100, 1), (4, 10, 1000)]:
+        for workers, max_batch, n in [
+            (1, 1 << 15, 57600),
+            (2, 1 << 14, 57600),
+            (2, 1 << 16, 921600),
+            (3, 7, 5),
+            (2, 100, 1),
+            (4, 10, 1000),
+        ]:
             tr = PathTracer(scene, workers=workers, max_batch=max_batch)
             ranges = tr._ranges(n)
             assert ranges[0][0] == 0 and ranges[-1][1] == n
@@ -173,8 +192,9 @@ class TestRender:
         queried = []
         for name in ("intersect", "occluded"):
             real = getattr(TriangleBVH, name)
-            monkeypatch.setattr(TriangleBVH, name,
-                                lambda self, o, *a, _real=real: queried.append(len(o)) or _real(self, o, *a))
+            monkeypatch.setattr(
+                TriangleBVH, name, lambda self, o, *a, _real=real: queried.append(len(o)) or _real(self, o, *a)
+            )
 
         def rays(**kw):
             queried.clear()
@@ -251,8 +271,13 @@ class TestAnalytic:
 
     def test_furnace_glossy(self, tmp_path):
         p = box_scene(tmp_path, 0.3, 1.0)
-        text = p.read_text().replace('effects = []', 'effects = ["glossy"]').replace(
-            "albedo = [0.3, 0.3, 0.3]", "albedo = [0.3, 0.3, 0.3]\nspecular = [0.2, 0.2, 0.2]\nexponent = 30.0")
+        text = (
+            p.read_text()
+            .replace("effects = []", 'effects = ["glossy"]')
+            .replace(
+                "albedo = [0.3, 0.3, 0.3]", "albedo = [0.3, 0.3, 0.3]\nspecular = [0.2, 0.2, 0.2]\nexponent = 30.0"
+            )
+        )
         p.write_text(text)
         scene = load_scene(p)
         r = PathTracer(scene, clamp=None).render(scene.camera(0, 24, 24), 0, 32, gbuffers=False)
@@ -290,8 +315,7 @@ class TestFireflyClamp:
         zero3, e = np.zeros((3, 3)), np.ones(3)
         assert radiance_bound(em, kd, zero3, e, np.zeros((0, 3)), np.zeros(0)) == 6.0  # area lights: Le_max
         # a reflective emitter (furnace box): (1 + rho_e) Le_max
-        assert radiance_bound([[1, 1, 1]], [[0.5, 0.5, 0.5]], [[0, 0, 0]], [1.0], np.zeros((0, 3)),
-                              np.zeros(0)) == 1.5
+        assert radiance_bound([[1, 1, 1]], [[0.5, 0.5, 0.5]], [[0, 0, 0]], [1.0], np.zeros((0, 3)), np.zeros(0)) == 1.5
         # point light 2 m from the diffuse material: P = (0.5 / pi) 8 / 4; C = Le_max + 2 P
         P = 0.5 / math.pi * 8 / 4
         c = radiance_bound(em, kd, zero3, e, [[8.0, 4.0, 2.0]], [[2.0, np.inf, np.inf]])
@@ -314,16 +338,15 @@ class TestFireflyClamp:
         point_mesh_distance on each group's triangles: random soups with a degenerate triangle and an empty group."""
         rng = np.random.default_rng(3)
         for trial in range(4):
-            v = rng.normal(size=(60, 3)) * (10.0 ** trial)
+            v = rng.normal(size=(60, 3)) * (10.0**trial)
             f = rng.integers(0, 60, size=(80, 3))
             f[5] = [7, 7, 9]  # degenerate
             groups = rng.integers(0, 5, size=80)
             groups[groups == 3] = 4  # group 3 has no triangles
-            pts = np.concatenate([rng.normal(size=(6, 3)) * (10.0 ** trial), v[:2]])  # two points on vertices
+            pts = np.concatenate([rng.normal(size=(6, 3)) * (10.0**trial), v[:2]])  # two points on vertices
             got = TriangleDistances(v, f).grouped(pts, groups, 6)
             for g in range(6):
-                want = point_mesh_distance(pts, v, f[groups == g]) if (groups == g).any() else np.full(len(pts),
-                                                                                                      np.inf)
+                want = point_mesh_distance(pts, v, f[groups == g]) if (groups == g).any() else np.full(len(pts), np.inf)
                 assert np.array_equal(got[:, g], want), (trial, g)
 
     def test_arguments_and_scene_key(self, tmp_path):
@@ -338,9 +361,12 @@ class TestFireflyClamp:
         assert PathTracer(load_scene(p)).radiance_limit() == 4.0
         p.write_text(p.read_text().replace("radiance_clamp = 4.0", "radiance_clamp = 0"))
         assert PathTracer(load_scene(p)).radiance_limit() == 1.5  # 0 = auto
-        for text, match in [("radiance_clamp = -1.0", "radiance_clamp"), ('radiance_clamp = "auto"', "radiance_clamp"),
-                            ("point_light_min_distance = 0.0", "point_light_min_distance"),
-                            ("clamp = 3.0", "unknown key 'render.clamp'")]:
+        for text, match in [
+            ("radiance_clamp = -1.0", "radiance_clamp"),
+            ('radiance_clamp = "auto"', "radiance_clamp"),
+            ("point_light_min_distance = 0.0", "point_light_min_distance"),
+            ("clamp = 3.0", "unknown key 'render.clamp'"),
+        ]:
             p.write_text(p.read_text().split("[render]")[0] + "[render]\n" + text + "\n")
             with pytest.raises(SceneError, match=match):
                 load_scene(p)
@@ -382,8 +408,9 @@ class TestFireflyClamp:
         g = tr.gbuffer(cam, 1)
         emissive = torch.from_numpy(scene.material_table()["emission"].max(1) > 0)
         lit = (g.material_id >= 0) & ~emissive[g.material_id.clamp_min(0).long()]
-        ones = torch.stack([tr.render(cam, 1, 1, sample_offset=s, gbuffers=False).radiance[0].double()
-                            for s in range(8)])  # (8, 3, H, W)
+        ones = torch.stack(
+            [tr.render(cam, 1, 1, sample_offset=s, gbuffers=False).radiance[0].double() for s in range(8)]
+        )  # (8, 3, H, W)
         assert ones.max() <= C * (1 + 1e-6)
         assert ones[:, :, lit[0, 0]].max() <= C * (1 + 1e-6)
         ref = tr.render(cam, 1, 64, sample_offset=1 << 20, gbuffers=False).radiance[0].double()
@@ -404,15 +431,19 @@ class TestHardCases:
         assert not stereorepro.has_surface(r.depth).any()
         assert r.ray_counts["secondary"] == 0 and r.ray_counts["shadow"] == 0
 
-    @pytest.mark.parametrize("scale,offset", [(1e-3, (0.0, 0.0, 0.0)), (1.0, (0.0, 0.0, 0.0)),
-                                              (1e4, (3e4, -2e4, 1e4))],
-                             ids=["tiny_scene", "unit_scene", "huge_scene_scale_far_from_origin"])
+    @pytest.mark.parametrize(
+        "scale,offset",
+        [(1e-3, (0.0, 0.0, 0.0)), (1.0, (0.0, 0.0, 0.0)), (1e4, (3e4, -2e4, 1e4))],
+        ids=["tiny_scene", "unit_scene", "huge_scene_scale_far_from_origin"],
+    )
     def test_no_shadow_acne(self, tmp_path, scale, offset):
         """Every directly lit point must be lit: self-intersection would leave black speckles."""
         s = scale
         ox, oy, oz = offset
-        extra = (f'boxes = [{{min = [{ox + 2 * s}, {oy}, {oz + 2 * s}], max = [{ox + 3 * s}, {oy + 0.5 * s}, '
-                 f'{oz + 3 * s}], material = "block"}}]')
+        extra = (
+            f"boxes = [{{min = [{ox + 2 * s}, {oy}, {oz + 2 * s}], max = [{ox + 3 * s}, {oy + 0.5 * s}, "
+            f'{oz + 3 * s}], material = "block"}}]'
+        )
         scene = load_scene(plane_point_light_scene(tmp_path, 0.5, 2.0, 1.0, scale=s, offset=offset, extra=extra))
         tr = PathTracer(scene)
         eye = (ox - 1.0 * s, oy + 2.0 * s, oz - 3.0 * s)
@@ -481,12 +512,18 @@ class TestBSDF:
         ct = (np.arange(m) + 0.5) / m
         ph = (np.arange(2 * m) + 0.5) / (2 * m) * 2 * math.pi
         CT, PH = np.meshgrid(ct, ph, indexing="ij")
-        st = np.sqrt(1 - CT ** 2)
+        st = np.sqrt(1 - CT**2)
         w = np.stack([st * np.cos(PH), st * np.sin(PH), CT], -1).reshape(-1, 3).astype(np.float32)
         k = len(w)
-        f, _, cos = bsdf_mod.mixture_eval(np.full((k, 3), kd, np.float32), np.full((k, 3), ks, np.float32),
-                                          np.full(k, e, np.float32), np.full(k, ks / (kd + ks), np.float32),
-                                          np.tile(nrm[:1], (k, 1)), np.tile(wo[:1], (k, 1)), w)
+        f, _, cos = bsdf_mod.mixture_eval(
+            np.full((k, 3), kd, np.float32),
+            np.full((k, 3), ks, np.float32),
+            np.full(k, e, np.float32),
+            np.full(k, ks / (kd + ks), np.float32),
+            np.tile(nrm[:1], (k, 1)),
+            np.tile(wo[:1], (k, 1)),
+            w,
+        )
         quad = float((f[:, 0].astype(np.float64) * cos).sum() * (1 / m) * (2 * math.pi / (2 * m)))
         se = mc.std() / math.sqrt(n)
         assert abs(mc.mean() - quad) < 5 * se + 2e-3, (mc.mean(), quad, se)

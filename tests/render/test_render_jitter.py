@@ -25,8 +25,13 @@ from stereorepro.scenes import load_scene
 from conftest_render import camera_looking, write_scene
 
 W, H = 24, 14
-BACKENDS = ["numpy", pytest.param("native", marks=pytest.mark.skipif(
-    not native_available(), reason="stereorepro._core without the tracer kernels"))]
+BACKENDS = [
+    "numpy",
+    pytest.param(
+        "native",
+        marks=pytest.mark.skipif(not native_available(), reason="stereorepro._core without the tracer kernels"),
+    ),
+]
 
 
 @pytest.fixture(autouse=True)
@@ -88,14 +93,19 @@ def _recorded_configs(tr, scene, **extra):
     mask = torch.zeros(H, W, dtype=torch.bool)
     mask[2:11, 3:19] = True
     mask[0, 0] = True
-    return {"spp1": tr.render(left, 1, 1, **extra),
-            "spp3_off5_eye1": tr.render(right, 1, 3, sample_offset=5, eye=1, **extra),
-            "mask_spp2": tr.render(left, 1, 2, pixel_mask=mask, **extra)}
+    return {
+        "spp1": tr.render(left, 1, 1, **extra),
+        "spp3_off5_eye1": tr.render(right, 1, 3, sample_offset=5, eye=1, **extra),
+        "mask_spp2": tr.render(left, 1, 2, pixel_mask=mask, **extra),
+    }
 
 
 def emissive_scene(tmp_path):
     """Emitters only (albedo 0): a pixel sample's radiance is the emission of its first hit, nothing else."""
-    return load_scene(write_scene(tmp_path, """
+    return load_scene(
+        write_scene(
+            tmp_path,
+            """
         effects = []
         num_frames = 1
         [geometry]
@@ -107,7 +117,10 @@ def emissive_scene(tmp_path):
         [materials.block]
         albedo = [0.0, 0.0, 0.0]
         emission = [3.0, 2.0, 4.0]
-        """, "emitters"))
+        """,
+            "emitters",
+        )
+    )
 
 
 class TestDefaultUnchanged:
@@ -181,8 +194,7 @@ class TestCenterSampling:
             for spp in (1, 3):
                 r = tr.render(jc, 0, spp, pixel_sampling="center")
                 mat = r.material_id[0, 0].long()
-                want = torch.where(mat >= 0, emission[mat.clamp(min=0)].permute(2, 0, 1),
-                                   torch.zeros(())).unsqueeze(0)
+                want = torch.where(mat >= 0, emission[mat.clamp(min=0)].permute(2, 0, 1), torch.zeros(())).unsqueeze(0)
                 assert torch.equal(r.radiance, want), (dx, dy, spp)
                 assert (mat == -1).any() and len(torch.unique(mat)) == 3  # misses, back wall and block
         # box sampling averages across the silhouettes: the check above is not vacuous
@@ -200,8 +212,10 @@ class TestCenterSampling:
         out = {}
         for backend in ("numpy", "native"):
             tr = PathTracer(scene, seed=5, backend=backend, workers=2, max_batch=100)
-            out[backend] = (tr.render(cam, 2, 3, sample_offset=2, eye=1, pixel_sampling="center"),
-                            tr.render(cam, 2, 2, pixel_mask=mask, pixel_sampling="center"))
+            out[backend] = (
+                tr.render(cam, 2, 3, sample_offset=2, eye=1, pixel_sampling="center"),
+                tr.render(cam, 2, 2, pixel_mask=mask, pixel_sampling="center"),
+            )
         for a, b in zip(out["numpy"], out["native"]):
             assert torch.equal(a.radiance, b.radiance) and a.ray_counts == b.ray_counts
             assert torch.equal(a.depth, b.depth)
@@ -214,8 +228,9 @@ class TestCenterSampling:
         cam = scene.stereo_cameras(0, W, H)[0]
         base = PathTracer(scene, seed=2, workers=1).render(cam, 0, 4, pixel_sampling="center")
         for workers, max_batch in [(2, 1 << 15), (2, 50)]:
-            r = PathTracer(scene, seed=2, workers=workers, max_batch=max_batch).render(cam, 0, 4,
-                                                                                      pixel_sampling="center")
+            r = PathTracer(scene, seed=2, workers=workers, max_batch=max_batch).render(
+                cam, 0, 4, pixel_sampling="center"
+            )
             assert torch.equal(r.radiance, base.radiance), (workers, max_batch)
         box = PathTracer(scene, seed=2, workers=1).render(cam, 0, 4)
         assert not torch.equal(box.radiance, base.radiance)
@@ -225,14 +240,20 @@ class TestCenterSampling:
     def test_jittered_camera_gbuffer_sign(self, tmp_path, backend):
         """The jittered camera's pixel centre sees the unjittered image at centre + (dx, dy)."""
         quad = '{corner = [-20.0, -20.0, 3.0], edge_u = [40.0, 0.0, 0.0], edge_v = [0.0, 40.0, 0.0], material = "m"}'
-        scene = load_scene(write_scene(tmp_path, """
+        scene = load_scene(
+            write_scene(
+                tmp_path,
+                """
             effects = []
             num_frames = 1
             [geometry]
             quads = [QUAD]
             [materials.m]
             albedo = [0.5, 0.5, 0.5]
-            """.replace("QUAD", quad), "wall"))
+            """.replace("QUAD", quad),
+                "wall",
+            )
+        )
         cam = camera_looking((0.2, 0.1, -1.0), (0.5, 0.3, 3.0), width=20, height=12)
         dx, dy = 0.3125, -0.4
         g = PathTracer(scene, backend=backend).gbuffer(cam.jittered(dx, dy), 0)

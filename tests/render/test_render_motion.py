@@ -23,7 +23,9 @@ W, H = 48, 32
 
 
 def moving_scene(tmp_path, animation: str, boxes: str, name="moving"):
-    return write_scene(tmp_path, f"""
+    return write_scene(
+        tmp_path,
+        f"""
         effects = ["moving_objects"]
         num_frames = 12
         [geometry]
@@ -38,7 +40,9 @@ def moving_scene(tmp_path, animation: str, boxes: str, name="moving"):
         [[animations]]
         materials = ["mover"]
         {animation}
-        """, name)
+        """,
+        name,
+    )
 
 
 ROOM = '{min = [-4.0, -2.0, -4.0], max = [4.0, 4.0, 6.0], material = "wall"}'
@@ -47,8 +51,11 @@ ROOM = '{min = [-4.0, -2.0, -4.0], max = [4.0, 4.0, 6.0], material = "wall"}'
 @pytest.fixture(scope="module")
 def plane(tmp_path_factory):
     """A thin slab facing the camera at z = 1, translating +x by 0.1 per frame."""
-    p = moving_scene(tmp_path_factory.mktemp("plane"), 'frames = [0, 10]\ntranslate = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]',
-                     ROOM + ', {min = [-1.0, -1.0, 1.0], max = [1.0, 1.0, 1.05], material = "mover"}')
+    p = moving_scene(
+        tmp_path_factory.mktemp("plane"),
+        "frames = [0, 10]\ntranslate = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]",
+        ROOM + ', {min = [-1.0, -1.0, 1.0], max = [1.0, 1.0, 1.05], material = "mover"}',
+    )
     scene = load_scene(p)
     return scene, PathTracer(scene, workers=1)
 
@@ -56,9 +63,11 @@ def plane(tmp_path_factory):
 @pytest.fixture(scope="module")
 def cube(tmp_path_factory):
     """A cube spinning about y (pivot at its centre), 30 degrees per keyframe."""
-    p = moving_scene(tmp_path_factory.mktemp("cube"),
-                     'frames = [0, 11]\nrotate = [[0.0, 1.0, 0.0, 0.0], [0.0, 1.0, 0.0, 66.0]]',
-                     ROOM + ', {min = [-0.6, -0.6, 0.4], max = [0.6, 0.6, 1.6], material = "mover"}')
+    p = moving_scene(
+        tmp_path_factory.mktemp("cube"),
+        "frames = [0, 11]\nrotate = [[0.0, 1.0, 0.0, 0.0], [0.0, 1.0, 0.0, 66.0]]",
+        ROOM + ', {min = [-0.6, -0.6, 0.4], max = [0.6, 0.6, 1.6], material = "mover"}',
+    )
     scene = load_scene(p)
     return scene, PathTracer(scene, workers=1)
 
@@ -111,6 +120,7 @@ class TestMovingGeometry:
         b = PathTracer(scene, workers=2, backend="numpy").render(cam, 2, 2)
         assert torch.equal(a.radiance, b.radiance) and torch.equal(a.depth, b.depth)
 
+
 class OneBVH(PathTracer):
     """The tracer with the geometry stage it had before the split: every face's normal and one BVH of every face,
     computed per frame. What the split geometry stage must equal."""
@@ -123,8 +133,17 @@ class OneBVH(PathTracer):
         return self._geom_cache
 
 
-RESULT_FIELDS = ("radiance", "depth", "normal", "position", "albedo", "material_id", "motion", "motion_world",
-                 "object_id")
+RESULT_FIELDS = (
+    "radiance",
+    "depth",
+    "normal",
+    "position",
+    "albedo",
+    "material_id",
+    "motion",
+    "motion_world",
+    "object_id",
+)
 
 
 def assert_same_renders(scene, frames, width, height, spp):
@@ -150,7 +169,7 @@ def assert_same_hits(geom, one, faces, o, d):
     assert np.array_equal(t, t1) and np.array_equal(prim >= 0, prim1 >= 0)
     for i in np.flatnonzero(prim != prim1):
         for p in (prim[i], prim1[i]):
-            assert TriangleBVH(geom.vertices, faces[[p]]).intersect(o[i:i + 1], d[i:i + 1])[0][0] == t[i]
+            assert TriangleBVH(geom.vertices, faces[[p]]).intersect(o[i : i + 1], d[i : i + 1])[0][0] == t[i]
     return prim, prim1
 
 
@@ -200,8 +219,9 @@ class TestSplitBVH:
         """A moving slab exactly on a static one (frame 0): every hit on them is a tie, kept by the lower index."""
         slabs = [SLAB % "wall", SLAB % "mover"]
         boxes = ", ".join([ROOM] + (slabs[::-1] if moving_first else slabs))
-        scene = load_scene(moving_scene(tmp_path, "frames = [0, 10]\ntranslate = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]",
-                                        boxes))
+        scene = load_scene(
+            moving_scene(tmp_path, "frames = [0, 10]\ntranslate = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]", boxes)
+        )
         tr = PathTracer(scene, workers=1)
         obj = tr.gbuffer(camera_looking((0.0, 0.0, -3.0), (0.0, 0.0, 0.0), width=W, height=H), 0).object_id
         assert (int((obj == 0).sum()) > 100) == moving_first  # the slab of the lower index
@@ -209,23 +229,28 @@ class TestSplitBVH:
 
     def test_every_face_moving(self, tmp_path):
         """No static faces: one BVH of the frame, as before the split."""
-        scene = load_scene(moving_scene(tmp_path, "frames = [0, 10]\ntranslate = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]",
-                                        SLAB % "mover"))
+        scene = load_scene(
+            moving_scene(tmp_path, "frames = [0, 10]\ntranslate = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]", SLAB % "mover")
+        )
         tr = PathTracer(scene, workers=1)
         assert tr._bvh is None and tr.stats["bvh_builds"] == 0
         g = tr.gbuffer(camera_looking((0.0, 0.0, -3.0), (0.0, 0.0, 0.0), width=W, height=H), 4)
         assert isinstance(tr.geometry(4).bvh, TriangleBVH) and int((g.object_id == 0).sum()) > 100
 
     @pytest.mark.slow
-    @pytest.mark.skipif(not (shared_scenes_dir() / "living_room" / "living_room.ply").is_file(),
-                        reason="shared scene meshes not available (set STEREOREPRO_SHARED_SCENES)")
+    @pytest.mark.skipif(
+        not (shared_scenes_dir() / "living_room" / "living_room.ply").is_file(),
+        reason="shared scene meshes not available (set STEREOREPRO_SHARED_SCENES)",
+    )
     def test_shared_living_room_equals_one_bvh(self, tmp_path):
         """shared_living_room (about 400k triangles) with its sofa cushion moving: a few frames, byte for byte."""
         p = tmp_path / "moving_cushion.toml"
-        p.write_text(f'extends = "{(scenes_dir() / "shared_living_room.toml").resolve()}"\n'
-                     'effects = ["moving_objects"]\n[[animations]]\nmaterials = ["Cushion1"]\nframes = [0, 59]\n'
-                     'translate = [[0.0, 0.0, 0.0], [0.8, 0.1, 0.6]]\n'
-                     'rotate = [[0.0, 1.0, 0.0, 0.0], [0.0, 1.0, 0.0, 45.0]]\n')
+        p.write_text(
+            f'extends = "{(scenes_dir() / "shared_living_room.toml").resolve()}"\n'
+            'effects = ["moving_objects"]\n[[animations]]\nmaterials = ["Cushion1"]\nframes = [0, 59]\n'
+            "translate = [[0.0, 0.0, 0.0], [0.8, 0.1, 0.6]]\n"
+            "rotate = [[0.0, 1.0, 0.0, 0.0], [0.0, 1.0, 0.0, 45.0]]\n"
+        )
         assert_same_renders(load_scene(p), (5, 40), 64, 36, 1)
 
 
@@ -314,8 +339,9 @@ class TestAnimation:
     def test_interpolation(self):
         q0 = quat_from_axis_angle([0, 0, 1], 0.0)
         q1 = quat_from_axis_angle([0, 0, 1], 90.0)
-        np.testing.assert_allclose(quat_to_matrix(slerp(q0, q1, 0.5)), quat_to_matrix(quat_from_axis_angle([0, 0, 1], 45.0)),
-                                   atol=1e-12)
+        np.testing.assert_allclose(
+            quat_to_matrix(slerp(q0, q1, 0.5)), quat_to_matrix(quat_from_axis_angle([0, 0, 1], 45.0)), atol=1e-12
+        )
 
     def test_transforms_hold_outside_keyframes(self, plane):
         scene, _ = plane
@@ -323,13 +349,16 @@ class TestAnimation:
         np.testing.assert_allclose(scene.object_transforms(11)[0][:3, 3], [1.0, 0.0, 0.0], atol=1e-12)
         np.testing.assert_allclose(scene.object_transforms(2.5)[0][:3, 3], [0.25, 0.0, 0.0], atol=1e-12)
 
-    @pytest.mark.parametrize("anim, effects, msg", [
-        ('frames = [0, 5]\ntranslate = [[0.0, 0.0, 0.0]]', '["moving_objects"]', "expected 2 entries"),
-        ('frames = [5, 0]', '["moving_objects"]', "increasing"),
-        ('frames = [0]\nscale = [0.0]', '["moving_objects"]', "positive"),
-        ('frames = [0]\nrotate = [[0.0, 0.0, 0.0, 10.0]]', '["moving_objects"]', "zero vector"),
-        ('frames = [0]', '[]', "moving_objects"),
-    ])
+    @pytest.mark.parametrize(
+        "anim, effects, msg",
+        [
+            ("frames = [0, 5]\ntranslate = [[0.0, 0.0, 0.0]]", '["moving_objects"]', "expected 2 entries"),
+            ("frames = [5, 0]", '["moving_objects"]', "increasing"),
+            ("frames = [0]\nscale = [0.0]", '["moving_objects"]', "positive"),
+            ("frames = [0]\nrotate = [[0.0, 0.0, 0.0, 10.0]]", '["moving_objects"]', "zero vector"),
+            ("frames = [0]", "[]", "moving_objects"),
+        ],
+    )
     def test_exceptions(self, tmp_path, anim, effects, msg):
         p = moving_scene(tmp_path, anim, ROOM + ', {min = [0.0, 0.0, 0.0], max = [1.0, 1.0, 1.0], material = "mover"}')
         p.write_text(p.read_text().replace('effects = ["moving_objects"]', f"effects = {effects}"))
@@ -337,16 +366,24 @@ class TestAnimation:
             load_scene(p)
 
     def test_unknown_and_emissive_materials(self, tmp_path):
-        p = moving_scene(tmp_path, 'frames = [0]', ROOM)
+        p = moving_scene(tmp_path, "frames = [0]", ROOM)
         p.write_text(p.read_text().replace('materials = ["mover"]', 'materials = ["nope"]'))
         with pytest.raises(SceneError, match="unknown material 'nope'"):
             load_scene(p)
-        p.write_text(p.read_text().replace('materials = ["nope"]', 'materials = ["wall"]')
-                     .replace("albedo = [0.5, 0.5, 0.5]", "albedo = [0.5, 0.5, 0.5]\nemission = [1.0, 1.0, 1.0]"))
+        p.write_text(
+            p.read_text()
+            .replace('materials = ["nope"]', 'materials = ["wall"]')
+            .replace("albedo = [0.5, 0.5, 0.5]", "albedo = [0.5, 0.5, 0.5]\nemission = [1.0, 1.0, 1.0]")
+        )
         with pytest.raises(SceneError, match="emissive"):
             load_scene(p)
-        p2 = write_scene(tmp_path, 'effects = ["moving_objects"]\nnum_frames = 2\n[geometry]\nboxes = [' + ROOM
-                         + ']\n[materials.wall]\nalbedo = [0.5, 0.5, 0.5]\n', "no_anim")
+        p2 = write_scene(
+            tmp_path,
+            'effects = ["moving_objects"]\nnum_frames = 2\n[geometry]\nboxes = ['
+            + ROOM
+            + "]\n[materials.wall]\nalbedo = [0.5, 0.5, 0.5]\n",
+            "no_anim",
+        )
         with pytest.raises(SceneError, match="no \\[\\[animations\\]\\]"):
             load_scene(p2)
 
@@ -354,7 +391,9 @@ class TestAnimation:
         """The built-in moving-object scene: >= 5 % of the pixels show moving objects (averaged over its path)."""
         scene = load_scene("living_room_moving_objects")
         tr = PathTracer(scene)
-        share = [float((tr.gbuffer(scene.stereo_cameras(f, 80, 45)[0], f).object_id >= 0).float().mean())
-                 for f in range(0, 60, 10)]
+        share = [
+            float((tr.gbuffer(scene.stereo_cameras(f, 80, 45)[0], f).object_id >= 0).float().mean())
+            for f in range(0, 60, 10)
+        ]
         assert np.mean(share) >= 0.05, share
         assert math.isclose(scene.num_frames, 60)

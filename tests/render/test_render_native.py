@@ -123,11 +123,19 @@ class TestStages:
             assert np.array_equal(_bits(a), _bits(b))
         fr_ref, _, _, _ = ref._setup(scene.stereo_cameras(0, 8, 8)[0], 0, None, 0)
         for second, mis in [(0, True), (1, False), (0, False)]:
-            dims = (DIM["light2"], DIM["light2_u"], DIM["light2_v"]) if second else \
-                (DIM["light1"], DIM["light1_u"], DIM["light1_v"])
+            dims = (
+                (DIM["light2"], DIM["light2_u"], DIM["light2_v"])
+                if second
+                else (DIM["light1"], DIM["light1_u"], DIM["light1_v"])
+            )
             ok, o, d, tmax, val = ref._nee(fr_ref, P, n, wo, mat, keys, dims, mis)
-            res = [np.empty(N, bool), np.empty((N, 3), np.float32), np.empty((N, 3), np.float32),
-                   np.empty(N, np.float32), np.empty((N, 3), np.float32)]
+            res = [
+                np.empty(N, bool),
+                np.empty((N, 3), np.float32),
+                np.empty((N, 3), np.float32),
+                np.empty(N, np.float32),
+                np.empty((N, 3), np.float32),
+            ]
             fr.shader.nee(P, n, wo, mat, keys, second, mis, *res)
             assert np.array_equal(ok, res[0])
             assert ok.mean() > 0.2
@@ -176,6 +184,7 @@ class TestStageSequence:
         assert set(tr._stage_times) == set(tracer_mod.STAGES) | {"accumulate_frame"}
         assert r.ray_counts["primary"] == 2 * W * H and r.ray_counts["shadow"] > 0
 
+
 class TestFrames:
     @pytest.mark.parametrize("clamp", ["auto", None])
     def test_whole_frame_bit_identical(self, tracers, clamp):
@@ -195,8 +204,10 @@ class TestFrames:
     def test_clamp_changes_something_and_stays_identical(self, tracers):
         scene, _, _ = tracers["atrium"]
         cam = scene.stereo_cameras(0, W, H)[0]
-        r = {be: PathTracer(scene, seed=7, backend=be, clamp=0.05).render(cam, 0, 2, gbuffers=False).radiance
-             for be in ("numpy", "native")}
+        r = {
+            be: PathTracer(scene, seed=7, backend=be, clamp=0.05).render(cam, 0, 2, gbuffers=False).radiance
+            for be in ("numpy", "native")
+        }
         free = PathTracer(scene, seed=7, backend="native", clamp=None).render(cam, 0, 2, gbuffers=False).radiance
         assert torch.equal(r["numpy"], r["native"])
         assert not torch.equal(r["native"], free)
@@ -229,14 +240,17 @@ class TestFrames:
         """A scene without emitters or point lights: no shadow rays, zero radiance, both backends."""
         from conftest_render import write_scene
 
-        p = write_scene(tmp_path, """
+        p = write_scene(
+            tmp_path,
+            """
             effects = []
             num_frames = 1
             [geometry]
             boxes = [{min = [-1.0, -1.0, 2.0], max = [1.0, 1.0, 3.0], material = "wall"}]
             [materials.wall]
             albedo = [0.5, 0.5, 0.5]
-            """)
+            """,
+        )
         scene = load_scene(p)
         cam = scene.stereo_cameras(0, 16, 12)[0]
         ra = PathTracer(scene, backend="numpy").render(cam, 0, 2)
@@ -251,8 +265,10 @@ class TestBackendSelection:
         assert PathTracer(scene).backend == "native"
         assert resolve_backend("auto") == "native"
 
-    @pytest.mark.parametrize("env,want", [("numpy", "numpy"), ("torch", "numpy"), ("native", "native"),
-                                          ("auto", "native"), (" Torch ", "numpy")])
+    @pytest.mark.parametrize(
+        "env,want",
+        [("numpy", "numpy"), ("torch", "numpy"), ("native", "native"), ("auto", "native"), (" Torch ", "numpy")],
+    )
     def test_env_overrides(self, monkeypatch, env, want):
         monkeypatch.setenv(ENV_VAR, env)
         assert resolve_backend("native") == want

@@ -42,8 +42,12 @@ def _taps(u: float, v: float, sampling: str):
     x, y = u - 0.5, v - 0.5
     x0, y0 = math.floor(x), math.floor(y)
     fx, fy = x - x0, y - y0
-    taps = [(x0, y0, (1 - fx) * (1 - fy)), (x0 + 1, y0, fx * (1 - fy)), (x0, y0 + 1, (1 - fx) * fy),
-            (x0 + 1, y0 + 1, fx * fy)]
+    taps = [
+        (x0, y0, (1 - fx) * (1 - fy)),
+        (x0 + 1, y0, fx * (1 - fy)),
+        (x0, y0 + 1, (1 - fx) * fy),
+        (x0 + 1, y0 + 1, fx * fy),
+    ]
     return taps, min(fx, 1 - fx, fy, 1 - fy)
 
 
@@ -101,9 +105,20 @@ def _pixel(src, b, xd, yd, dst, cams, thr_p, thr_n, sampling):
     return np.zeros(C), worst, 0.0, margin
 
 
-def reference_backward_reproject(src_values, src_depth, src_normal, src_K, src_cam_from_world, dst_depth, dst_normal,
-                                 dst_K, dst_cam_from_world, position_threshold, normal_threshold,
-                                 sampling="bilinear"):
+def reference_backward_reproject(
+    src_values,
+    src_depth,
+    src_normal,
+    src_K,
+    src_cam_from_world,
+    dst_depth,
+    dst_normal,
+    dst_K,
+    dst_cam_from_world,
+    position_threshold,
+    normal_threshold,
+    sampling="bilinear",
+):
     """The arguments of ``backward_reproject`` (tensors or arrays). Returns numpy arrays: values (B, C, H, W)
     float64, valid (B, 1, H, W) bool, reason (B, 1, H, W) uint8, confidence (B, 1, H, W) float64 (the accepted
     bilinear weight) and margin (B, 1, H, W) float64 (see the module docstring)."""
@@ -123,7 +138,8 @@ def reference_backward_reproject(src_values, src_depth, src_normal, src_K, src_c
         for yd in range(H):
             for xd in range(W):
                 values[b, :, yd, xd], reason[b, 0, yd, xd], conf[b, 0, yd, xd], margin[b, 0, yd, xd] = _pixel(
-                    src, b, xd, yd, dst, cams, thr_p, thr_n, sampling)
+                    src, b, xd, yd, dst, cams, thr_p, thr_n, sampling
+                )
     return values, conf > 0, reason, conf, margin
 
 

@@ -94,8 +94,9 @@ class TestSoftGradients(BaseTester):
     def test_tiny_depth_gradients(self, soft, z):
         color, depth, normal, K, src, dst = scene()
         dst_depth = torch.full_like(depth, z, requires_grad=True)
-        out, _, _ = stereo_reproject(color, torch.full_like(depth, z), normal, K, src, dst_depth, normal, K, dst,
-                                     0.05, 0.1, soft=soft)
+        out, _, _ = stereo_reproject(
+            color, torch.full_like(depth, z), normal, K, src, dst_depth, normal, K, dst, 0.05, 0.1, soft=soft
+        )
         (g,) = torch.autograd.grad(out.sum(), [dst_depth])
         assert bool(torch.isfinite(g).all())
 
@@ -105,8 +106,9 @@ class TestSoftGradients(BaseTester):
         color, depth, normal, K, src, dst = scene()
         d = torch.rand_like(depth) * 3 + 0.5
         with torch.no_grad():
-            ref = stereo_reproject(color, d, normal, K, src, d, normal, K, dst, 0.05, 0.1,
-                                   backend=self.backend_arg(backend))
+            ref = stereo_reproject(
+                color, d, normal, K, src, d, normal, K, dst, 0.05, 0.1, backend=self.backend_arg(backend)
+            )
         got = stereo_reproject(color, d, normal, K, src, d.clone().requires_grad_(True), normal, K, dst, 0.05, 0.1)
         for g, r in zip(got, ref):
             assert torch.equal(g.detach(), r)
@@ -131,8 +133,10 @@ class TestFunctionBoundary(BaseTester):
         with pytest.raises(ShapeError, match="at least one pixel"):
             stereo_reproject(color[..., :0], depth[..., :0], normal[..., :0], K, src, depth, normal, K, dst, 0.05, 0.1)
 
-    @pytest.mark.parametrize("bad, match", [(torch.tensor([0.05, 0.1]), "one-element"), (-0.01, r"\[0, inf\]"),
-                                            (math.nan, "got nan"), ("0.1", "number")])
+    @pytest.mark.parametrize(
+        "bad, match",
+        [(torch.tensor([0.05, 0.1]), "one-element"), (-0.01, r"\[0, inf\]"), (math.nan, "got nan"), ("0.1", "number")],
+    )
     def test_bad_thresholds(self, bad, match):
         with pytest.raises((ValueError, TypeError), match=match):
             stereo_reproject(*stereo_args(), bad, 0.1)
@@ -148,16 +152,19 @@ class TestFunctionBoundary(BaseTester):
         for g, r in zip(got, ref):
             assert torch.equal(g, r)
 
-    @pytest.mark.parametrize("name, value", [("alpha", math.nan), ("alpha", math.inf), ("max_history", math.nan),
-                                             ("max_history", 0.5)])
+    @pytest.mark.parametrize(
+        "name, value", [("alpha", math.nan), ("alpha", math.inf), ("max_history", math.nan), ("max_history", 0.5)]
+    )
     def test_bad_blend_scalars(self, backend, name, value):
         with pytest.raises(ValueError, match=name):
-            temporal_reproject(*temporal_args(torch.ones(1, 1, H, W)), 0.05, 0.1, backend=self.backend_arg(backend),
-                               **{name: value})
+            temporal_reproject(
+                *temporal_args(torch.ones(1, 1, H, W)), 0.05, 0.1, backend=self.backend_arg(backend), **{name: value}
+            )
         color, *_ = scene()
         with pytest.raises(ValueError, match=name):
-            temporal_blend(color, color, torch.ones(1, 1, H, W), torch.ones(1, 1, H, W, dtype=torch.bool),
-                           **{name: value})
+            temporal_blend(
+                color, color, torch.ones(1, 1, H, W), torch.ones(1, 1, H, W, dtype=torch.bool), **{name: value}
+            )
 
     def test_modules_reject_what_functions_reject(self):
         with pytest.raises(ValueError, match="position_threshold"):
@@ -173,27 +180,44 @@ class TestCameraChecks(BaseTester):
     @staticmethod
     def _call(src_K=None, dst_cam=None):
         color, depth, normal, K, src, dst = scene()
-        return stereo_reproject(color, depth, normal, K if src_K is None else src_K, src, depth, normal, K,
-                                dst if dst_cam is None else dst_cam, 0.05, 0.1)
+        return stereo_reproject(
+            color,
+            depth,
+            normal,
+            K if src_K is None else src_K,
+            src,
+            depth,
+            normal,
+            K,
+            dst if dst_cam is None else dst_cam,
+            0.05,
+            0.1,
+        )
 
-    @pytest.mark.parametrize("edit, match", [
-        (lambda T: T[:, :3, :3].mul_(2.0), "scaled or sheared"),
-        (lambda T: T[:, 0, :3].neg_(), "mirror / axis flip"),
-        (lambda T: T[:, 3, 0].fill_(0.5), r"last row \[0, 0, 0, 1\]"),
-        (lambda T: T[:, 0, 3].fill_(math.nan), "finite"),
-    ])
+    @pytest.mark.parametrize(
+        "edit, match",
+        [
+            (lambda T: T[:, :3, :3].mul_(2.0), "scaled or sheared"),
+            (lambda T: T[:, 0, :3].neg_(), "mirror / axis flip"),
+            (lambda T: T[:, 3, 0].fill_(0.5), r"last row \[0, 0, 0, 1\]"),
+            (lambda T: T[:, 0, 3].fill_(math.nan), "finite"),
+        ],
+    )
     def test_extrinsics(self, edit, match):
         _, _, _, _, _, dst = scene()
         edit(dst)
         with pytest.raises(CameraError, match=r"dst_cam_from_world\[0\]: .*" + match):
             self._call(dst_cam=dst)
 
-    @pytest.mark.parametrize("edit, match", [
-        (lambda K: K[:, 0, 0].fill_(0.0), "focal lengths must be > 0"),
-        (lambda K: K[:, 1, 1].fill_(-5.0), "axis flip"),
-        (lambda K: K[:, 2, 0].fill_(1.0), "pinhole"),
-        (lambda K: K[:, 0, 2].fill_(math.inf), "finite"),
-    ])
+    @pytest.mark.parametrize(
+        "edit, match",
+        [
+            (lambda K: K[:, 0, 0].fill_(0.0), "focal lengths must be > 0"),
+            (lambda K: K[:, 1, 1].fill_(-5.0), "axis flip"),
+            (lambda K: K[:, 2, 0].fill_(1.0), "pinhole"),
+            (lambda K: K[:, 0, 2].fill_(math.inf), "finite"),
+        ],
+    )
     def test_intrinsics(self, edit, match):
         K = intrinsics_from_fov(60.0, W, H)
         edit(K)

@@ -64,7 +64,8 @@ def both_motion(hostile: bool, sampling: str = "bilinear", world: bool = True, d
     """(general path, export formulation) of a temporal case with motion vectors, on the same warp, in eager."""
     m = TemporalReprojection(*THR, motion_vectors=True)
     cur, dd, dn, dK, dT, hc, hl, sd, sn, sK, sT, mo, mw = moving(
-        example_inputs(m, batch=2, height=29, width=43, dtype=dtype), seed=1, hostile=hostile)
+        example_inputs(m, batch=2, height=29, width=43, dtype=dtype), seed=1, hostile=hostile
+    )
     mw = mw if world else None
     values = torch.cat([hc, hl], 1)
     warp = compose_warp(sK, sT, dK, dT, _general.compute_dtype(values, dd))
@@ -193,8 +194,9 @@ class TestRectified(BaseTester):
         from stereorepro.reproject import backward_reproject
 
         with pytest.raises(ValueError, match="motion"):
-            backward_reproject(*stereo_case(head_motion=False, B=1), *THR, rectified=True,
-                               motion=torch.zeros(1, 2, 36, 48))
+            backward_reproject(
+                *stereo_case(head_motion=False, B=1), *THR, rectified=True, motion=torch.zeros(1, 2, 36, 48)
+            )
 
     def test_backends_agree(self, backend):
         inp = stereo_case(head_motion=False)
@@ -365,8 +367,7 @@ class TestExportedGraph:
         m = StereoReprojection(*THR)
         model = onnx.load(str(export_onnx(m, tmp_path / "lean.onnx")))
         ops = [n.op_type for n in model.graph.node]
-        assert "Expand" not in {n.op_type for n in model.graph.node
-                                if any("GatherElements" in c for c in n.output)}
+        assert "Expand" not in {n.op_type for n in model.graph.node if any("GatherElements" in c for c in n.output)}
         assert "NonZero" not in ops and ops.count("GatherElements") >= 4 * 8
         # Where with a computed (not constant) value operand costs ~1 ns per element in onnxruntime: only the
         # camera composition's snapping (3 x 3 matrices) keeps one; none on an image, in the temporal blend neither
@@ -374,8 +375,9 @@ class TestExportedGraph:
         assert len(computed) <= 3, computed
         temporal = onnx.load(str(export_onnx(TemporalReprojection(*THR), tmp_path / "temporal.onnx")))
         assert len(_computed_where(temporal)) <= len(computed), _computed_where(temporal)
-        with_motion = onnx.load(str(export_onnx(TemporalReprojection(*THR, motion_vectors=True),
-                                                tmp_path / "motion.onnx")))
+        with_motion = onnx.load(
+            str(export_onnx(TemporalReprojection(*THR, motion_vectors=True), tmp_path / "motion.onnx"))
+        )
         assert len(_computed_where(with_motion)) <= len(computed), _computed_where(with_motion)
         assert "NonZero" not in [n.op_type for n in with_motion.graph.node]
         # the general formulation, still available, is what the benchmark compares against
@@ -404,5 +406,9 @@ class TestExportedGraph:
         for m in (StereoReprojection(*THR), TemporalReprojection(*THR)):
             inp = example_inputs(m, batch=1, height=10, width=12, dtype=dtype)
             path = export_onnx(m, tmp_path / f"{type(m).__name__}.onnx", inputs=inp)
-            _compare(m, _ort_session(path).run(None, {n: x.numpy() for n, x in zip(m.input_names, inp)}), inp,
-                     atol=1e-5 if dtype == torch.float64 else 1e-3)
+            _compare(
+                m,
+                _ort_session(path).run(None, {n: x.numpy() for n, x in zip(m.input_names, inp)}),
+                inp,
+                atol=1e-5 if dtype == torch.float64 else 1e-3,
+            )

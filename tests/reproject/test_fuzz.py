@@ -37,15 +37,36 @@ from stereorepro.reproject.functional import backward_reproject, stereo_reprojec
 SCALE = float(os.environ.get("STEREOREPRO_FUZZ_SCALE", "1"))
 
 #: Examples per test in one default run; each example runs every backend that applies to it.
-EXAMPLES = {"stereo": 2000, "backward": 2000, "temporal": 2000, "blend": 2000, "temporal_motion": 600,
-            "grad_stereo": 300,
-            "grad_temporal": 300, "onnx_stereo": 400, "onnx_temporal": 400, "onnx_temporal_motion": 300, "lean": 500}
+EXAMPLES = {
+    "stereo": 2000,
+    "backward": 2000,
+    "temporal": 2000,
+    "blend": 2000,
+    "temporal_motion": 600,
+    "grad_stereo": 300,
+    "grad_temporal": 300,
+    "onnx_stereo": 400,
+    "onnx_temporal": 400,
+    "onnx_temporal_motion": 300,
+    "lean": 500,
+}
 
 FLT_MAX = float(np.finfo(np.float32).max)
 SPECIAL_DEPTHS = (0.0, -1.0, math.inf, -math.inf, math.nan, 1e-12, 1e30, FLT_MAX, 1e-20, 1e-38)
 DTYPES = (torch.float32, torch.float32, torch.float16, torch.bfloat16, torch.float64)
-CAMERAS = ("same", "stereo", "stereo", "rotated", "random", "tiny_fx", "huge_fx", "far", "huge_baseline",
-           "behind", "off_centre")
+CAMERAS = (
+    "same",
+    "stereo",
+    "stereo",
+    "rotated",
+    "random",
+    "tiny_fx",
+    "huge_fx",
+    "far",
+    "huge_baseline",
+    "behind",
+    "off_centre",
+)
 HAS_NATIVE = _native.available()
 COUNTS: Counter = Counter()  # (op, backend) -> calls
 
@@ -57,13 +78,21 @@ def _write_counts():
     if path:
         with open(path, "w") as f:
             json.dump({f"{op} / {be}": n for (op, be), n in sorted(COUNTS.items())}, f, indent=1)
+
+
 MAX_REASON = max(int(r) for r in Reason)
 
 
 def fuzz_settings(name: str, slow: bool = False):
     n = max(1, int(EXAMPLES[name] * SCALE * (10 if slow else 1)))
-    return settings(max_examples=n, derandomize=True, database=None, deadline=None, print_blob=True,
-                    suppress_health_check=list(HealthCheck))
+    return settings(
+        max_examples=n,
+        derandomize=True,
+        database=None,
+        deadline=None,
+        print_blob=True,
+        suppress_health_check=list(HealthCheck),
+    )
 
 
 @dataclass
@@ -91,10 +120,12 @@ def cases(draw, dtypes=DTYPES, max_side: int = 6) -> Case:
     H, W = draw(st.integers(1, max_side)), draw(st.integers(1, max_side))
     same = draw(st.booleans())
     return Case(
-        seed=draw(st.integers(0, 2 ** 31 - 1)),
+        seed=draw(st.integers(0, 2**31 - 1)),
         B=draw(st.sampled_from((0, 1, 1, 1, 2))),
-        H=H, W=W,
-        Hs=H if same else draw(st.integers(1, max_side)), Ws=W if same else draw(st.integers(1, max_side)),
+        H=H,
+        W=W,
+        Hs=H if same else draw(st.integers(1, max_side)),
+        Ws=W if same else draw(st.integers(1, max_side)),
         dtype=draw(st.sampled_from(dtypes)),
         cam_dtype=draw(st.sampled_from((torch.float32, torch.float64))),
         camera=draw(st.sampled_from(CAMERAS)),
@@ -116,6 +147,7 @@ def _rotation(rng, angle: float) -> np.ndarray:
 
 def make_cameras(c: Case, rng) -> tuple[torch.Tensor, ...]:
     """(src_K, src_cam_from_world, dst_K, dst_cam_from_world) for the case's camera mode."""
+
     def K_for(w, h, fov=60.0, fx=None, cx_shift=0.0):
         K = intrinsics_from_fov(fov, w, h, dtype=torch.float64)[0]
         if fx is not None:
@@ -147,8 +179,12 @@ def make_cameras(c: Case, rng) -> tuple[torch.Tensor, ...]:
         src[:3, :3] = _rotation(rng, math.pi) if rng.uniform() < 0.5 else np.diag([-1.0, 1.0, -1.0])
     B = c.B
     cast = lambda a: torch.tensor(np.array(a), dtype=torch.float64).to(c.cam_dtype)  # noqa: E731
-    return (cast(np.broadcast_to(sK.numpy(), (B, 3, 3))), cast(np.broadcast_to(src, (B, 4, 4))),
-            cast(np.broadcast_to(dK.numpy(), (B, 3, 3))), cast(np.broadcast_to(dst, (B, 4, 4))))
+    return (
+        cast(np.broadcast_to(sK.numpy(), (B, 3, 3))),
+        cast(np.broadcast_to(src, (B, 4, 4))),
+        cast(np.broadcast_to(dK.numpy(), (B, 3, 3))),
+        cast(np.broadcast_to(dst, (B, 4, 4))),
+    )
 
 
 def make_depth(c: Case, rng, B, H, W, base: float) -> torch.Tensor:
@@ -185,9 +221,17 @@ def stereo_inputs(c: Case) -> tuple:
     rng = np.random.default_rng(c.seed)
     base = float(rng.uniform(0.5, 5.0))
     sK, sT, dK, dT = make_cameras(c, rng)
-    return (make_colour(c, rng, c.B, 3, c.Hs, c.Ws), make_depth(c, rng, c.B, c.Hs, c.Ws, base),
-            make_normal(c, rng, c.B, c.Hs, c.Ws), sK, sT, make_depth(c, rng, c.B, c.H, c.W, base),
-            make_normal(c, rng, c.B, c.H, c.W), dK, dT)
+    return (
+        make_colour(c, rng, c.B, 3, c.Hs, c.Ws),
+        make_depth(c, rng, c.B, c.Hs, c.Ws, base),
+        make_normal(c, rng, c.B, c.Hs, c.Ws),
+        sK,
+        sT,
+        make_depth(c, rng, c.B, c.H, c.W, base),
+        make_normal(c, rng, c.B, c.H, c.W),
+        dK,
+        dT,
+    )
 
 
 def temporal_inputs(c: Case) -> tuple:
@@ -202,8 +246,10 @@ def temporal_inputs(c: Case) -> tuple:
     current = make_colour(c, rng, c.B, 3, c.H, c.W)
     alpha = float(rng.choice([0.2, 1.0, 1e-6, rng.uniform()]))
     max_history = float(rng.choice([1.0, 8.0, 255.0, math.inf]))
-    return ((current, dd, dn, dK, dT, src_color, history_len, sd, sn, sK, sT),
-            (alpha, bool(rng.uniform() < 0.7), max_history))
+    return (
+        (current, dd, dn, dK, dT, src_color, history_len, sd, sn, sK, sT),
+        (alpha, bool(rng.uniform() < 0.7), max_history),
+    )
 
 
 def _bytes_equal(a: torch.Tensor, b: torch.Tensor, half_nan_bits: bool = True) -> bool:
@@ -246,8 +292,9 @@ def assert_same(outs: dict, what: str) -> None:
     ref = outs["torch"]
     for name, got in outs.items():
         for i, (g, r) in enumerate(zip(got, ref)):
-            assert _bytes_equal(g, r, half_nan_bits=name != "native"), \
+            assert _bytes_equal(g, r, half_nan_bits=name != "native"), (
                 f"{what}: output {i} of {name} differs from the torch reference"
+            )
 
 
 def assert_masks(valid: torch.Tensor, reason: torch.Tensor, dst_depth: torch.Tensor) -> None:
@@ -274,8 +321,7 @@ def _native_ok(c: Case) -> bool:
     return HAS_NATIVE and c.dtype in _native.DTYPES
 
 
-@pytest.mark.parametrize("slow", [pytest.param(False), pytest.param(True, marks=pytest.mark.slow)],
-                         ids=["ci", "long"])
+@pytest.mark.parametrize("slow", [pytest.param(False), pytest.param(True, marks=pytest.mark.slow)], ids=["ci", "long"])
 class TestFuzz:
     """One test per public op; ``long`` runs 10× the examples (``-m slow``)."""
 
@@ -285,13 +331,17 @@ class TestFuzz:
         def check(c):
             args = stereo_inputs(c)
             with torch.no_grad():
-                outs = run_backends(lambda be: stereo_reproject(*args, c.thr_p, c.thr_n, c.sampling, backend=be),
-                                    _native_ok(c), "stereo_reproject")
+                outs = run_backends(
+                    lambda be: stereo_reproject(*args, c.thr_p, c.thr_n, c.sampling, backend=be),
+                    _native_ok(c),
+                    "stereo_reproject",
+                )
             color, valid, reason = outs["torch"]
             assert color.shape == (c.B, 3, c.H, c.W) and color.dtype == c.dtype
             assert bool(torch.isfinite(color).all()), "non-finite output colour"
             assert_masks(valid, reason, args[5])
             assert_same(outs, "stereo_reproject")
+
         check()
 
     def test_backward_reproject(self, slow):
@@ -302,15 +352,18 @@ class TestFuzz:
             args = list(stereo_inputs(c))
             args[0] = make_colour(c, rng, c.B, C, c.Hs, c.Ws)
             with torch.no_grad():
-                outs = run_backends(lambda be: backward_reproject(*args, c.thr_p, c.thr_n, c.sampling, soft=soft,
-                                                                  backend=be),
-                                    _native_ok(c) and not soft, "backward_reproject")
+                outs = run_backends(
+                    lambda be: backward_reproject(*args, c.thr_p, c.thr_n, c.sampling, soft=soft, backend=be),
+                    _native_ok(c) and not soft,
+                    "backward_reproject",
+                )
             values, valid, reason, conf = outs["torch"]
             assert values.shape == (c.B, C, c.H, c.W)
             assert bool(torch.isfinite(values).all()), "non-finite output values"
             assert bool(((conf >= 0) & (conf <= 1 + 1e-6)).all()), "confidence outside [0, 1]"
             assert_masks(valid, reason, args[5])
             assert_same(outs, "backward_reproject")
+
         check()
 
     def test_temporal_reproject(self, slow):
@@ -319,27 +372,41 @@ class TestFuzz:
         def check(c, with_reason):
             args, (alpha, warmup, max_history) = temporal_inputs(c)
             with torch.no_grad():
-                outs = run_backends(lambda be: temporal_reproject(*args, c.thr_p, c.thr_n, alpha, warmup,
-                                                                  max_history, c.sampling, backend=be,
-                                                                  return_reason=with_reason), _native_ok(c),
-                                "temporal_reproject")
+                outs = run_backends(
+                    lambda be: temporal_reproject(
+                        *args,
+                        c.thr_p,
+                        c.thr_n,
+                        alpha,
+                        warmup,
+                        max_history,
+                        c.sampling,
+                        backend=be,
+                        return_reason=with_reason,
+                    ),
+                    _native_ok(c),
+                    "temporal_reproject",
+                )
             color, n, valid = outs["torch"][:3]
             current = args[0]
             assert color.shape == current.shape and color.dtype == current.dtype
             finite_in = torch.isfinite(current).all(1, keepdim=True).expand_as(current)
             assert bool(torch.isfinite(color[finite_in]).all()), "non-finite colour where the sample is finite"
-            assert bool(torch.isfinite(n).all()) and bool(((n >= 1) & (n <= max_history)).all()), \
+            assert bool(torch.isfinite(n).all()) and bool(((n >= 1) & (n <= max_history)).all()), (
                 f"history length outside [1, {max_history}]: {n.unique()}"
+            )
             assert not bool((valid & ~(torch.isfinite(args[1].double()) & (args[1].double() > 0))).any())
             if with_reason:
                 assert_masks(valid, outs["torch"][3], args[1])
             assert_same(outs, "temporal_reproject")
+
         check()
 
     def test_temporal_reproject_motion(self, slow):
         """With motion vectors on every backend (general path, fast path, native; the fused native pass without
         reasons too): random, huge and non-finite motion and world motion, images up to 20 pixels a side (the
         native vector path)."""
+
         @fuzz_settings("temporal_motion", slow)
         @given(cases(max_side=20), st.booleans())
         def check(c, with_reason):
@@ -348,10 +415,23 @@ class TestFuzz:
             if c.seed % 3 == 0:
                 motion_world = None
             with torch.no_grad():
-                outs = run_backends(lambda be: temporal_reproject(*args, c.thr_p, c.thr_n, alpha, warmup, max_history,
-                                                                  c.sampling, backend=be, return_reason=with_reason,
-                                                                  motion=motion, motion_world=motion_world),
-                                    _native_ok(c), "temporal_reproject with motion")
+                outs = run_backends(
+                    lambda be: temporal_reproject(
+                        *args,
+                        c.thr_p,
+                        c.thr_n,
+                        alpha,
+                        warmup,
+                        max_history,
+                        c.sampling,
+                        backend=be,
+                        return_reason=with_reason,
+                        motion=motion,
+                        motion_world=motion_world,
+                    ),
+                    _native_ok(c),
+                    "temporal_reproject with motion",
+                )
             color, n, valid = outs["torch"][:3]
             finite_in = torch.isfinite(args[0]).all(1, keepdim=True).expand_as(args[0])
             assert bool(torch.isfinite(color[finite_in]).all())
@@ -359,6 +439,7 @@ class TestFuzz:
             if with_reason:
                 assert_masks(valid, outs["torch"][3], args[1])
             assert_same(outs, "temporal_reproject with motion")
+
         check()
 
     def test_temporal_blend(self, slow):
@@ -368,8 +449,9 @@ class TestFuzz:
             rng = np.random.default_rng(c.seed + 3)
             (current, *_), (alpha, warmup, max_history) = temporal_inputs(c)
             history = make_colour(c, rng, c.B, 3, c.H, c.W)
-            n = torch.from_numpy(rng.choice([-1e30, -1.0, 0.0, 1.0, 7.5, 300.0, math.nan, math.inf],
-                                            size=(c.B, 1, c.H, c.W))).to(c.dtype)
+            n = torch.from_numpy(
+                rng.choice([-1e30, -1.0, 0.0, 1.0, 7.5, 300.0, math.nan, math.inf], size=(c.B, 1, c.H, c.W))
+            ).to(c.dtype)
             u = torch.from_numpy(rng.uniform(size=(c.B, 1, c.H, c.W)))
             confidence = u < 0.5 if kind == "bool" else torch.where(u < 0.3, 0.0, u).to(c.dtype)
             color, n_out = temporal_blend(current, history, n, confidence, alpha, warmup, max_history)
@@ -380,6 +462,7 @@ class TestFuzz:
             ok = finite_in & (finite_hist | ~keep)
             assert bool(torch.isfinite(color)[ok.expand_as(color)].all())
             assert bool(((n_out >= 1) & (n_out <= max_history)).all()), n_out.unique()
+
         check()
 
 
@@ -394,15 +477,18 @@ class TestFuzzGradients:
         def check(c):
             c.bad_colour = 0.0
             args = [a.clone().requires_grad_(i in (0, 1, 5)) for i, a in enumerate(stereo_inputs(c))]
-            thr_p = torch.tensor(max(c.thr_p, 1e-3) if math.isfinite(c.thr_p) else 0.05, dtype=c.dtype,
-                                 requires_grad=soft)
+            thr_p = torch.tensor(
+                max(c.thr_p, 1e-3) if math.isfinite(c.thr_p) else 0.05, dtype=c.dtype, requires_grad=soft
+            )
             color, _, _ = stereo_reproject(*args, thr_p, c.thr_n, c.sampling, soft=soft, backend="torch")
             COUNTS[("stereo_reproject gradients", "soft" if soft else "hard")] += 1
             weights = torch.linspace(0.5, 1.5, color.numel(), dtype=color.dtype).view_as(color)
-            grads = torch.autograd.grad((color * weights).sum(), [args[0], args[1], args[5]] + ([thr_p] if soft else []),
-                                        allow_unused=True)
+            grads = torch.autograd.grad(
+                (color * weights).sum(), [args[0], args[1], args[5]] + ([thr_p] if soft else []), allow_unused=True
+            )
             for name, g in zip(("src_color", "src_depth", "dst_depth", "position_threshold"), grads):
                 assert g is None or bool(torch.isfinite(g).all()), f"non-finite gradient w.r.t. {name}"
+
         check()
 
     def test_temporal_gradients(self, soft):
@@ -416,14 +502,24 @@ class TestFuzzGradients:
             for i in (0, 1, 5, 7):
                 args[i].requires_grad_(True)
             a = torch.tensor(alpha, dtype=c.dtype, requires_grad=soft)
-            color, n, _ = temporal_reproject(*args, max(c.thr_p, 1e-3) if math.isfinite(c.thr_p) else 0.05,
-                                             c.thr_n, a, warmup, max_history, c.sampling, soft=soft,
-                                             backend="torch")
+            color, n, _ = temporal_reproject(
+                *args,
+                max(c.thr_p, 1e-3) if math.isfinite(c.thr_p) else 0.05,
+                c.thr_n,
+                a,
+                warmup,
+                max_history,
+                c.sampling,
+                soft=soft,
+                backend="torch",
+            )
             COUNTS[("temporal_reproject gradients", "soft" if soft else "hard")] += 1
-            grads = torch.autograd.grad(color.sum() + n.sum(), [args[0], args[1], args[5], args[7]]
-                                        + ([a] if soft else []), allow_unused=True)
+            grads = torch.autograd.grad(
+                color.sum() + n.sum(), [args[0], args[1], args[5], args[7]] + ([a] if soft else []), allow_unused=True
+            )
             for name, g in zip(("current_color", "depth", "history_color", "prev_depth", "alpha"), grads):
                 assert g is None or bool(torch.isfinite(g).all()), f"non-finite gradient w.r.t. {name}"
+
         check()
 
 
@@ -464,6 +560,7 @@ class TestFuzzOnnx:
             assert bool(torch.isfinite(color).all())
             assert torch.equal(torch.from_numpy(got[1]), ref[1]) and torch.equal(torch.from_numpy(got[2]), ref[2])
             assert torch.allclose(color, ref[0], atol=1e-5, rtol=1e-5)
+
         check()
 
     def test_temporal_onnxruntime(self, tmp_path_factory):
@@ -486,8 +583,8 @@ class TestFuzzOnnx:
             assert torch.equal(got[2], ref[2])
             assert torch.allclose(got[0], ref[0], atol=1e-5, rtol=1e-5, equal_nan=True)
             assert torch.allclose(got[1], ref[1], atol=1e-5, rtol=1e-5)
-        check()
 
+        check()
 
     def test_temporal_motion_onnxruntime(self, tmp_path_factory):
         """The motion-vector graph (the export formulation with motion) on random and non-finite motion, sides up
@@ -511,6 +608,7 @@ class TestFuzzOnnx:
             assert torch.equal(got[2], ref[2])
             assert torch.allclose(got[0], ref[0], atol=1e-5, rtol=1e-5, equal_nan=True)
             assert torch.allclose(got[1], ref[1], atol=1e-5, rtol=1e-5)
+
         check()
 
 
@@ -544,6 +642,7 @@ class TestFuzzExportFormulation:
             for i in (0, 3):  # values and confidence: sums over the taps, accumulated in another order
                 assert got[i].dtype == ref[i].dtype and bool(torch.isfinite(got[i]).all())
                 torch.testing.assert_close(got[i].double(), ref[i].double(), atol=1e-5, rtol=1e-5)
+
         check()
 
 
@@ -557,8 +656,14 @@ class TestFuzzReaders:
 
     @staticmethod
     def _settings():
-        return settings(max_examples=max(1, int(TestFuzzReaders.EXAMPLES * SCALE)), derandomize=True, database=None,
-                        deadline=None, print_blob=True, suppress_health_check=list(HealthCheck))
+        return settings(
+            max_examples=max(1, int(TestFuzzReaders.EXAMPLES * SCALE)),
+            derandomize=True,
+            database=None,
+            deadline=None,
+            print_blob=True,
+            suppress_health_check=list(HealthCheck),
+        )
 
     @pytest.fixture(scope="class")
     def sequence(self, tmp_path_factory):
@@ -575,8 +680,14 @@ class TestFuzzReaders:
                     ch.update({"M.X": np.zeros((6, 8), np.float32), "M.Y": np.zeros((6, 8), np.float32)})
                 write_exr(d / f"{i:04d}_{e}.exr", ch)
         cam = {"K": [[8.0, 0, 4], [0, 8.0, 3], [0, 0, 1]], "cam_from_world": np.eye(4).tolist()}
-        (d / "cameras.json").write_text(json.dumps({"frames": [{"left": cam, "right": cam}] * 2, "reprojection": {
-            "position_threshold": 0.1, "normal_threshold": 0.25}}))
+        (d / "cameras.json").write_text(
+            json.dumps(
+                {
+                    "frames": [{"left": cam, "right": cam}] * 2,
+                    "reprojection": {"position_threshold": 0.1, "normal_threshold": 0.25},
+                }
+            )
+        )
         return d
 
     @staticmethod
@@ -590,8 +701,8 @@ class TestFuzzReaders:
         out = bytearray(data)
         for where, value, length in edits:
             at = int(where * (len(out) - 1))
-            out[at:at + length] = bytes([value]) * len(out[at:at + length])
-        return bytes(out[:int(cut * len(out))] if cut is not None else out)
+            out[at : at + length] = bytes([value]) * len(out[at : at + length])
+        return bytes(out[: int(cut * len(out))] if cut is not None else out)
 
     def test_read_exr_threads(self, sequence, tmp_path_factory, capfd):
         import contextlib
@@ -610,8 +721,9 @@ class TestFuzzReaders:
             except ValueError as e:
                 assert str(path) in str(e)
                 return "refused"
-            assert all(v.dtype == np.float32 and v.ndim == 2 and v.shape == next(iter(ch.values())).shape
-                       for v in ch.values())
+            assert all(
+                v.dtype == np.float32 and v.ndim == 2 and v.shape == next(iter(ch.values())).shape for v in ch.values()
+            )
             with contextlib.suppress(ValueError):
                 exr_header(path)
             return "read"
@@ -626,6 +738,7 @@ class TestFuzzReaders:
             with ThreadPoolExecutor(4) as ex:
                 list(ex.map(read, paths))
             assert (sys.stdout, sys.stderr, os.fstat(1).st_ino, os.fstat(2).st_ino) == streams
+
         check()
         assert capfd.readouterr() == ("", "")  # OpenEXR's messages were folded into the errors, never printed
 
@@ -650,5 +763,6 @@ class TestFuzzReaders:
                 assert "0001_left.exr" in str(e)
                 return
             assert all(isinstance(f, Frame) and f.color.shape == (1, 3, 6, 8) for f in frames)
+
         check()
         assert capfd.readouterr() == ("", "")

@@ -22,8 +22,7 @@ def moving_scene(height: int = 37, width: int = 61, batch: int = 1, seed: int = 
     cameras' plus an object-like patch that moved (screen shift and the matching world motion), randomly perturbed
     (so that taps land anywhere in the pixel). ``hostile``: NaN / ±inf / huge entries in both motions, and points
     moved behind the previous camera. Returns (current, view, history, prev_view) in float32."""
-    x = example_inputs(TemporalReprojection(*THR, backend="torch"), batch=batch, height=height, width=width,
-                       seed=seed)
+    x = example_inputs(TemporalReprojection(*THR, backend="torch"), batch=batch, height=height, width=width, seed=seed)
     cur, depth, normal, K, T, hist, n, pdepth, pnormal, pK, pT = x
     g = torch.Generator().manual_seed(seed)
     motion = torch.nan_to_num(camera_motion(depth, K, T, pK, pT), nan=0.0)
@@ -49,8 +48,9 @@ def _half(scene, layout: str):
         return scene
     h = torch.float16
     depth = (lambda z: z.to(h)) if layout == "all" else (lambda z: z)
-    view = View(depth(view.depth), view.normal.to(h), view.K, view.cam_from_world, view.motion.to(h),
-                view.motion_world.to(h))
+    view = View(
+        depth(view.depth), view.normal.to(h), view.K, view.cam_from_world, view.motion.to(h), view.motion_world.to(h)
+    )
     prev = View(depth(prev.depth), prev.normal.to(h), prev.K, prev.cam_from_world)
     return cur.to(h), view, History(hist.color.to(h), hist.length.to(h) if layout == "all" else hist.length), prev
 
@@ -60,8 +60,9 @@ def _run(scene, backend: str, sampling: str = "bilinear", return_reason: bool = 
     if not world:
         view = View(view.depth, view.normal, view.K, view.cam_from_world, view.motion)
     with torch.no_grad():
-        t = temporal_reproject(cur, view, hist, prev, THR, sampling=sampling, backend=backend,
-                               return_reason=return_reason)
+        t = temporal_reproject(
+            cur, view, hist, prev, THR, sampling=sampling, backend=backend, return_reason=return_reason
+        )
         values = torch.cat([hist.color, hist.length.to(hist.color.dtype)], 1)
         b = backward_reproject(values, prev, view, THR, sampling=sampling, backend=backend)
     return [x for x in (*t, *b) if x is not None]
@@ -106,6 +107,7 @@ class TestMotionFastPaths(BaseTester):
             def wrapped(*args, **kwargs):
                 calls[name] += 1
                 return fn(*args, **kwargs)
+
             return wrapped
 
         monkeypatch.delenv("STEREOREPRO_BACKEND", raising=False)
@@ -126,8 +128,9 @@ class TestMotionFastPaths(BaseTester):
         out = st.right(cur, view.depth, view.normal, view.K, view.cam_from_world, view.motion, view.motion_world)
         assert calls == {"temporal": 1, "reproject": 2}  # the driver asks for reasons: warp, then blend
         with torch.no_grad():
-            expected = temporal_reproject(cur, view, History(hist.color, torch.ones_like(hist.length)), prev, THR,
-                                          backend="torch")
+            expected = temporal_reproject(
+                cur, view, History(hist.color, torch.ones_like(hist.length)), prev, THR, backend="torch"
+            )
         self.assert_identical([out], [expected.color])
 
     def test_auto_keeps_torch_where_native_cannot(self, monkeypatch):
@@ -159,7 +162,24 @@ class TestMotionFastPaths(BaseTester):
         with pytest.raises(ValueError, match="R"):
             from stereorepro import _core
 
-            out = [torch.empty(1, 3, 9, 11), torch.empty(1, 1, 9, 11, dtype=torch.bool),
-                   torch.empty(1, 1, 9, 11, dtype=torch.uint8), None]
-            _core.reproject(hist.color, prev.depth, prev.normal, *_native._warp_args(warp), view.depth, view.normal,
-                            0.1, 0.1, True, *out, view.motion, view.motion_world, None)
+            out = [
+                torch.empty(1, 3, 9, 11),
+                torch.empty(1, 1, 9, 11, dtype=torch.bool),
+                torch.empty(1, 1, 9, 11, dtype=torch.uint8),
+                None,
+            ]
+            _core.reproject(
+                hist.color,
+                prev.depth,
+                prev.normal,
+                *_native._warp_args(warp),
+                view.depth,
+                view.normal,
+                0.1,
+                0.1,
+                True,
+                *out,
+                view.motion,
+                view.motion_world,
+                None,
+            )

@@ -24,9 +24,13 @@ def _stereo_inputs(dtype=torch.float32, device="cpu", H=12, W=16, seed=0, C=3):
     xs = dict(zip(m.input_names, example_inputs(m, height=H, width=W, seed=seed, dtype=torch.float64)))
     g = torch.Generator().manual_seed(seed)
     xs["src_color"] = torch.rand(1, C, H, W, generator=g, dtype=torch.float64)
-    return [xs[n].to(device=device, dtype=dtype if n not in ("src_K", "dst_K", "src_cam_from_world",
-                                                             "dst_cam_from_world") else torch.float64)
-            for n in m.input_names]
+    return [
+        xs[n].to(
+            device=device,
+            dtype=dtype if n not in ("src_K", "dst_K", "src_cam_from_world", "dst_cam_from_world") else torch.float64,
+        )
+        for n in m.input_names
+    ]
 
 
 def _reference_cases() -> dict:
@@ -34,10 +38,23 @@ def _reference_cases() -> dict:
     analytic scene (kept, position, normal and out-of-frame discards), the same with special values (NaN / inf /
     zero / negative depths, NaN / inf colours, NaN and inf normal components), a source camera turned so that part
     of the points are behind it, and a batch of two rigs with five channels and a smaller source image."""
+
     def scene(H=6, W=5, **kw):
         inp, *_ = scene_pair(H=H, W=W, **kw)
-        return [inp[k] for k in ("src_color", "src_depth", "src_normal", "src_K", "src_cam_from_world", "dst_depth",
-                                 "dst_normal", "dst_K", "dst_cam_from_world")]
+        return [
+            inp[k]
+            for k in (
+                "src_color",
+                "src_depth",
+                "src_normal",
+                "src_K",
+                "src_cam_from_world",
+                "dst_depth",
+                "dst_normal",
+                "dst_K",
+                "dst_cam_from_world",
+            )
+        ]
 
     def special():
         a = [x.clone() for x in scene(forward=0.1, yaw=1.5, baseline=0.2)]
@@ -60,19 +77,23 @@ def _reference_cases() -> dict:
     def batch():
         one, two = scene(H=4, W=7, forward=0.2, yaw=2.0), scene(H=4, W=7, baseline=0.4, yaw=-3.0)
         a = [torch.cat([x, y]) for x, y in zip(one, two)]
-        src = [torch.cat([x, y]) for x, y in zip(scene(H=5, W=5, forward=0.2, yaw=2.0),
-                                                 scene(H=5, W=5, baseline=0.4, yaw=-3.0))]
+        src = [
+            torch.cat([x, y])
+            for x, y in zip(scene(H=5, W=5, forward=0.2, yaw=2.0), scene(H=5, W=5, baseline=0.4, yaw=-3.0))
+        ]
         a[:5] = src[:5]
         a[0] = torch.rand(2, 5, 5, 5, generator=torch.Generator().manual_seed(3))
         return a
 
-    return {"scene": (scene(forward=0.2, yaw=2.0, baseline=0.3), 0.3, 0.1, "bilinear"),
-            "scene_nearest": (scene(forward=0.2, yaw=2.0, baseline=0.3), 0.3, 0.1, "nearest"),
-            "tight": (scene(forward=-0.1, yaw=-1.0), 0.15, 0.05, "bilinear"),
-            "special": (special(), 0.3, 0.1, "bilinear"),
-            "special_nearest": (special(), 0.3, 0.1, "nearest"),
-            "turned": (turned(), 1.0, 1.0, "bilinear"),
-            "batch_channels": (batch(), 0.6, 0.1, "bilinear")}
+    return {
+        "scene": (scene(forward=0.2, yaw=2.0, baseline=0.3), 0.3, 0.1, "bilinear"),
+        "scene_nearest": (scene(forward=0.2, yaw=2.0, baseline=0.3), 0.3, 0.1, "nearest"),
+        "tight": (scene(forward=-0.1, yaw=-1.0), 0.15, 0.05, "bilinear"),
+        "special": (special(), 0.3, 0.1, "bilinear"),
+        "special_nearest": (special(), 0.3, 0.1, "nearest"),
+        "turned": (turned(), 1.0, 1.0, "bilinear"),
+        "batch_channels": (batch(), 0.6, 0.1, "bilinear"),
+    }
 
 
 REFERENCE_CASES = _reference_cases()
@@ -85,8 +106,9 @@ def assert_matches_reference(got, ref, what="", min_compared=0.9):
     """``got``: a backend's (values, valid, reason, confidence); ``ref``: the reference's (values, valid, reason,
     confidence, margin). valid and reason exactly, values and confidence within float32 rounding, on every pixel
     whose decisions are not within REFERENCE_MARGIN of a boundary (at least ``min_compared`` of them)."""
-    values, valid, reason, conf = (x.detach().cpu().double().numpy() if x.is_floating_point() else x.cpu().numpy()
-                                   for x in got)
+    values, valid, reason, conf = (
+        x.detach().cpu().double().numpy() if x.is_floating_point() else x.cpu().numpy() for x in got
+    )
     r_values, r_valid, r_reason, r_conf, margin = ref
     sure = margin > REFERENCE_MARGIN
     assert sure.mean() >= min_compared, f"{what}: only {sure.mean():.2f} of the pixels are clear of the boundaries"
@@ -102,8 +124,9 @@ class TestBackwardReproject(BaseTester):
     def test_smoke(self, device, dtype, backend):
         self.skip_unless_runs(backend, dtype, device)
         with torch.no_grad():
-            values, valid, reason, conf = backward_reproject(*_stereo_inputs(dtype, device), 0.05, 0.3,
-                                                             backend=self.backend_arg(backend))
+            values, valid, reason, conf = backward_reproject(
+                *_stereo_inputs(dtype, device), 0.05, 0.3, backend=self.backend_arg(backend)
+            )
         assert values.dtype == dtype and valid.dtype == torch.bool and reason.dtype == torch.uint8
         assert valid.any() and (~valid).any()
         assert torch.equal(valid, reason == int(Reason.KEPT))
@@ -232,8 +255,9 @@ class TestTemporalBlend(BaseTester):
         conf = torch.rand(valid.shape, dtype=torch.float64)
         args = [x.clone().requires_grad_(True) for x in (cur, hist, conf)]
         alpha = torch.tensor(0.3, dtype=torch.float64, requires_grad=True)
-        assert torch.autograd.gradcheck(lambda c, h, s, a: temporal_blend(c, h, n, s, a)[0], (*args, alpha),
-                                        eps=1e-6, atol=1e-5)
+        assert torch.autograd.gradcheck(
+            lambda c, h, s, a: temporal_blend(c, h, n, s, a)[0], (*args, alpha), eps=1e-6, atol=1e-5
+        )
 
     def test_module_equals_function(self, backend):
         """TemporalReprojection is backward_reproject of [history colour, length] followed by this blend."""
@@ -242,11 +266,22 @@ class TestTemporalBlend(BaseTester):
         with torch.no_grad():
             color, n, valid = m(*[xs[k] for k in m.input_names])
             warped, valid_w, _, _ = backward_reproject(
-                torch.cat([xs["history_color"], xs["history_len"]], 1), xs["prev_depth"], xs["prev_normal"],
-                xs["prev_K"], xs["prev_cam_from_world"], xs["depth"], xs["normal"], xs["K"], xs["cam_from_world"],
-                m.position_threshold, m.normal_threshold, backend=self.backend_arg(backend))
-            ref, n_ref = temporal_blend(xs["current_color"], warped[:, :3], warped[:, 3:], valid_w, m.alpha,
-                                        m.warmup, m.max_history)
+                torch.cat([xs["history_color"], xs["history_len"]], 1),
+                xs["prev_depth"],
+                xs["prev_normal"],
+                xs["prev_K"],
+                xs["prev_cam_from_world"],
+                xs["depth"],
+                xs["normal"],
+                xs["K"],
+                xs["cam_from_world"],
+                m.position_threshold,
+                m.normal_threshold,
+                backend=self.backend_arg(backend),
+            )
+            ref, n_ref = temporal_blend(
+                xs["current_color"], warped[:, :3], warped[:, 3:], valid_w, m.alpha, m.warmup, m.max_history
+            )
         assert valid.any() and (~valid).any()
         self.assert_identical((color, n, valid), (ref, n_ref, valid_w))
 

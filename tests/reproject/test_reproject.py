@@ -34,8 +34,17 @@ from stereorepro.camera import PinholeCamera, look_at
 from stereorepro.io.onnx import onnx_input_dims
 from stereorepro._testing import camera_pair, default_scene, example_inputs, raycast
 
-ARGS = ["src_color", "src_depth", "src_normal", "src_K", "src_cam_from_world",
-        "dst_depth", "dst_normal", "dst_K", "dst_cam_from_world"]
+ARGS = [
+    "src_color",
+    "src_depth",
+    "src_normal",
+    "src_K",
+    "src_cam_from_world",
+    "dst_depth",
+    "dst_normal",
+    "dst_K",
+    "dst_cam_from_world",
+]
 
 
 def plane_pair(H=6, W=8, shift_px=1.0, depth=2.0, dtype=torch.float32, f=64.0, B=1, seed=0):
@@ -50,8 +59,17 @@ def plane_pair(H=6, W=8, shift_px=1.0, depth=2.0, dtype=torch.float32, f=64.0, B
     n = torch.zeros(B, 3, H, W, dtype=dtype)
     n[:, 2] = -1.0
     c = torch.rand(B, 3, H, W, generator=g, dtype=dtype)
-    return dict(src_color=c, src_depth=d.clone(), src_normal=n.clone(), src_K=K, src_cam_from_world=T_src,
-                dst_depth=d.clone(), dst_normal=n.clone(), dst_K=K.clone(), dst_cam_from_world=T_dst)
+    return dict(
+        src_color=c,
+        src_depth=d.clone(),
+        src_normal=n.clone(),
+        src_K=K,
+        src_cam_from_world=T_src,
+        dst_depth=d.clone(),
+        dst_normal=n.clone(),
+        dst_K=K.clone(),
+        dst_cam_from_world=T_dst,
+    )
 
 
 def run(inp, pos=0.01, nrm=0.1, **kw):
@@ -60,16 +78,33 @@ def run(inp, pos=0.01, nrm=0.1, **kw):
     return stereo_reproject(*[inp[a] for a in ARGS], pos, nrm, **kw)
 
 
-def scene_pair(H=36, W=48, dtype=torch.float32, B=1, forward=0.0, yaw=0.0, baseline=0.065, seed=0,
-               origin_offset=(0.0, 0.0, 0.0), cam_dtype=None):
+def scene_pair(
+    H=36,
+    W=48,
+    dtype=torch.float32,
+    B=1,
+    forward=0.0,
+    yaw=0.0,
+    baseline=0.065,
+    seed=0,
+    origin_offset=(0.0, 0.0, 0.0),
+    cam_dtype=None,
+):
     dst, src = camera_pair(H, W, B, baseline=baseline, forward=forward, yaw_deg=yaw, origin_offset=origin_offset)
     scene = default_scene(origin_offset)
     gd, gs = raycast(dst, scene), raycast(src, scene)
     cam_dtype = dtype if cam_dtype is None else cam_dtype
-    inp = dict(src_color=gs.color.to(dtype), src_depth=gs.depth.to(dtype), src_normal=gs.normal.to(dtype),
-               src_K=src.K.to(cam_dtype), src_cam_from_world=src.cam_from_world.to(cam_dtype),
-               dst_depth=gd.depth.to(dtype), dst_normal=gd.normal.to(dtype), dst_K=dst.K.to(cam_dtype),
-               dst_cam_from_world=dst.cam_from_world.to(cam_dtype))
+    inp = dict(
+        src_color=gs.color.to(dtype),
+        src_depth=gs.depth.to(dtype),
+        src_normal=gs.normal.to(dtype),
+        src_K=src.K.to(cam_dtype),
+        src_cam_from_world=src.cam_from_world.to(cam_dtype),
+        dst_depth=gd.depth.to(dtype),
+        dst_normal=gd.normal.to(dtype),
+        dst_K=dst.K.to(cam_dtype),
+        dst_cam_from_world=dst.cam_from_world.to(cam_dtype),
+    )
     return inp, gd, gs, dst, src
 
 
@@ -80,7 +115,7 @@ def onnx_runs(module, tmp_path, name):
     path = export_onnx(module, tmp_path / f"{name}.onnx")
     dims = onnx_input_dims(path)
     sess = ort.InferenceSession(str(path))
-    for (h, w) in [(36, 48), (71, 129)]:
+    for h, w in [(36, 48), (71, 129)]:
         inp = example_inputs(module, batch=2, height=h, width=w, seed=h)
         ref = module(*inp)
         got = sess.run(None, {n: x.numpy() for n, x in zip(module.input_names, inp)})
@@ -99,26 +134,31 @@ class TestStereoReproject(BaseTester):
         self.skip_unless_runs(backend, dtype, torch.device("cpu"))
         src = plane_pair(H=6, W=8, B=2, dtype=dtype)
         dst = plane_pair(H=5, W=7, B=2, dtype=dtype)
-        inp = {**{k: v for k, v in src.items() if k.startswith("src")},
-               **{k: v for k, v in dst.items() if k.startswith("dst")}}
+        inp = {
+            **{k: v for k, v in src.items() if k.startswith("src")},
+            **{k: v for k, v in dst.items() if k.startswith("dst")},
+        }
         out, valid, reason = run(inp, backend=self.backend_arg(backend))
         assert out.shape == (2, 3, 5, 7) and out.dtype == dtype
         assert valid.shape == (2, 1, 5, 7) and valid.dtype == torch.bool
         assert reason.shape == (2, 1, 5, 7) and reason.dtype == torch.uint8
 
-    @pytest.mark.parametrize("arg,bad,match", [
-        ("src_color", torch.zeros(1, 3, 6), "src_color: expected 4-D"),
-        ("src_color", torch.zeros(1, 4, 6, 8), r"src_color: expected shape \(B, 3, H, W\)"),
-        ("src_depth", torch.zeros(1, 1, 5, 8), "src_depth"),
-        ("src_normal", torch.zeros(1, 3, 6, 9), "src_normal"),
-        ("dst_depth", torch.zeros(2, 1, 6, 8), "dst_depth"),
-        ("dst_normal", torch.zeros(1, 2, 6, 8), "dst_normal"),
-        ("src_K", torch.zeros(1, 4, 4), "src K"),
-        ("dst_cam_from_world", torch.zeros(1, 3, 4), "dst cam_from_world"),
-        ("src_color", torch.zeros(1, 3, 6, 8, dtype=torch.int32), "src_color: expected a floating-point"),
-        ("dst_depth", "not a tensor", "dst_depth: expected a torch.Tensor"),
-        ("src_depth", torch.zeros(1, 1, 6, 8, device="meta"), "one device"),
-    ])
+    @pytest.mark.parametrize(
+        "arg,bad,match",
+        [
+            ("src_color", torch.zeros(1, 3, 6), "src_color: expected 4-D"),
+            ("src_color", torch.zeros(1, 4, 6, 8), r"src_color: expected shape \(B, 3, H, W\)"),
+            ("src_depth", torch.zeros(1, 1, 5, 8), "src_depth"),
+            ("src_normal", torch.zeros(1, 3, 6, 9), "src_normal"),
+            ("dst_depth", torch.zeros(2, 1, 6, 8), "dst_depth"),
+            ("dst_normal", torch.zeros(1, 2, 6, 8), "dst_normal"),
+            ("src_K", torch.zeros(1, 4, 4), "src K"),
+            ("dst_cam_from_world", torch.zeros(1, 3, 4), "dst cam_from_world"),
+            ("src_color", torch.zeros(1, 3, 6, 8, dtype=torch.int32), "src_color: expected a floating-point"),
+            ("dst_depth", "not a tensor", "dst_depth: expected a torch.Tensor"),
+            ("src_depth", torch.zeros(1, 1, 6, 8, device="meta"), "one device"),
+        ],
+    )
     def test_exceptions(self, arg, bad, match):
         inp = plane_pair()
         inp[arg] = bad
@@ -190,9 +230,13 @@ class TestStereoReproject(BaseTester):
         self.skip_unless_runs(backend, dtype, torch.device("cpu"))
         inp, gd, *_ = scene_pair(dtype=dtype, baseline=0.065)
         dst, _ = camera_pair(36, 48)
-        inp.update(src_color=gd.color.to(dtype), src_depth=gd.depth.to(dtype),
-                   src_normal=gd.normal.to(dtype), src_K=dst.K.to(dtype),
-                   src_cam_from_world=dst.cam_from_world.to(dtype))
+        inp.update(
+            src_color=gd.color.to(dtype),
+            src_depth=gd.depth.to(dtype),
+            src_normal=gd.normal.to(dtype),
+            src_K=dst.K.to(dtype),
+            src_cam_from_world=dst.cam_from_world.to(dtype),
+        )
         for sampling in ("bilinear", "nearest"):
             out, valid, reason = run(inp, 1e-6, 1e-6, sampling=sampling, backend=self.backend_arg(backend))
             hit = torch.isfinite(inp["dst_depth"])
@@ -318,18 +362,28 @@ class TestStereoReproject(BaseTester):
         # The camera looks almost along the floor: footprints stretch, taps 1 px apart are far apart in space.
         H, W = 24, 32
         K = torch.tensor([[[40.0, 0, 16], [0, 40.0, 12], [0, 0, 1]]], dtype=torch.float64)
-        head = look_at(torch.tensor([[0.0, 0.02, 0.0]], dtype=torch.float64),
-                       torch.tensor([[0.0, 0.0, -10.0]], dtype=torch.float64),
-                       torch.tensor([[0.0, 1.0, 0.0]], dtype=torch.float64))
+        head = look_at(
+            torch.tensor([[0.0, 0.02, 0.0]], dtype=torch.float64),
+            torch.tensor([[0.0, 0.0, -10.0]], dtype=torch.float64),
+            torch.tensor([[0.0, 1.0, 0.0]], dtype=torch.float64),
+        )
         scene = default_scene()
         dst = PinholeCamera(K, head, H, W)
         moved = head.clone()
         moved[:, 0, 3] -= 0.01
         src = PinholeCamera(K, moved, H, W)
         gd, gs = raycast(dst, scene), raycast(src, scene)
-        inp = dict(src_color=gs.color.float(), src_depth=gs.depth.float(), src_normal=gs.normal.float(),
-                   src_K=K, src_cam_from_world=moved, dst_depth=gd.depth.float(),
-                   dst_normal=gd.normal.float(), dst_K=K, dst_cam_from_world=head)
+        inp = dict(
+            src_color=gs.color.float(),
+            src_depth=gs.depth.float(),
+            src_normal=gs.normal.float(),
+            src_K=K,
+            src_cam_from_world=moved,
+            dst_depth=gd.depth.float(),
+            dst_normal=gd.normal.float(),
+            dst_K=K,
+            dst_cam_from_world=head,
+        )
         out, valid, reason = run(inp, pos=0.05, nrm=0.1, backend=self.backend_arg(backend))
         assert torch.isfinite(out).all() and valid.float().mean() > 0.5
         # wherever kept, the warped colour is close to the analytic colour
@@ -365,8 +419,10 @@ class TestStereoReproject(BaseTester):
         be = self.backend_arg(backend)
         inp, *_ = scene_pair()
         ref, vref, _ = run(inp, 0.05, 0.2, backend=be)
-        half = {k: (v.to(low) if k not in ("src_K", "dst_K", "src_cam_from_world", "dst_cam_from_world") else v)
-                for k, v in inp.items()}
+        half = {
+            k: (v.to(low) if k not in ("src_K", "dst_K", "src_cam_from_world", "dst_cam_from_world") else v)
+            for k, v in inp.items()
+        }
         out, valid, reason = run(half, 0.05, 0.2, backend=be)
         assert out.dtype == low and torch.isfinite(out).all()
         agree = (valid == vref).float().mean()
@@ -383,7 +439,11 @@ class TestStereoReproject(BaseTester):
         out, valid, reason = run(batch, 0.05, 0.2, backend=be)
         for i, single in enumerate([a, b]):
             o, v, r = run(single, 0.05, 0.2, backend=be)
-            assert torch.equal(out[i:i + 1], o) and torch.equal(valid[i:i + 1], v) and torch.equal(reason[i:i + 1], r)
+            assert (
+                torch.equal(out[i : i + 1], o)
+                and torch.equal(valid[i : i + 1], v)
+                and torch.equal(reason[i : i + 1], r)
+            )
 
     def test_noncontiguous_and_channels_last(self, backend):
         be = self.backend_arg(backend)
@@ -423,14 +483,12 @@ class TestStereoReproject(BaseTester):
         at the source coordinates computed independently with PinholeCamera.project (float64 on torch; float32
         images on native, within float32 rounding)."""
         dtype = torch.float64 if backend != "native" else torch.float32
-        inp, gd, gs, dst, src = scene_pair(H=36, W=48, forward=0.2, yaw=2.0, dtype=dtype,
-                                           cam_dtype=torch.float64)
+        inp, gd, gs, dst, src = scene_pair(H=36, W=48, forward=0.2, yaw=2.0, dtype=dtype, cam_dtype=torch.float64)
         out, valid, _ = run(inp, 1e9, 10.0, backend=self.backend_arg(backend))  # accept everything with a surface
         pts = dst.to(torch.float64).unproject(torch.where(torch.isfinite(gd.depth), gd.depth, 1.0))
         uv, z = src.to(torch.float64).project(pts)
         grid = torch.stack([uv[:, 0] / 48 * 2 - 1, uv[:, 1] / 36 * 2 - 1], -1)
-        ref = F.grid_sample(inp["src_color"].double(), grid, mode="bilinear", padding_mode="zeros",
-                            align_corners=False)
+        ref = F.grid_sample(inp["src_color"].double(), grid, mode="bilinear", padding_mode="zeros", align_corners=False)
         inner = (uv[:, 0:1] > 0.5) & (uv[:, 0:1] < 47.5) & (uv[:, 1:2] > 0.5) & (uv[:, 1:2] < 35.5)
         m = (inner & valid & torch.isfinite(gd.depth)).expand_as(out)
         assert m.float().mean() > 0.5
@@ -465,8 +523,12 @@ class TestStereoReproject(BaseTester):
         assert err.median() < 0.01
 
     @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-    @given(shift=st.floats(-3, 3), fwd=st.floats(-0.3, 0.3), yaw=st.floats(-4, 4),
-           sampling=st.sampled_from(["bilinear", "nearest"]))
+    @given(
+        shift=st.floats(-3, 3),
+        fwd=st.floats(-0.3, 0.3),
+        yaw=st.floats(-4, 4),
+        sampling=st.sampled_from(["bilinear", "nearest"]),
+    )
     def test_property_convex_and_consistent(self, shift, fwd, yaw, sampling, backend):
         """(The backend fixture only switches the fast path off for ``torch``: the same for every example.)"""
         dtype = torch.float64 if backend != "native" else torch.float32
@@ -475,10 +537,21 @@ class TestStereoReproject(BaseTester):
         gd, gs = raycast(dst, scene), raycast(src, scene)
         col = torch.rand(1, 3, 12, 16, dtype=dtype)
         eps = 1e-12 if dtype == torch.float64 else 1e-6
-        out, valid, reason, conf = backward_reproject(col, gs.depth.to(dtype), gs.normal.to(dtype), src.K,
-                                                      src.cam_from_world, gd.depth.to(dtype),
-                                                      gd.normal.to(dtype), dst.K, dst.cam_from_world,
-                                                      0.05, 0.3, sampling, backend=self.backend_arg(backend))
+        out, valid, reason, conf = backward_reproject(
+            col,
+            gs.depth.to(dtype),
+            gs.normal.to(dtype),
+            src.K,
+            src.cam_from_world,
+            gd.depth.to(dtype),
+            gd.normal.to(dtype),
+            dst.K,
+            dst.cam_from_world,
+            0.05,
+            0.3,
+            sampling,
+            backend=self.backend_arg(backend),
+        )
         assert torch.equal(valid, reason == 0)
         assert ((conf >= 0) & (conf <= 1 + eps)).all() and torch.equal(conf > 0, valid)
         lo, hi = col.amin(dim=(2, 3), keepdim=True), col.amax(dim=(2, 3), keepdim=True)
@@ -533,8 +606,14 @@ class TestFastPath(BaseTester):
     def test_scenes(self, monkeypatch, dtype, sampling, scene):
         inp, *_ = scene_pair(H=37, W=50, dtype=dtype, **scene)
         for pos, nrm in [(0.05, 0.3), (1e-3, 1e-2), (3.0, 2.0)]:
-            fast, general = self._both(monkeypatch, [inp[a] for a in ARGS], block=200, position_threshold=pos,
-                                       normal_threshold=nrm, sampling=sampling)  # 4 rows per block, then 1
+            fast, general = self._both(
+                monkeypatch,
+                [inp[a] for a in ARGS],
+                block=200,
+                position_threshold=pos,
+                normal_threshold=nrm,
+                sampling=sampling,
+            )  # 4 rows per block, then 1
             self._assert_same(fast, general)
             assert 0 < fast[1].float().mean() or pos < 0.01
 
@@ -543,8 +622,14 @@ class TestFastPath(BaseTester):
     def test_special_values(self, monkeypatch, sampling, seed):
         inp, *_ = scene_pair(H=24, W=32, forward=0.1, yaw=1.0)
         bad = _sprinkle(inp, seed)
-        fast, general = self._both(monkeypatch, [bad[a] for a in ARGS], block=100, position_threshold=0.1,
-                                   normal_threshold=1.5, sampling=sampling)
+        fast, general = self._both(
+            monkeypatch,
+            [bad[a] for a in ARGS],
+            block=100,
+            position_threshold=0.1,
+            normal_threshold=1.5,
+            sampling=sampling,
+        )
         self._assert_same(fast, general)
         assert torch.isfinite(fast[0]).all()
         assert len(fast[2].unique()) >= 5  # kept, no surface (dst), behind, position, normal, non-finite, ...
@@ -559,8 +644,9 @@ class TestFastPath(BaseTester):
         taps = []
         accept = _fast.fast_accept
         monkeypatch.setattr(_fast, "fast_accept", lambda t, *a: taps.append(t.shape[2:4]) or accept(t, *a))
-        fast, general = self._both(monkeypatch, [inp[a] for a in ARGS], block=30, position_threshold=0.01,
-                                   normal_threshold=0.1)
+        fast, general = self._both(
+            monkeypatch, [inp[a] for a in ARGS], block=30, position_threshold=0.01, normal_threshold=0.1
+        )
         self._assert_same(fast, general)
         assert set(taps) == {(1, 2)}
 
@@ -572,8 +658,9 @@ class TestFastPath(BaseTester):
             batch[k] = batch[k].contiguous(memory_format=torch.channels_last)
         batch["dst_depth"] = batch["dst_depth"].transpose(-1, -2).contiguous().transpose(-1, -2)
         for block in (None, 1, 100):
-            fast, general = self._both(monkeypatch, [batch[k] for k in ARGS], block=block, position_threshold=0.05,
-                                       normal_threshold=0.2)
+            fast, general = self._both(
+                monkeypatch, [batch[k] for k in ARGS], block=block, position_threshold=0.05, normal_threshold=0.2
+            )
             self._assert_same(fast, general)
 
     @pytest.mark.parametrize("hw", [(1, 9), (7, 1), (1, 1)])
@@ -588,8 +675,7 @@ class TestFastPath(BaseTester):
     def test_half_precision(self, monkeypatch, low):
         inp, *_ = scene_pair(H=16, W=20, forward=0.1)
         half = {k: (v.to(low) if v.dim() == 4 else v) for k, v in inp.items()}
-        fast, general = self._both(monkeypatch, [half[a] for a in ARGS], position_threshold=0.05,
-                                   normal_threshold=0.2)
+        fast, general = self._both(monkeypatch, [half[a] for a in ARGS], position_threshold=0.05, normal_threshold=0.2)
         self._assert_same(fast, general)
         assert fast[0].dtype == low
 
@@ -597,8 +683,13 @@ class TestFastPath(BaseTester):
         inp, *_ = scene_pair(H=18, W=22, forward=0.2, dtype=torch.float64)
         values = torch.cat([inp["src_color"], torch.rand(1, 2, 18, 22, dtype=torch.float64)], 1)
         args = [values] + [inp[a] for a in ARGS[1:]]
-        fast, general = self._both(monkeypatch, args, block=50, position_threshold=torch.tensor(0.05),
-                                   normal_threshold=torch.tensor(0.3, dtype=torch.float64))
+        fast, general = self._both(
+            monkeypatch,
+            args,
+            block=50,
+            position_threshold=torch.tensor(0.05),
+            normal_threshold=torch.tensor(0.3, dtype=torch.float64),
+        )
         self._assert_same(fast, general)
 
     def test_float64_table_indices(self, monkeypatch):
@@ -607,8 +698,9 @@ class TestFastPath(BaseTester):
 
         monkeypatch.setattr(_fast, "_F32_EXACT", 100)
         inp, *_ = scene_pair(H=12, W=16, forward=0.2)
-        fast, general = self._both(monkeypatch, [inp[a] for a in ARGS], block=40, position_threshold=0.05,
-                                   normal_threshold=0.2)
+        fast, general = self._both(
+            monkeypatch, [inp[a] for a in ARGS], block=40, position_threshold=0.05, normal_threshold=0.2
+        )
         self._assert_same(fast, general)
 
     def test_not_taken(self, monkeypatch):
@@ -703,11 +795,19 @@ class TestTemporalReproject(BaseTester):
     def _static(self, H=8, W=10, dtype=torch.float32, n=3.0, seed=0):
         inp = plane_pair(H=H, W=W, shift_px=0.0, dtype=dtype, seed=seed)
         g = torch.Generator().manual_seed(seed + 1)
-        return dict(current_color=torch.rand(1, 3, H, W, generator=g, dtype=dtype), depth=inp["dst_depth"],
-                    normal=inp["dst_normal"], K=inp["dst_K"], cam_from_world=inp["dst_cam_from_world"],
-                    history_color=inp["src_color"], history_len=torch.full((1, 1, H, W), n, dtype=dtype),
-                    prev_depth=inp["src_depth"], prev_normal=inp["src_normal"], prev_K=inp["src_K"],
-                    prev_cam_from_world=inp["src_cam_from_world"])
+        return dict(
+            current_color=torch.rand(1, 3, H, W, generator=g, dtype=dtype),
+            depth=inp["dst_depth"],
+            normal=inp["dst_normal"],
+            K=inp["dst_K"],
+            cam_from_world=inp["dst_cam_from_world"],
+            history_color=inp["src_color"],
+            history_len=torch.full((1, 1, H, W), n, dtype=dtype),
+            prev_depth=inp["src_depth"],
+            prev_normal=inp["src_normal"],
+            prev_K=inp["src_K"],
+            prev_cam_from_world=inp["src_cam_from_world"],
+        )
 
     def _run(self, inp, pos=0.01, nrm=0.1, backend=None, **kw):
         """temporal_reproject on ``inp``, on the ``backend`` fixture's implementation (None: ``auto``)."""
@@ -729,13 +829,16 @@ class TestTemporalReproject(BaseTester):
         assert color.shape == (2, 3, 8, 10) and color.dtype == dtype
         assert n.shape == (2, 1, 8, 10) and valid.dtype == torch.bool
 
-    @pytest.mark.parametrize("arg,bad,match", [
-        ("current_color", torch.zeros(1, 3, 8), "current_color"),
-        ("history_color", torch.zeros(2, 3, 8, 10), "history_color"),
-        ("history_len", torch.zeros(1, 2, 8, 10), "history_len"),
-        ("history_len", torch.zeros(1, 1, 8, 10, dtype=torch.int64), "history_len: expected a floating-point"),
-        ("prev_K", torch.zeros(1, 3), "prev K"),
-    ])
+    @pytest.mark.parametrize(
+        "arg,bad,match",
+        [
+            ("current_color", torch.zeros(1, 3, 8), "current_color"),
+            ("history_color", torch.zeros(2, 3, 8, 10), "history_color"),
+            ("history_len", torch.zeros(1, 2, 8, 10), "history_len"),
+            ("history_len", torch.zeros(1, 1, 8, 10, dtype=torch.int64), "history_len: expected a floating-point"),
+            ("prev_K", torch.zeros(1, 3), "prev K"),
+        ],
+    )
     def test_exceptions(self, arg, bad, match):
         inp = self._static()
         inp[arg] = bad
@@ -757,11 +860,19 @@ class TestTemporalReproject(BaseTester):
 
     def test_gradcheck_soft_alpha_thresholds(self):
         inp, *_ = scene_pair(H=6, W=8, dtype=torch.float64, forward=0.3)
-        t = dict(current_color=inp["dst_depth"].new_ones(1, 3, 6, 8) * 0.3, depth=inp["dst_depth"],
-                 normal=inp["dst_normal"], K=inp["dst_K"], cam_from_world=inp["dst_cam_from_world"],
-                 history_color=inp["src_color"], history_len=torch.full_like(inp["src_depth"], 10.0),
-                 prev_depth=inp["src_depth"], prev_normal=inp["src_normal"], prev_K=inp["src_K"],
-                 prev_cam_from_world=inp["src_cam_from_world"])
+        t = dict(
+            current_color=inp["dst_depth"].new_ones(1, 3, 6, 8) * 0.3,
+            depth=inp["dst_depth"],
+            normal=inp["dst_normal"],
+            K=inp["dst_K"],
+            cam_from_world=inp["dst_cam_from_world"],
+            history_color=inp["src_color"],
+            history_len=torch.full_like(inp["src_depth"], 10.0),
+            prev_depth=inp["src_depth"],
+            prev_normal=inp["src_normal"],
+            prev_K=inp["src_K"],
+            prev_cam_from_world=inp["src_cam_from_world"],
+        )
         p = torch.tensor([0.05, 0.3, 0.2], dtype=torch.float64, requires_grad=True)
 
         def f(p):
@@ -789,8 +900,9 @@ class TestTemporalReproject(BaseTester):
 
     # --- hard cases -------------------------------------------------------------------------------------------
     @pytest.mark.parametrize("case", ["scene", "special", "batch_channels", "turned"])
-    @pytest.mark.parametrize("kw", [dict(), dict(alpha=0.5, warmup=False), dict(max_history=4.0),
-                                    dict(sampling="nearest")], ids=str)
+    @pytest.mark.parametrize(
+        "kw", [dict(), dict(alpha=0.5, warmup=False), dict(max_history=4.0), dict(sampling="nearest")], ids=str
+    )
     def test_matches_reference(self, case, kw, backend):
         """Each backend against the per-pixel reference (tests/reproject/reference.py): the warp of [history
         colour, history length] (a non-finite length discards its tap like a non-finite colour), then the blend;
@@ -808,15 +920,46 @@ class TestTemporalReproject(BaseTester):
         current = torch.rand(B, 3, H, W, generator=g)
         with torch.no_grad():
             color, n_out, valid, reason = temporal_reproject(
-                current, depth, normal, K, T, history, n, src_depth, src_normal, src_K, src_T, pos, nrm,
-                return_reason=True, backend=self.backend_arg(backend), **kw)
+                current,
+                depth,
+                normal,
+                K,
+                T,
+                history,
+                n,
+                src_depth,
+                src_normal,
+                src_K,
+                src_T,
+                pos,
+                nrm,
+                return_reason=True,
+                backend=self.backend_arg(backend),
+                **kw,
+            )
         warped, r_valid, r_reason, conf, margin = reference_backward_reproject(
-            torch.cat([history, n], 1), src_depth, src_normal, src_K, src_T, depth, normal, K, T, pos, nrm, sampling)
-        assert_matches_reference((torch.cat([color, n_out], 1), valid, reason, valid.double()),
-                                 (np.concatenate(reference_temporal_blend(
-                                     current, warped[:, :3], warped[:, 3:], r_valid,
-                                     **{k: v for k, v in kw.items() if k != "sampling"}), 1),
-                                  r_valid, r_reason, r_valid.astype(np.float64), margin), f"{backend} {case} {kw}")
+            torch.cat([history, n], 1), src_depth, src_normal, src_K, src_T, depth, normal, K, T, pos, nrm, sampling
+        )
+        assert_matches_reference(
+            (torch.cat([color, n_out], 1), valid, reason, valid.double()),
+            (
+                np.concatenate(
+                    reference_temporal_blend(
+                        current,
+                        warped[:, :3],
+                        warped[:, 3:],
+                        r_valid,
+                        **{k: v for k, v in kw.items() if k != "sampling"},
+                    ),
+                    1,
+                ),
+                r_valid,
+                r_reason,
+                r_valid.astype(np.float64),
+                margin,
+            ),
+            f"{backend} {case} {kw}",
+        )
 
     def test_first_frame_returns_current(self, backend):
         inp = self._static(n=0.0)
@@ -835,15 +978,17 @@ class TestTemporalReproject(BaseTester):
         frames = [torch.rand(1, 3, 8, 10, generator=torch.Generator().manual_seed(i)) for i in range(6)]
         hist, n = inp["history_color"], inp["history_len"]
         for f in frames:
-            hist, n, _ = self._run({**inp, "current_color": f, "history_color": hist, "history_len": n}, alpha=1e-9,
-                                   backend=backend)
+            hist, n, _ = self._run(
+                {**inp, "current_color": f, "history_color": hist, "history_len": n}, alpha=1e-9, backend=backend
+            )
         assert torch.allclose(hist, torch.stack(frames).mean(0), atol=1e-6) and (n == 6).all()
         # with alpha = 0.2 the weight stops falling at 0.2 after 4 frames: a fixed EMA from then on
         hist, n = inp["history_color"], inp["history_len"]
         ref = None
         for i, f in enumerate(frames):
-            hist, n, _ = self._run({**inp, "current_color": f, "history_color": hist, "history_len": n}, alpha=0.2,
-                                   backend=backend)
+            hist, n, _ = self._run(
+                {**inp, "current_color": f, "history_color": hist, "history_len": n}, alpha=0.2, backend=backend
+            )
             a = max(1.0 / (i + 1), 0.2)
             ref = f if ref is None else (1 - a) * ref + a * f
         assert torch.allclose(hist, ref, atol=1e-6)

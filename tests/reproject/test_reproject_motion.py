@@ -54,8 +54,9 @@ class TestMotionReproject(BaseTester):
         args, motion, mw, obj, dis = moving_object(dtype)
         args, motion, mw = [a.to(device) for a in args], motion.to(device), mw.to(device)
         with torch.no_grad():
-            c, n, valid, reason = temporal_reproject(*args, *THR, motion=motion, motion_world=mw, return_reason=True,
-                                                     backend=self.backend_arg(backend))
+            c, n, valid, reason = temporal_reproject(
+                *args, *THR, motion=motion, motion_world=mw, return_reason=True, backend=self.backend_arg(backend)
+            )
         assert c.shape == (1, 3, H, W) and n.shape == valid.shape == reason.shape == (1, 1, H, W)
         assert c.dtype == dtype and c.device.type == device.type
 
@@ -64,8 +65,20 @@ class TestMotionReproject(BaseTester):
         _, _, cam_valid, cam_reason = temporal_reproject(*args, *THR, return_reason=True)
         moved_in = obj & (args[7] != 2.0)  # object pixels where the previous frame shows the background
         assert not bool(cam_valid[moved_in].any()) and bool((cam_reason[moved_in] == Reason.POSITION).all())
-        warped, valid, reason, _ = backward_reproject(args[5], args[7], args[8], args[9], args[10], args[1], args[2],
-                                                      args[3], args[4], *THR, motion=motion, motion_world=mw)
+        warped, valid, reason, _ = backward_reproject(
+            args[5],
+            args[7],
+            args[8],
+            args[9],
+            args[10],
+            args[1],
+            args[2],
+            args[3],
+            args[4],
+            *THR,
+            motion=motion,
+            motion_world=mw,
+        )
         assert bool(valid[obj].all())
         expected = torch.roll(args[5], SHIFT, dims=-1)  # the history, moved with the object
         assert torch.equal(warped[obj.expand_as(warped)], expected[obj.expand_as(expected)])
@@ -171,8 +184,9 @@ class TestMotionReproject(BaseTester):
         args, motion, mw, obj, dis = moving_object()
         mod = TemporalReprojection(*THR, motion_vectors=True)
         assert mod.input_names[-2:] == ["motion", "motion_world"]
-        ref = temporal_reproject(*args, mod.position_threshold, mod.normal_threshold, mod.alpha, motion=motion,
-                                 motion_world=mw)
+        ref = temporal_reproject(
+            *args, mod.position_threshold, mod.normal_threshold, mod.alpha, motion=motion, motion_world=mw
+        )
         for g, r in zip(mod(*args, motion, mw), ref):
             assert torch.equal(g, r)
 
@@ -182,8 +196,22 @@ class TestMotionReproject(BaseTester):
         cur, depth, normal, K, T, hist, n, pdepth, pnormal, pK, pT = args
         st.right(hist, pdepth, pnormal, pK, pT)
         out = st.right(cur, depth, normal, K, T, motion, mw)
-        ref = temporal_reproject(cur, depth, normal, K, T, hist, torch.ones_like(n), pdepth, pnormal, pK, pT, *THR,
-                                 motion=motion, motion_world=mw)[0]
+        ref = temporal_reproject(
+            cur,
+            depth,
+            normal,
+            K,
+            T,
+            hist,
+            torch.ones_like(n),
+            pdepth,
+            pnormal,
+            pK,
+            pT,
+            *THR,
+            motion=motion,
+            motion_world=mw,
+        )[0]
         assert torch.equal(out, ref) and bool(st.right_valid[obj].all())
 
     @pytest.mark.onnx
@@ -256,8 +284,9 @@ class TestWorldMotionFromViewZ(BaseTester):
         assert bool(surface.float().mean() > 0.5) and float(truth[s].abs().max()) > 0.05
         assert float((mw[s] - truth[s]).abs().max()) < 1e-12
         assert bool(torch.isnan(mw[~s]).all())
-        mw32 = world_motion_from_view_z(x[1].float(), motion.float(), dz.float(), *(c.float() for c in
-                                                                                    (x[3], x[4], x[9], x[10])))
+        mw32 = world_motion_from_view_z(
+            x[1].float(), motion.float(), dz.float(), *(c.float() for c in (x[3], x[4], x[9], x[10]))
+        )
         assert float((mw32.double()[s] - truth[s]).abs().max()) < 1e-5
 
     def test_ops_give_the_3d_result(self, backend):
@@ -269,10 +298,17 @@ class TestWorldMotionFromViewZ(BaseTester):
         assert float((converted - mw).abs().max()) < 1e-12
         f32 = [a.float() for a in args]
         with torch.no_grad():
-            ref = temporal_reproject(*f32, *THR, motion=motion.float(), motion_world=mw.float(), return_reason=True,
-                                     backend="torch")
-            got = temporal_reproject(*f32, *THR, motion=motion.float(), motion_world=converted.float(),
-                                     return_reason=True, backend=self.backend_arg(backend))
+            ref = temporal_reproject(
+                *f32, *THR, motion=motion.float(), motion_world=mw.float(), return_reason=True, backend="torch"
+            )
+            got = temporal_reproject(
+                *f32,
+                *THR,
+                motion=motion.float(),
+                motion_world=converted.float(),
+                return_reason=True,
+                backend=self.backend_arg(backend),
+            )
         self.assert_identical(got, ref)
         assert bool(got[2][obj].all())
 

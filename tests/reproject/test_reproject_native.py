@@ -47,13 +47,15 @@ def native_backward_reproject(*args, want_confidence: bool = True, **kwargs):
         return backward_reproject(*args, backend="native", **kwargs)
     src, dst = View(*args[1:5]), View(*args[5:9])
     sampling = args[11] if len(args) > 11 else kwargs.get("sampling", "bilinear")
-    return functional.warp_values(args[0], src, dst, Thresholds(*args[9:11]), sampling, False, "native",
-                                  confidence=False)
+    return functional.warp_values(
+        args[0], src, dst, Thresholds(*args[9:11]), sampling, False, "native", confidence=False
+    )
 
 
 def native_temporal_reproject(*args, **kwargs):
     """:func:`temporal_reproject` on the native backend, flat arguments."""
     return temporal_reproject(*args, backend="native", **kwargs)
+
 
 MAX_TIE_FRACTION = 1e-4  # 0.01 %
 
@@ -124,6 +126,7 @@ def _degenerate(z):
         inp["dst_depth"][0, 0, 2, 3] = z
         inp["src_depth"][0, 0, 2, 2] = z
         return inp, 0.01, 0.1
+
     return make
 
 
@@ -149,6 +152,7 @@ def _nonfinite_accepted(shift):
         inp["src_normal"][0, 0, 3, 3] = float("nan")
         inp["dst_normal"][0, 2, 4, 4] = float("inf")
         return inp, 0.1, 0.1
+
     return make
 
 
@@ -161,17 +165,28 @@ def _all_rejected():
 def _grazing():
     H, W = 24, 32
     from stereorepro.camera import PinholeCamera, look_at
+
     K = torch.tensor([[[40.0, 0, 16], [0, 40.0, 12], [0, 0, 1]]], dtype=torch.float64)
-    head = look_at(torch.tensor([[0.0, 0.02, 0.0]], dtype=torch.float64),
-                   torch.tensor([[0.0, 0.0, -10.0]], dtype=torch.float64),
-                   torch.tensor([[0.0, 1.0, 0.0]], dtype=torch.float64))
+    head = look_at(
+        torch.tensor([[0.0, 0.02, 0.0]], dtype=torch.float64),
+        torch.tensor([[0.0, 0.0, -10.0]], dtype=torch.float64),
+        torch.tensor([[0.0, 1.0, 0.0]], dtype=torch.float64),
+    )
     moved = head.clone()
     moved[:, 0, 3] -= 0.01
     scene = default_scene()
     gd, gs = raycast(PinholeCamera(K, head, H, W), scene), raycast(PinholeCamera(K, moved, H, W), scene)
-    inp = dict(src_color=gs.color.float(), src_depth=gs.depth.float(), src_normal=gs.normal.float(),
-               src_K=K, src_cam_from_world=moved, dst_depth=gd.depth.float(), dst_normal=gd.normal.float(),
-               dst_K=K, dst_cam_from_world=head)
+    inp = dict(
+        src_color=gs.color.float(),
+        src_depth=gs.depth.float(),
+        src_normal=gs.normal.float(),
+        src_K=K,
+        src_cam_from_world=moved,
+        dst_depth=gd.depth.float(),
+        dst_normal=gd.normal.float(),
+        dst_K=K,
+        dst_cam_from_world=head,
+    )
     return inp, 0.05, 0.1
 
 
@@ -185,6 +200,7 @@ def _far_from_origin(dz):
             inp[k] = T
         inp["src_depth"] = inp["src_depth"] + dz
         return inp, 1e-3, 0.01
+
     return make
 
 
@@ -197,8 +213,13 @@ def _per_item_batch():
 def _identity():
     inp, gd, *_ = scene_pair(baseline=0.065)
     dst, _ = camera_pair(36, 48)
-    inp.update(src_color=gd.color.float(), src_depth=gd.depth.float(), src_normal=gd.normal.float(),
-               src_K=dst.K.float(), src_cam_from_world=dst.cam_from_world.float())
+    inp.update(
+        src_color=gd.color.float(),
+        src_depth=gd.depth.float(),
+        src_normal=gd.normal.float(),
+        src_K=dst.K.float(),
+        src_cam_from_world=dst.cam_from_world.float(),
+    )
     return inp, 1e-6, 1e-6
 
 
@@ -206,6 +227,7 @@ def _single(hw):
     def make():
         H, W = hw
         return plane_pair(H=H, W=W, shift_px=0.0 if W == 1 else 1.0), 0.01, 0.1
+
     return make
 
 
@@ -241,10 +263,17 @@ def random_scene(H, W, seed, B=1):
     dst, src = camera_pair(H, W, B, baseline=0.02 + 0.2 * r[0], forward=0.6 * r[1] - 0.3, yaw_deg=8 * r[2] - 4)
     scene = default_scene()
     gd, gs = raycast(dst, scene), raycast(src, scene)
-    inp = dict(src_color=gs.color.float() * (0.5 + torch.rand(gs.color.shape, generator=g)),
-               src_depth=gs.depth.float(), src_normal=gs.normal.float(), src_K=src.K,
-               src_cam_from_world=src.cam_from_world, dst_depth=gd.depth.float(),
-               dst_normal=gd.normal.float(), dst_K=dst.K, dst_cam_from_world=dst.cam_from_world)
+    inp = dict(
+        src_color=gs.color.float() * (0.5 + torch.rand(gs.color.shape, generator=g)),
+        src_depth=gs.depth.float(),
+        src_normal=gs.normal.float(),
+        src_K=src.K,
+        src_cam_from_world=src.cam_from_world,
+        dst_depth=gd.depth.float(),
+        dst_normal=gd.normal.float(),
+        dst_K=dst.K,
+        dst_cam_from_world=dst.cam_from_world,
+    )
     pos, nrm = 0.01 + 0.2 * r[3], 0.05 + 0.5 * float(torch.rand((), generator=g))
     return inp, pos, nrm
 
@@ -271,8 +300,10 @@ class TestNativeStereo(BaseTester):
     def test_cardinality(self, backend):
         src = plane_pair(H=6, W=8, B=2)
         dst = plane_pair(H=5, W=7, B=2)
-        inp = {**{k: v for k, v in src.items() if k.startswith("src")},
-               **{k: v for k, v in dst.items() if k.startswith("dst")}}
+        inp = {
+            **{k: v for k, v in src.items() if k.startswith("src")},
+            **{k: v for k, v in dst.items() if k.startswith("dst")},
+        }
         for C in (1, 3, 5):
             inp["src_color"] = torch.rand(2, C, 6, 8)
             ref, got = both_stereo(inp)
@@ -293,12 +324,33 @@ class TestNativeStereo(BaseTester):
             native_backward_reproject(*[bad[a] for a in ARGS], 0.01, 0.1)
         # direct kernel calls: shapes are checked, outputs must be exactly right (noconvert: no hidden copies)
         B, C, H, W = 1, 3, 6, 8
-        M, t, P, kt, Ki = [x.reshape(1, -1).contiguous() for x in compose_warp(
-            *[inp[a] for a in ("src_K", "src_cam_from_world", "dst_K", "dst_cam_from_world")], torch.float32)]
-        ins = [inp["src_color"], inp["src_depth"], inp["src_normal"], P, kt, M, t, Ki, inp["dst_depth"],
-               inp["dst_normal"], 1e-4, 1e-2, True]
-        outs = [torch.empty(B, C, H, W), torch.empty(B, 1, H, W, dtype=torch.bool),
-                torch.empty(B, 1, H, W, dtype=torch.uint8), torch.empty(B, 1, H, W)]
+        M, t, P, kt, Ki = [
+            x.reshape(1, -1).contiguous()
+            for x in compose_warp(
+                *[inp[a] for a in ("src_K", "src_cam_from_world", "dst_K", "dst_cam_from_world")], torch.float32
+            )
+        ]
+        ins = [
+            inp["src_color"],
+            inp["src_depth"],
+            inp["src_normal"],
+            P,
+            kt,
+            M,
+            t,
+            Ki,
+            inp["dst_depth"],
+            inp["dst_normal"],
+            1e-4,
+            1e-2,
+            True,
+        ]
+        outs = [
+            torch.empty(B, C, H, W),
+            torch.empty(B, 1, H, W, dtype=torch.bool),
+            torch.empty(B, 1, H, W, dtype=torch.uint8),
+            torch.empty(B, 1, H, W),
+        ]
         _core.reproject(*ins, *outs)
         with pytest.raises(ValueError, match="out_values"):
             _core.reproject(*ins, torch.empty(B, C, H, W + 1), *outs[1:])
@@ -371,8 +423,10 @@ class TestNativeStereo(BaseTester):
     def test_parity_different_source_size(self, backend):
         src, *_ = scene_pair(H=40, W=56, forward=0.1)
         dst, *_ = scene_pair(H=33, W=47)
-        inp = {**{k: v for k, v in src.items() if k.startswith("src")},
-               **{k: v for k, v in dst.items() if k.startswith("dst")}}
+        inp = {
+            **{k: v for k, v in src.items() if k.startswith("src")},
+            **{k: v for k, v in dst.items() if k.startswith("dst")},
+        }
         ref, got = both_stereo(inp, 0.1, 0.3)
         assert_parity(ref, got, "Hs != H")
 
@@ -392,13 +446,21 @@ class TestNativeTemporal(BaseTester):
     def _inputs(self, H=36, W=48, seed=0, n=3.0, forward=0.1):
         inp, *_ = scene_pair(H=H, W=W, forward=forward)
         g = torch.Generator().manual_seed(seed)
-        return dict(current_color=torch.rand(1, 3, H, W, generator=g), depth=inp["dst_depth"],
-                    normal=inp["dst_normal"], K=inp["dst_K"], cam_from_world=inp["dst_cam_from_world"],
-                    history_color=inp["src_color"],
-                    history_len=torch.randint(0, 20, (1, 1, H, W), generator=g).float() if n is None else
-                    torch.full((1, 1, H, W), n),
-                    prev_depth=inp["src_depth"], prev_normal=inp["src_normal"], prev_K=inp["src_K"],
-                    prev_cam_from_world=inp["src_cam_from_world"])
+        return dict(
+            current_color=torch.rand(1, 3, H, W, generator=g),
+            depth=inp["dst_depth"],
+            normal=inp["dst_normal"],
+            K=inp["dst_K"],
+            cam_from_world=inp["dst_cam_from_world"],
+            history_color=inp["src_color"],
+            history_len=torch.randint(0, 20, (1, 1, H, W), generator=g).float()
+            if n is None
+            else torch.full((1, 1, H, W), n),
+            prev_depth=inp["src_depth"],
+            prev_normal=inp["src_normal"],
+            prev_K=inp["src_K"],
+            prev_cam_from_world=inp["src_cam_from_world"],
+        )
 
     def _both(self, inp, pos=0.05, nrm=0.3, **kw):
         args = [inp[n] for n in self.NAMES]
@@ -422,21 +484,40 @@ class TestNativeTemporal(BaseTester):
         inp = self._inputs()
         args = [inp[k] for k in self.NAMES]
         with pytest.raises(RuntimeError, match="float64"):  # backend="native" says why it is not possible
-            native_temporal_reproject(*[a.double() if k == "history_len" else a for k, a in zip(self.NAMES, args)],
-                                      0.05, 0.3)
+            native_temporal_reproject(
+                *[a.double() if k == "history_len" else a for k, a in zip(self.NAMES, args)], 0.05, 0.3
+            )
         with pytest.raises(RuntimeError, match="soft"):
             native_temporal_reproject(*args, 0.05, 0.3, soft=True)
         with pytest.raises(ShapeError, match="history_len"):  # checked by temporal_reproject before dispatch
-            temporal_reproject(*[torch.zeros(1, 2, 36, 48) if k == "history_len" else a
-                                 for k, a in zip(self.NAMES, args)], 0.05, 0.3, backend="native")
-        odd = {k: (v.contiguous(memory_format=torch.channels_last) if v.dim() == 4 and v.shape[1] == 3 else v)
-               for k, v in inp.items()}
-        for a, b in zip(native_temporal_reproject(*[odd[k] for k in self.NAMES], 0.05, 0.3),
-                        native_temporal_reproject(*args, 0.05, 0.3)):
+            temporal_reproject(
+                *[torch.zeros(1, 2, 36, 48) if k == "history_len" else a for k, a in zip(self.NAMES, args)],
+                0.05,
+                0.3,
+                backend="native",
+            )
+        odd = {
+            k: (v.contiguous(memory_format=torch.channels_last) if v.dim() == 4 and v.shape[1] == 3 else v)
+            for k, v in inp.items()
+        }
+        for a, b in zip(
+            native_temporal_reproject(*[odd[k] for k in self.NAMES], 0.05, 0.3),
+            native_temporal_reproject(*args, 0.05, 0.3),
+        ):
             assert torch.equal(a, b)
 
-    @pytest.mark.parametrize("kw", [dict(), dict(alpha=0.5, warmup=False), dict(alpha=1.0), dict(alpha=1e-9),
-                                    dict(max_history=4.0), dict(sampling="nearest")], ids=str)
+    @pytest.mark.parametrize(
+        "kw",
+        [
+            dict(),
+            dict(alpha=0.5, warmup=False),
+            dict(alpha=1.0),
+            dict(alpha=1e-9),
+            dict(max_history=4.0),
+            dict(sampling="nearest"),
+        ],
+        ids=str,
+    )
     @AGAINST_TORCH
     def test_parity(self, kw, backend):
         for seed, n in [(0, 3.0), (1, 0.0), (2, None), (3, 1e9)]:
@@ -464,12 +545,19 @@ class TestNativeTemporal(BaseTester):
         for seed in range(2):
             s, pos, nrm = random_scene(*hw, seed=seed + 31 * hw[0] + hw[1])
             g = torch.Generator().manual_seed(seed)
-            inp = dict(current_color=torch.rand(s["dst_depth"].shape[:1] + (3,) + hw, generator=g),
-                       depth=s["dst_depth"], normal=s["dst_normal"], K=s["dst_K"], cam_from_world=s["dst_cam_from_world"],
-                       history_color=s["src_color"],
-                       history_len=torch.randint(0, 30, s["src_depth"].shape, generator=g).float(),
-                       prev_depth=s["src_depth"], prev_normal=s["src_normal"], prev_K=s["src_K"],
-                       prev_cam_from_world=s["src_cam_from_world"])
+            inp = dict(
+                current_color=torch.rand(s["dst_depth"].shape[:1] + (3,) + hw, generator=g),
+                depth=s["dst_depth"],
+                normal=s["dst_normal"],
+                K=s["dst_K"],
+                cam_from_world=s["dst_cam_from_world"],
+                history_color=s["src_color"],
+                history_len=torch.randint(0, 30, s["src_depth"].shape, generator=g).float(),
+                prev_depth=s["src_depth"],
+                prev_normal=s["src_normal"],
+                prev_K=s["src_K"],
+                prev_cam_from_world=s["src_cam_from_world"],
+            )
             self._parity(*self._both(inp, pos, nrm), f"{hw} seed {seed}")
 
     @AGAINST_TORCH
@@ -585,14 +673,14 @@ class TestBackendSelection(BaseTester):
         assert {n.domain for n in graph.node} <= {"", "ai.onnx"}
         xs = example_inputs(module, height=10, width=14)
         outs = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(
-            None, {n: x.numpy() for n, x in zip(module.input_names, xs)})
+            None, {n: x.numpy() for n, x in zip(module.input_names, xs)}
+        )
         monkeypatch.delenv(ENV_VAR)
         with torch.no_grad():
             ref = StereoReprojection(0.3, 0.3, backend="torch")(*xs)
         for o, r in zip(outs, ref):
             assert o.dtype == r.numpy().dtype
             torch.testing.assert_close(torch.from_numpy(o).double(), r.double(), atol=1e-5, rtol=0)
-
 
 
 # --- float16 images --------------------------------------------------------------------------------------------
@@ -670,12 +758,19 @@ class TestNativeFloat16(BaseTester):
     def _temporal_inputs(self, H, W, seed, forward=0.1):
         inp, *_ = scene_pair(H=H, W=W, forward=forward, yaw=1.0)
         g = torch.Generator().manual_seed(seed)
-        return dict(current_color=torch.rand(1, 3, H, W, generator=g) * 4, depth=inp["dst_depth"],
-                    normal=inp["dst_normal"], K=inp["dst_K"], cam_from_world=inp["dst_cam_from_world"],
-                    history_color=hdr(inp, seed)["src_color"],
-                    history_len=torch.randint(-2, 40, (1, 1, H, W), generator=g).float(),
-                    prev_depth=inp["src_depth"], prev_normal=inp["src_normal"], prev_K=inp["src_K"],
-                    prev_cam_from_world=inp["src_cam_from_world"])
+        return dict(
+            current_color=torch.rand(1, 3, H, W, generator=g) * 4,
+            depth=inp["dst_depth"],
+            normal=inp["dst_normal"],
+            K=inp["dst_K"],
+            cam_from_world=inp["dst_cam_from_world"],
+            history_color=hdr(inp, seed)["src_color"],
+            history_len=torch.randint(-2, 40, (1, 1, H, W), generator=g).float(),
+            prev_depth=inp["src_depth"],
+            prev_normal=inp["src_normal"],
+            prev_K=inp["src_K"],
+            prev_cam_from_world=inp["src_cam_from_world"],
+        )
 
     @pytest.mark.parametrize("layout", sorted(STEREO_HALF))
     @pytest.mark.parametrize("sampling", ["bilinear", "nearest"])
@@ -712,8 +807,18 @@ class TestNativeFloat16(BaseTester):
             assert_bytes_equal(*self._stereo_both(inp, pos, nrm, sampling, confidence=True), f"{case} {sampling}")
 
     @pytest.mark.parametrize("layout", sorted(TEMPORAL_HALF))
-    @pytest.mark.parametrize("kw", [dict(), dict(alpha=0.5, warmup=False), dict(alpha=1.0), dict(max_history=4.0),
-                                    dict(sampling="nearest"), dict(return_reason=True)], ids=str)
+    @pytest.mark.parametrize(
+        "kw",
+        [
+            dict(),
+            dict(alpha=0.5, warmup=False),
+            dict(alpha=1.0),
+            dict(max_history=4.0),
+            dict(sampling="nearest"),
+            dict(return_reason=True),
+        ],
+        ids=str,
+    )
     @AGAINST_TORCH
     def test_parity_temporal(self, layout, kw, backend):
         for hw in ((36, 48), (23, 61), (5, 7)):
@@ -731,7 +836,7 @@ class TestNativeFloat16(BaseTester):
         H = -(-bits.numel() // (3 * (W - 1)))
         inp = plane_pair(H=H, W=W, shift_px=1)
         src = torch.zeros(3 * H * (W - 1), dtype=torch.int16)
-        src[:bits.numel()] = bits
+        src[: bits.numel()] = bits
         colour = torch.zeros(1, 3, H, W, dtype=torch.float16)
         colour[..., :-1] = src.view(torch.float16).view(1, 3, H, W - 1)
         inp = to_half(dict(inp, src_color=colour), STEREO_HALF["colour+normals"])
@@ -752,21 +857,35 @@ class TestNativeFloat16(BaseTester):
         halves = torch.arange(0, 0x7C00, dtype=torch.int32).to(torch.int16).view(torch.float16).float()  # finite
         nxt = torch.cat([halves[1:], torch.tensor([65536.0])])
         mid = (halves + nxt) / 2  # exact ties (float32 holds them), and their neighbours
-        probes = torch.cat([mid, torch.nextafter(mid, torch.zeros(())), torch.nextafter(mid, nxt),
-                            torch.rand(20000, generator=g) * 1e-4, torch.tensor([65504.0, 65519.996, 65520.0, 1e9,
-                                                                                 3.4e38, 2.0 ** -25, 2.0 ** -26])])
+        probes = torch.cat(
+            [
+                mid,
+                torch.nextafter(mid, torch.zeros(())),
+                torch.nextafter(mid, nxt),
+                torch.rand(20000, generator=g) * 1e-4,
+                torch.tensor([65504.0, 65519.996, 65520.0, 1e9, 3.4e38, 2.0**-25, 2.0**-26]),
+            ]
+        )
         probes = torch.cat([probes, -probes])
         H = -(-probes.numel() // (3 * (W - 1)))
         inp = plane_pair(H=H, W=W, shift_px=1)
         hist = torch.zeros(1, 3, H, W)
         flat = torch.zeros(3 * H * (W - 1))
-        flat[:probes.numel()] = probes
+        flat[: probes.numel()] = probes
         hist[..., :-1] = flat.view(1, 3, H, W - 1)
-        t = dict(current_color=torch.zeros(1, 3, H, W, dtype=torch.float16), depth=inp["dst_depth"],
-                 normal=inp["dst_normal"].half(), K=inp["dst_K"], cam_from_world=inp["dst_cam_from_world"],
-                 history_color=hist, history_len=torch.full((1, 1, H, W), 5.0), prev_depth=inp["src_depth"],
-                 prev_normal=inp["src_normal"].half(), prev_K=inp["src_K"],
-                 prev_cam_from_world=inp["src_cam_from_world"])
+        t = dict(
+            current_color=torch.zeros(1, 3, H, W, dtype=torch.float16),
+            depth=inp["dst_depth"],
+            normal=inp["dst_normal"].half(),
+            K=inp["dst_K"],
+            cam_from_world=inp["dst_cam_from_world"],
+            history_color=hist,
+            history_len=torch.full((1, 1, H, W), 5.0),
+            prev_depth=inp["src_depth"],
+            prev_normal=inp["src_normal"].half(),
+            prev_K=inp["src_K"],
+            prev_cam_from_world=inp["src_cam_from_world"],
+        )
         ref, got = self._temporal_both(t, 0.01, 0.1, alpha=0.0, warmup=False)
         assert_bytes_equal(ref, got, f"W={W}")
         assert bool(got[2][..., 1:].all())
@@ -790,13 +909,22 @@ class TestNativeFloat16(BaseTester):
             ref, got = self._stereo_both(inp, 0.1, 0.1, sampling, confidence=True)
             assert_bytes_equal(ref, got, f"stereo {sampling}")
             assert bool(torch.isfinite(got[0]).all())
-        t = dict(current_color=(torch.rand(1, 3, H, W) * 6e4).half(), depth=inp["dst_depth"],
-                 normal=inp["dst_normal"], K=inp["dst_K"], cam_from_world=inp["dst_cam_from_world"],
-                 history_color=c * 700, history_len=torch.full((1, 1, H, W), 2.0), prev_depth=inp["src_depth"],
-                 prev_normal=inp["src_normal"], prev_K=inp["src_K"], prev_cam_from_world=inp["src_cam_from_world"])
+        t = dict(
+            current_color=(torch.rand(1, 3, H, W) * 6e4).half(),
+            depth=inp["dst_depth"],
+            normal=inp["dst_normal"],
+            K=inp["dst_K"],
+            cam_from_world=inp["dst_cam_from_world"],
+            history_color=c * 700,
+            history_len=torch.full((1, 1, H, W), 2.0),
+            prev_depth=inp["src_depth"],
+            prev_normal=inp["src_normal"],
+            prev_K=inp["src_K"],
+            prev_cam_from_world=inp["src_cam_from_world"],
+        )
         t["current_color"][0, 1, 2, :] = torch.tensor([math.inf, -math.inf, 65504.0] * W)[:W]
         t["current_color"][0, 2, 3, :] = math.nan  # passes through where the history is discarded
-        t["current_color"][0, 2, H - 1, W - 3:] = math.nan  # in torch's scalar tail (see assert_bytes_equal)
+        t["current_color"][0, 2, H - 1, W - 3 :] = math.nan  # in torch's scalar tail (see assert_bytes_equal)
         for kw in (dict(), dict(alpha=0.5, warmup=False), dict(return_reason=True)):
             ref, got = self._temporal_both(t, 0.1, 0.1, **kw)
             assert_bytes_equal(ref, got, f"temporal {kw}")
@@ -849,13 +977,34 @@ class TestNativeFloat16(BaseTester):
         """Direct kernel calls: image arrays float32 or float16 (TypeError otherwise), no hidden conversions."""
         inp = plane_pair()
         B, C, H, W = 1, 3, 6, 8
-        cams = [x.reshape(1, -1).contiguous() for x in compose_warp(
-            *[inp[a] for a in ("src_K", "src_cam_from_world", "dst_K", "dst_cam_from_world")], torch.float32)]
+        cams = [
+            x.reshape(1, -1).contiguous()
+            for x in compose_warp(
+                *[inp[a] for a in ("src_K", "src_cam_from_world", "dst_K", "dst_cam_from_world")], torch.float32
+            )
+        ]
         M, t, P, kt, Ki = cams
-        ins = [inp["src_color"].half(), inp["src_depth"], inp["src_normal"].half(), P, kt, M, t, Ki, inp["dst_depth"],
-               inp["dst_normal"].half(), 1e-4, 1e-2, True]
-        outs = [torch.empty(B, C, H, W, dtype=torch.float16), torch.empty(B, 1, H, W, dtype=torch.bool),
-                torch.empty(B, 1, H, W, dtype=torch.uint8), None]
+        ins = [
+            inp["src_color"].half(),
+            inp["src_depth"],
+            inp["src_normal"].half(),
+            P,
+            kt,
+            M,
+            t,
+            Ki,
+            inp["dst_depth"],
+            inp["dst_normal"].half(),
+            1e-4,
+            1e-2,
+            True,
+        ]
+        outs = [
+            torch.empty(B, C, H, W, dtype=torch.float16),
+            torch.empty(B, 1, H, W, dtype=torch.bool),
+            torch.empty(B, 1, H, W, dtype=torch.uint8),
+            None,
+        ]
         _core.reproject(*ins, *outs)
         assert torch.equal(outs[0][..., 1:], inp["src_color"].half()[..., :-1])
         with pytest.raises(TypeError, match="src_values"):

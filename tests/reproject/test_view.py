@@ -12,8 +12,18 @@ import torch
 from base import BaseTester
 
 import stereorepro as sr
-from stereorepro import (Blend, History, ReprojectionResult, TemporalResult, Thresholds, View, backward_reproject,
-                         intrinsics_from_fov, stereo_reproject, temporal_reproject)
+from stereorepro import (
+    Blend,
+    History,
+    ReprojectionResult,
+    TemporalResult,
+    Thresholds,
+    View,
+    backward_reproject,
+    intrinsics_from_fov,
+    stereo_reproject,
+    temporal_reproject,
+)
 from stereorepro.errors import CameraError, ShapeError
 from stereorepro.reproject.view import VIEW_FIELDS, view_fields
 
@@ -35,8 +45,11 @@ def make_views(B: int = 1, H: int = 9, W: int = 12, dtype=torch.float32, seed: i
     ys, xs = torch.meshgrid(torch.arange(H, dtype=dtype), torch.arange(W, dtype=dtype), indexing="ij")
     depth = (2.0 + 0.1 * torch.sin(xs / 2.0) + 0.5 * (xs > W // 2)).expand(B, 1, H, W).clone()
     depth[:, :, 0, 0] = math.inf
-    normal = torch.nn.functional.normalize(torch.randn(B, 3, H, W, generator=g, dtype=dtype) * 0.05
-                                           + torch.tensor([0.0, 0.0, -1.0], dtype=dtype).view(1, 3, 1, 1), dim=1)
+    normal = torch.nn.functional.normalize(
+        torch.randn(B, 3, H, W, generator=g, dtype=dtype) * 0.05
+        + torch.tensor([0.0, 0.0, -1.0], dtype=dtype).view(1, 3, 1, 1),
+        dim=1,
+    )
     normal[:, :, 1, 1] = math.nan
     dst = View(depth, normal, K, T)
     src = View(depth.roll(1, -1), normal.roll(1, -1), K, shifted(T, dx=0.03, dz=0.02))
@@ -62,8 +75,10 @@ class TestView(BaseTester):
         assert dst.camera.height == 9 and torch.equal(dst.camera.K, dst.K)
         assert [f.name for f in VIEW_FIELDS] == ["depth", "normal", "K", "cam_from_world"]
         assert dst.flat() == flat(dst)
-        assert [f.name for f in view_fields("prev_", "Hp", "Wp", motion=True)][-2:] == ["prev_motion",
-                                                                                       "prev_motion_world"]
+        assert [f.name for f in view_fields("prev_", "Hp", "Wp", motion=True)][-2:] == [
+            "prev_motion",
+            "prev_motion_world",
+        ]
         assert view_fields("src_", "Hp", "Wp")[0].shape == ("B", "1", "Hp", "Wp")
 
     def test_to(self):
@@ -85,16 +100,19 @@ class TestView(BaseTester):
         with pytest.raises(sr.UserError, match="G-buffers"):
             View.from_render(SimpleNamespace(depth=None, normal=None, motion=None), dst.camera)
 
-    @pytest.mark.parametrize("field, bad, error, match", [
-        ("depth", torch.zeros(1, 2, 9, 12), ShapeError, r"View\.depth"),
-        ("normal", torch.zeros(1, 3, 8, 12), ShapeError, r"View\.normal"),
-        ("normal", torch.zeros(2, 3, 9, 12), ShapeError, r"View\.normal"),
-        ("depth", torch.zeros(1, 1, 9, 12, dtype=torch.int32), TypeError, r"View\.depth: expected a floating"),
-        ("K", torch.zeros(1, 4, 4), ShapeError, "K"),
-        ("cam_from_world", 2.0 * torch.eye(4)[None], CameraError, "cam_from_world"),
-        ("motion", torch.zeros(1, 3, 9, 12), ShapeError, r"View\.motion"),
-        ("motion_world", torch.zeros(1, 3, 9, 12), ValueError, r"View\.motion_world needs View\.motion"),
-    ])
+    @pytest.mark.parametrize(
+        "field, bad, error, match",
+        [
+            ("depth", torch.zeros(1, 2, 9, 12), ShapeError, r"View\.depth"),
+            ("normal", torch.zeros(1, 3, 8, 12), ShapeError, r"View\.normal"),
+            ("normal", torch.zeros(2, 3, 9, 12), ShapeError, r"View\.normal"),
+            ("depth", torch.zeros(1, 1, 9, 12, dtype=torch.int32), TypeError, r"View\.depth: expected a floating"),
+            ("K", torch.zeros(1, 4, 4), ShapeError, "K"),
+            ("cam_from_world", 2.0 * torch.eye(4)[None], CameraError, "cam_from_world"),
+            ("motion", torch.zeros(1, 3, 9, 12), ShapeError, r"View\.motion"),
+            ("motion_world", torch.zeros(1, 3, 9, 12), ValueError, r"View\.motion_world needs View\.motion"),
+        ],
+    )
     def test_exceptions(self, field, bad, error, match):
         _, _, dst = make_views()
         with pytest.raises(error, match=match):
@@ -155,12 +173,33 @@ class TestViewFormsEqualFlat(BaseTester):
         b = self.backend_arg(backend)
         n = torch.full_like(src.depth, 3.0)
         for reason in (False, True):
-            new = temporal_reproject(color, dst, History(color.flip(-1), n), src, (0.05, 0.2),
-                                     blend=Blend(0.25, False, 8.0), backend=b, return_reason=reason)
-            old = quiet(temporal_reproject, color, *flat(dst), color.flip(-1), n, *flat(src), 0.05, 0.2, 0.25,
-                        False, 8.0, backend=b, return_reason=reason)
+            new = temporal_reproject(
+                color,
+                dst,
+                History(color.flip(-1), n),
+                src,
+                (0.05, 0.2),
+                blend=Blend(0.25, False, 8.0),
+                backend=b,
+                return_reason=reason,
+            )
+            old = quiet(
+                temporal_reproject,
+                color,
+                *flat(dst),
+                color.flip(-1),
+                n,
+                *flat(src),
+                0.05,
+                0.2,
+                0.25,
+                False,
+                8.0,
+                backend=b,
+                return_reason=reason,
+            )
             assert len(old) == (4 if reason else 3)
-            self.assert_identical(new[:len(old)], old)
+            self.assert_identical(new[: len(old)], old)
 
     def test_motion(self):
         color, src, dst = make_views()
@@ -169,14 +208,26 @@ class TestViewFormsEqualFlat(BaseTester):
         moving = dst.replace(motion=motion, motion_world=motion_world)
         n = torch.ones_like(src.depth)
         new = temporal_reproject(color, moving, (color, n), src, (0.05, 0.2), return_reason=True)
-        old = quiet(temporal_reproject, color, *flat(dst), color, n, *flat(src), 0.05, 0.2, return_reason=True,
-                    motion=motion, motion_world=motion_world)
+        old = quiet(
+            temporal_reproject,
+            color,
+            *flat(dst),
+            color,
+            n,
+            *flat(src),
+            0.05,
+            0.2,
+            return_reason=True,
+            motion=motion,
+            motion_world=motion_world,
+        )
         self.assert_identical(new, old)
         camera_only = temporal_reproject(color, dst, (color, n), src, (0.05, 0.2))
         assert not torch.equal(camera_only.color, new.color)  # the motion was used
         # the stereo op is same-instant: a view's motion is not used there
-        self.assert_identical(stereo_reproject(color, src, moving, (0.05, 0.2))[:3],
-                              stereo_reproject(color, src, dst, (0.05, 0.2))[:3])
+        self.assert_identical(
+            stereo_reproject(color, src, moving, (0.05, 0.2))[:3], stereo_reproject(color, src, dst, (0.05, 0.2))[:3]
+        )
 
     def test_module_equals_function(self):
         color, src, dst = make_views()
@@ -207,8 +258,7 @@ class TestDeprecation(BaseTester):
         with pytest.warns(DeprecationWarning, match=r"backward_reproject\(values, src: View"):
             backward_reproject(color, *flat(src), *flat(dst), 0.05, 0.2, check=False)
         with pytest.warns(DeprecationWarning, match=r"temporal_reproject\(current_color, view: View"):
-            temporal_reproject(color, *flat(dst), color, n, *flat(src), position_threshold=0.05,
-                               normal_threshold=0.2)
+            temporal_reproject(color, *flat(dst), color, n, *flat(src), position_threshold=0.05, normal_threshold=0.2)
         with warnings.catch_warnings():  # the View forms do not warn
             warnings.simplefilter("error", DeprecationWarning)
             stereo_reproject(color, src, dst, (0.05, 0.2))

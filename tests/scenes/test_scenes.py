@@ -13,8 +13,15 @@ from stereorepro.scenes import SceneError, list_scenes, load_scene, shared_scene
 
 from conftest_render import write_scene
 
-SEVEN = ["atrium", "atrium_glossy", "atrium_moving_light", "living_room", "living_room_glossy",
-         "living_room_moving_light", "classroom"]
+SEVEN = [
+    "atrium",
+    "atrium_glossy",
+    "atrium_moving_light",
+    "living_room",
+    "living_room_glossy",
+    "living_room_moving_light",
+    "classroom",
+]
 
 
 class TestListScenes:
@@ -86,25 +93,41 @@ class TestLoadScene:
             (base.replace("num_frames = 2", 'num_frames = "two"'), "num_frames.*integer"),
             (base.replace("albedo = [0.5, 0.5, 0.5]", "albedo = [0.5, 0.5]"), "materials.m.albedo.*3 numbers"),
             (base.replace("effects = []", 'effects = ["fog"]'), "unknown effect"),
-            (base.replace("albedo = [0.5, 0.5, 0.5]", "albedo = [0.5, 0.5, 0.5]\nspecular = [0.1, 0.1, 0.1]"),
-             "glossy"),
+            (
+                base.replace("albedo = [0.5, 0.5, 0.5]", "albedo = [0.5, 0.5, 0.5]\nspecular = [0.1, 0.1, 0.1]"),
+                "glossy",
+            ),
             (base.replace("effects = []", 'effects = ["glossy"]'), "no material has a specular"),
-            (base.replace("albedo = [0.5, 0.5, 0.5]", "albedo = [0.9, 0.9, 0.9]\nspecular = [0.3, 0.3, 0.3]")
-             .replace("effects = []", 'effects = ["glossy"]'), "energy"),
-            (base + '[[lights]]\nintensity = [1.0, 1.0, 1.0]\nkeyframes = [[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]\n',
-             "moving_light"),
+            (
+                base.replace(
+                    "albedo = [0.5, 0.5, 0.5]", "albedo = [0.9, 0.9, 0.9]\nspecular = [0.3, 0.3, 0.3]"
+                ).replace("effects = []", 'effects = ["glossy"]'),
+                "energy",
+            ),
+            (
+                base + "[[lights]]\nintensity = [1.0, 1.0, 1.0]\nkeyframes = [[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]\n",
+                "moving_light",
+            ),
             (base.replace("effects = []", 'effects = ["moving_light"]'), "no light has keyframes"),
             (base.replace('material = "m"', 'material = "nope"'), "nope"),
             (base + "[rig]\neye_separation = -1.0\n", "eye_separation"),
             ("effects = [\n", "invalid TOML"),
-            (base + "[camera]\nvfov_deg = 60.0\nup = [0.0, 0.0, 0.0]\npositions = [[0.0, 0.0, -3.0]]\n"
-                    "targets = [[0.0, 0.0, 0.0]]\n", r"camera .* at frame 0: .*zero vector"),
-            (base + "[camera]\nvfov_deg = 60.0\npositions = [[1.0, 2.0, 3.0]]\ntargets = [[1.0, 2.0, 3.0]]\n",
-             r"camera .* at frame 0: .*target equals eye"),
+            (
+                base + "[camera]\nvfov_deg = 60.0\nup = [0.0, 0.0, 0.0]\npositions = [[0.0, 0.0, -3.0]]\n"
+                "targets = [[0.0, 0.0, 0.0]]\n",
+                r"camera .* at frame 0: .*zero vector",
+            ),
+            (
+                base + "[camera]\nvfov_deg = 60.0\npositions = [[1.0, 2.0, 3.0]]\ntargets = [[1.0, 2.0, 3.0]]\n",
+                r"camera .* at frame 0: .*target equals eye",
+            ),
             # the keyframes are fine, but the interpolated path meets its target at frame 1 of 3
-            (base.replace("num_frames = 2", "num_frames = 3")
-             + "[camera]\nvfov_deg = 60.0\npositions = [[0.0, 0.0, -1.0], [0.0, 0.0, 1.0]]\n"
-               "targets = [[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]]\n", "at frame 1: .*target equals eye"),
+            (
+                base.replace("num_frames = 2", "num_frames = 3")
+                + "[camera]\nvfov_deg = 60.0\npositions = [[0.0, 0.0, -1.0], [0.0, 0.0, 1.0]]\n"
+                "targets = [[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]]\n",
+                "at frame 1: .*target equals eye",
+            ),
         ]
         binary = tmp_path / "binary.toml"
         binary.write_bytes(bytes(range(256)) * 4)
@@ -134,8 +157,10 @@ class TestLoadScene:
 _SHARED = shared_scenes_dir()
 
 
-@pytest.mark.skipif(not (_SHARED / "sponza_dabrovic" / "sponza_dabrovic.ply").is_file(),
-                    reason="shared scene meshes not available (set STEREOREPRO_SHARED_SCENES)")
+@pytest.mark.skipif(
+    not (_SHARED / "sponza_dabrovic" / "sponza_dabrovic.ply").is_file(),
+    reason="shared scene meshes not available (set STEREOREPRO_SHARED_SCENES)",
+)
 class TestSharedScenes:
     def test_smoke(self):
         from stereorepro.render import PathTracer

@@ -75,8 +75,7 @@ class TestDiagnoseConventions:
     def test_other_correct_scenes_not_flagged(self, tmp_path, scene):
         d = export_sequence(scene, [10, 13, 16], 64, 36, tmp_path / "in", spp=1, seed=2)
         seq = load_sequence(d)
-        assert diagnose_conventions(seq, "both", ("left", "right"), seq.position_threshold,
-                                    seq.normal_threshold) == []
+        assert diagnose_conventions(seq, "both", ("left", "right"), seq.position_threshold, seq.normal_threshold) == []
 
     @pytest.mark.parametrize("mistake", sorted(MISTAKES))
     def test_each_mistake_named(self, good, tmp_path, capsys, mistake):

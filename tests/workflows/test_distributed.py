@@ -18,8 +18,18 @@ from stereorepro.workflows.experiment import ExperimentConfig, RenderCache, run_
 from stereorepro.workflows.experiment import distributed as dist  # noqa: E402
 from stereorepro.workflows.experiment.inputs import RenderSpec, eye_tasks  # noqa: E402
 
-SMALL = dict(scene="living_room", frames=2, width=160, height=90, reference_spp=16, reference_chunk_spp=8,
-             ladder_spp=4, progress=False, alphas=(0.5,), flip=False)
+SMALL = dict(
+    scene="living_room",
+    frames=2,
+    width=160,
+    height=90,
+    reference_spp=16,
+    reference_chunk_spp=8,
+    ladder_spp=4,
+    progress=False,
+    alphas=(0.5,),
+    flip=False,
+)
 # 160 x 90 x 3 values: above torch's parallel grain, so a float64 sum's last bits depend on the thread count (the
 # workers run single-threaded; the ladder's RMSEs must still equal the in-process run's)
 
@@ -48,12 +58,31 @@ def cluster(tmp_path):
     """A scheduler and two workers (no nanny: a killed worker stays dead), each its own process on 127.0.0.1."""
     port = _free_port()
     common = ["--no-dashboard"]
-    procs = [subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
-                               "--port", str(port), *common], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    procs = [
+        subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "distributed.cli.dask_scheduler",
+                "--host",
+                "127.0.0.1",
+                "--port",
+                str(port),
+                *common,
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+    ]
     addr = f"tcp://127.0.0.1:{port}"
     for _ in range(2):
-        procs.append(subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", addr, "--nthreads", "1",
-                                       "--no-nanny", *common], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        procs.append(
+            subprocess.Popen(
+                [sys.executable, "-m", "distributed.cli.dask_worker", addr, "--nthreads", "1", "--no-nanny", *common],
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+            )
+        )
     from distributed import Client
 
     client = Client(addr, timeout="60s")
@@ -101,16 +130,26 @@ class TestDistributed:
 
         t = threading.Thread(target=kill_after_first_entry)
         t.start()
-        res = run_experiment(ExperimentConfig(out=str(tmp_path), scheduler=addr, cache_dir=str(cache), **SMALL),
-                             log=lambda *a: None)
+        res = run_experiment(
+            ExperimentConfig(out=str(tmp_path), scheduler=addr, cache_dir=str(cache), **SMALL), log=lambda *a: None
+        )
         t.join()
         assert killed
         same_tables(serial, res)
 
     def test_racing_workers_leave_one_entry(self, tmp_path):
-        spec = RenderSpec(scene="living_room", width=32, height=18, seed=0, ladder_spp=3, reference_spp=4,
-                          reference_chunk_spp=4, base_key=json.dumps({"race": 1}), cache_dir=str(tmp_path),
-                          workers=1)
+        spec = RenderSpec(
+            scene="living_room",
+            width=32,
+            height=18,
+            seed=0,
+            ladder_spp=3,
+            reference_spp=4,
+            reference_chunk_spp=4,
+            base_key=json.dumps({"race": 1}),
+            cache_dir=str(tmp_path),
+            workers=1,
+        )
         with mp.get_context("spawn").Pool(2) as pool:
             names = pool.starmap(dist.run_task, [(spec, "ladder_task", (0, 1))] * 2)
         assert names == ["ladder_task"] * 2
@@ -121,8 +160,18 @@ class TestDistributed:
             cache.get_or_make(key, lambda: pytest.fail("a racing write left an invalid entry"))
 
     def test_foreign_code_is_refused(self, tmp_path, monkeypatch):
-        spec = RenderSpec(scene="living_room", width=32, height=18, seed=0, ladder_spp=3, reference_spp=4,
-                          reference_chunk_spp=4, base_key="{}", cache_dir=str(tmp_path), client_code="0" * 16)
+        spec = RenderSpec(
+            scene="living_room",
+            width=32,
+            height=18,
+            seed=0,
+            ladder_spp=3,
+            reference_spp=4,
+            reference_chunk_spp=4,
+            base_key="{}",
+            cache_dir=str(tmp_path),
+            client_code="0" * 16,
+        )
         with pytest.raises(RuntimeError, match="runs renderer code .* the client 0000000000000000"):
             dist.run_task(spec, "gbuffer_task", (0, 0))
         assert not any(tmp_path.glob("*.npz"))
@@ -138,12 +187,30 @@ class TestDistributed:
 
         monkeypatch.setattr(dist, "CONNECT_TIMEOUT", "1s")
         with pytest.raises(dist.ClusterError, match="cannot reach the Dask scheduler") as info:
-            run_experiment(ExperimentConfig(out=str(tmp_path / "o"), scheduler=f"tcp://127.0.0.1:{_free_port()}",
-                                            **SMALL))
+            run_experiment(
+                ExperimentConfig(out=str(tmp_path / "o"), scheduler=f"tcp://127.0.0.1:{_free_port()}", **SMALL)
+            )
         assert isinstance(info.value, StereoreproError) and list(tmp_path.iterdir()) == []
         addr = f"tcp://127.0.0.1:{_free_port()}"
-        rc = main(["experiment", "--scene", "living_room", "--out", str(tmp_path / "cli"), "--scheduler", addr,
-                   "--frames", "1", "--resolution", "32x18", "--reference-spp", "4", "--ladder-spp", "2"])
+        rc = main(
+            [
+                "experiment",
+                "--scene",
+                "living_room",
+                "--out",
+                str(tmp_path / "cli"),
+                "--scheduler",
+                addr,
+                "--frames",
+                "1",
+                "--resolution",
+                "32x18",
+                "--reference-spp",
+                "4",
+                "--ladder-spp",
+                "2",
+            ]
+        )
         err = capsys.readouterr().err.strip().splitlines()
         assert rc == 2 and len(err) == 1 and "cannot reach the Dask scheduler" in err[0]
         assert list(tmp_path.iterdir()) == []

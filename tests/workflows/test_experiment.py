@@ -8,8 +8,9 @@ import torch
 from stereorepro.cli import main
 from stereorepro.workflows.experiment import ExperimentConfig, RenderCache, run_experiment, tables_markdown
 
-SMALL = dict(scene="living_room", frames=3, width=48, height=27, reference_spp=16, ladder_spp=4, progress=False,
-             alphas=(0.5,))
+SMALL = dict(
+    scene="living_room", frames=3, width=48, height=27, reference_spp=16, ladder_spp=4, progress=False, alphas=(0.5,)
+)
 
 
 @pytest.fixture(scope="module")
@@ -21,8 +22,15 @@ def first_run(tmp_path_factory):
 class TestExperiment:
     def test_smoke(self, first_run):
         out, res = first_run
-        for f in ("results.json", "tables.md", "report.md", "fig1_discards.png", "fig3_rmse.png",
-                  "fig4_comparison.png", "fig_cost.png"):
+        for f in (
+            "results.json",
+            "tables.md",
+            "report.md",
+            "fig1_discards.png",
+            "fig3_rmse.png",
+            "fig4_comparison.png",
+            "fig_cost.png",
+        ):
             assert (out / f).is_file(), f
         assert not list(out.glob("*.tmp")) and not list((out / "cache").glob("*.tmp"))
 
@@ -59,8 +67,9 @@ class TestExperiment:
         # frame 0 has no history: the temporal output is the 1-spp image, the noisiest; stereo+temporal beats it later
         assert data["flip"]["stereo_temporal"]["avg"] < data["per_frame"][0]["flip"]["temporal"]
         assert "## FLIP" in (out / "report.md").read_text()
-        off = run_experiment(ExperimentConfig(out=str(tmp_path), cache_dir=str(out / "cache"), flip=False,
-                                              **dict(SMALL, frames=1)))
+        off = run_experiment(
+            ExperimentConfig(out=str(tmp_path), cache_dir=str(out / "cache"), flip=False, **dict(SMALL, frames=1))
+        )
         assert off["flip"] is None and off["cache"]["misses"] == 0
 
     def test_ssim_reported(self, first_run, tmp_path):
@@ -72,8 +81,9 @@ class TestExperiment:
         # frame 0's temporal output is the right eye's 1-spp image itself
         f0 = res["per_frame"][0]["ssim"]["temporal"]
         assert "## SSIM" in (out / "report.md").read_text()
-        off = run_experiment(ExperimentConfig(out=str(tmp_path), cache_dir=str(out / "cache"), ssim=False,
-                                              **dict(SMALL, frames=1)))
+        off = run_experiment(
+            ExperimentConfig(out=str(tmp_path), cache_dir=str(out / "cache"), ssim=False, **dict(SMALL, frames=1))
+        )
         assert off["ssim"] is None and off["per_frame"][0]["ssim"] == {}
         from stereorepro.workflows.experiment.config import RIGHT
         from stereorepro.workflows.experiment.inputs import RenderContext, reference, spec_for
@@ -119,7 +129,9 @@ class TestExperiment:
         cache.get_or_make(key, lambda: ({"x": np.ones(1000)}, {"ms": 1.0}))
         path = next(tmp_path.glob("*.npz"))
         data = path.read_bytes()
-        path.write_bytes({"garbage": b"not a zip", "zero_bytes": b"", "truncated": data[: len(data) // 2]}.get(damage, b""))
+        path.write_bytes(
+            {"garbage": b"not a zip", "zero_bytes": b"", "truncated": data[: len(data) // 2]}.get(damage, b"")
+        )
         if damage == "no_meta":
             np.savez(path, x=np.ones(3))
         logged = []
@@ -153,16 +165,21 @@ class TestExperiment:
         from stereorepro.io.exr import read_exr
 
         out, _ = first_run
-        run_experiment(ExperimentConfig(out=str(tmp_path), cache_dir=str(out / "cache"), exr=True,
-                                        **dict(SMALL, frames=1)))
+        run_experiment(
+            ExperimentConfig(out=str(tmp_path), cache_dir=str(out / "cache"), exr=True, **dict(SMALL, frames=1))
+        )
         ch = read_exr(tmp_path / "exr" / "0000_left.exr")
         assert {"R", "G", "B", "Z", "N.X", "N.Y", "N.Z"} <= set(ch) and ch["R"].shape == (27, 48)
 
     def test_exceptions(self, tmp_path):
         out = tmp_path / "never"
-        for bad, match in ((dict(ladder_spp=1), "ladder_spp"), (dict(frames=10_000), "frames"),
-                           (dict(alphas=(float("nan"),)), "alphas"), (dict(workers=0), "workers"),
-                           (dict(scene=str(tmp_path / "missing.toml")), "not found")):
+        for bad, match in (
+            (dict(ladder_spp=1), "ladder_spp"),
+            (dict(frames=10_000), "frames"),
+            (dict(alphas=(float("nan"),)), "alphas"),
+            (dict(workers=0), "workers"),
+            (dict(scene=str(tmp_path / "missing.toml")), "not found"),
+        ):
             with pytest.raises(ValueError, match=match):
                 run_experiment(ExperimentConfig(out=str(out), **dict(SMALL, **bad)))
             assert not out.exists(), f"{bad}: a failed validation created --out"
@@ -224,8 +241,17 @@ class TestRenderTasks:
     def ctx(tmp_path, **kw):
         from stereorepro.workflows.experiment.inputs import RenderContext, RenderSpec
 
-        spec = dict(scene="living_room", width=40, height=24, seed=3, ladder_spp=5, reference_spp=8,
-                    reference_chunk_spp=8, base_key=json.dumps({"t": 1}), cache_dir=str(tmp_path))
+        spec = dict(
+            scene="living_room",
+            width=40,
+            height=24,
+            seed=3,
+            ladder_spp=5,
+            reference_spp=8,
+            reference_chunk_spp=8,
+            base_key=json.dumps({"t": 1}),
+            cache_dir=str(tmp_path),
+        )
         spec.update(kw)
         return RenderContext(RenderSpec(**spec))
 
@@ -263,8 +289,10 @@ class TestRenderTasks:
         ctx = self.ctx(tmp_path, reference_spp=8, reference_chunk_spp=2)
         assert reference_prefixes(ctx.spec) == [2, 4, 8]
         cam, _ = ctx.camera(0, 1)
-        chunks = [ctx.tracer.render(cam, 0, 2, sample_offset=REFERENCE_OFFSET + 2 * i, eye=1,
-                                    gbuffers=False).radiance for i in range(4)]
+        chunks = [
+            ctx.tracer.render(cam, 0, 2, sample_offset=REFERENCE_OFFSET + 2 * i, eye=1, gbuffers=False).radiance
+            for i in range(4)
+        ]
         want = ((chunks[0].double() + chunks[1].double() + chunks[2].double() + chunks[3].double()) / 4).float()
         got, _ = reference(ctx, 0, 1)
         assert torch.equal(got, want)
@@ -287,8 +315,9 @@ class TestRenderTasks:
         for p in ("4", "8"):
             assert all(v["avg"] > 0 for v in study[p].values())
         # the same run without chunking: another reference value (another key), the same kind of tables
-        plain = run_experiment(ExperimentConfig(out=str(tmp_path / "plain"), cache_dir=str(tmp_path / "cache"),
-                                                **dict(SMALL, frames=2)))
+        plain = run_experiment(
+            ExperimentConfig(out=str(tmp_path / "plain"), cache_dir=str(tmp_path / "cache"), **dict(SMALL, frames=2))
+        )
         assert plain["reference_study"] is None and plain["cache"]["misses"] > 0
         fp = res["cache"]
         H, W = SMALL["height"], SMALL["width"]
@@ -307,10 +336,13 @@ class TestRenderTasks:
         assert len(warn) == 1 and "MiB per eye and frame" in warn[0]
 
     def test_chunk_and_scheduler_exceptions(self, tmp_path):
-        for bad, match in ((dict(reference_chunk_spp=3), "reference_chunk_spp"),
-                           (dict(reference_chunk_spp=0), "reference_chunk_spp"),
-                           (dict(scheduler="local:0"), "scheduler"), (dict(scheduler="udp://x:1"), "scheduler"),
-                           (dict(scheduler="tcp://host"), "scheduler")):
+        for bad, match in (
+            (dict(reference_chunk_spp=3), "reference_chunk_spp"),
+            (dict(reference_chunk_spp=0), "reference_chunk_spp"),
+            (dict(scheduler="local:0"), "scheduler"),
+            (dict(scheduler="udp://x:1"), "scheduler"),
+            (dict(scheduler="tcp://host"), "scheduler"),
+        ):
             with pytest.raises(ValueError, match=match):
                 run_experiment(ExperimentConfig(out=str(tmp_path / "x"), **dict(SMALL, **bad)))
             assert not (tmp_path / "x").exists()
@@ -319,8 +351,7 @@ class TestRenderTasks:
         """With jitter the schemes read the jittered cameras' G-buffers and centre samples; ladders and references
         are the unjittered run's (shared cache entries)."""
         out, res = first_run
-        jit = run_experiment(ExperimentConfig(out=str(tmp_path), cache_dir=str(out / "cache"), jitter=True,
-                                              **SMALL))
+        jit = run_experiment(ExperimentConfig(out=str(tmp_path), cache_dir=str(out / "cache"), jitter=True, **SMALL))
         n = SMALL["frames"] * 2
         assert jit["cache"]["misses"] == 2 * n  # only the jittered G-buffer and sample of each eye-frame are new
         assert jit["jitter"] and not res["jitter"]
@@ -331,11 +362,26 @@ class TestRenderTasks:
         assert mid and all(r["masked_trace_matches"] for r in mid)  # the left fill traces the jittered centres
         from stereorepro.workflows.experiment.inputs import RenderSpec, eye_tasks
 
-        spec = RenderSpec(scene="x", width=8, height=8, seed=0, ladder_spp=2, reference_spp=4, reference_chunk_spp=2,
-                          base_key="{}", cache_dir=str(tmp_path), jitter=True)
-        assert [t[0] for t in eye_tasks(spec, 3, 1)] == ["gbuffer_task", "reference_chunk_task",
-                                                         "reference_chunk_task", "ladder_task", "jitter_gbuffer_task",
-                                                         "jitter_sample_task"]
+        spec = RenderSpec(
+            scene="x",
+            width=8,
+            height=8,
+            seed=0,
+            ladder_spp=2,
+            reference_spp=4,
+            reference_chunk_spp=2,
+            base_key="{}",
+            cache_dir=str(tmp_path),
+            jitter=True,
+        )
+        assert [t[0] for t in eye_tasks(spec, 3, 1)] == [
+            "gbuffer_task",
+            "reference_chunk_task",
+            "reference_chunk_task",
+            "ladder_task",
+            "jitter_gbuffer_task",
+            "jitter_sample_task",
+        ]
         assert eye_tasks(spec, 3, 1)[-1][2]["jitter"] != eye_tasks(spec, 4, 1)[-1][2]["jitter"]
 
     def test_blend_and_alternate_schemes(self, first_run):

@@ -44,8 +44,9 @@ class TestReprojectCli:
         assert main(["reproject", "--input", str(seq_dir), "--out", str(out)]) == 0
         assert "mean discarded" in capsys.readouterr().out
         names = _frames(out)
-        assert names == sorted([f"{i:04d}_{e}_reprojected.exr" for i in range(N) for e in ("left", "right")]
-                               + ["summary.json"])
+        assert names == sorted(
+            [f"{i:04d}_{e}_reprojected.exr" for i in range(N) for e in ("left", "right")] + ["summary.json"]
+        )
         ch = read_exr(out / "0001_left_reprojected.exr")
         assert set(ch) == {"R", "G", "B", "valid", "reason", "history_len"}
         assert ch["R"].shape == (H, W)
@@ -56,8 +57,11 @@ class TestReprojectCli:
         assert summary["position_threshold"] == pytest.approx(0.05 * 180 / H)
 
     def test_cardinality(self, seq_dir, tmp_path):
-        for mode, eye, want in (("stereo", None, {"left"}), ("temporal", "both", {"left", "right"}),
-                                ("temporal", None, {"right"})):
+        for mode, eye, want in (
+            ("stereo", None, {"left"}),
+            ("temporal", "both", {"left", "right"}),
+            ("temporal", None, {"right"}),
+        ):
             out = tmp_path / f"{mode}{eye}"
             args = ["reproject", "--input", str(seq_dir), "--out", str(out), "--mode", mode, "--quiet"]
             assert main(args + (["--eye", eye] if eye else [])) == 0
@@ -71,8 +75,9 @@ class TestReprojectCli:
         reproject_sequence(seq_dir, out, "stereo", position_threshold=0.4, normal_threshold=0.3)
         seq = load_sequence(seq_dir)
         L, R = read_frame(seq, 1, "left"), read_frame(seq, 1, "right")
-        color, valid, reason = StereoReprojection(0.4, 0.3)(R.color, R.depth, R.normal, R.K, R.cam_from_world,
-                                                             L.depth, L.normal, L.K, L.cam_from_world)
+        color, valid, reason = StereoReprojection(0.4, 0.3)(
+            R.color, R.depth, R.normal, R.K, R.cam_from_world, L.depth, L.normal, L.K, L.cam_from_world
+        )
         ch = read_exr(out / "0001_left_reprojected.exr")
         np.testing.assert_array_equal(np.stack([ch["R"], ch["G"], ch["B"]]), color[0].numpy())
         np.testing.assert_array_equal(ch["valid"], valid[0, 0].float().numpy())
@@ -194,8 +199,10 @@ class TestReprojectCliExceptions:
         err = self._fails(capsys, work_dir, tmp_path / "o")
         assert "0001_left.exr" in err and "missing" in err
         # temporal on the right eye alone does not need the left files
-        assert main(["reproject", "--input", str(work_dir), "--out", str(tmp_path / "r"), "--mode", "temporal",
-                     "--quiet"]) == 0
+        assert (
+            main(["reproject", "--input", str(work_dir), "--out", str(tmp_path / "r"), "--mode", "temporal", "--quiet"])
+            == 0
+        )
 
     def test_options(self, work_dir, tmp_path, capsys):
         cams = work_dir / "cameras.json"
@@ -206,13 +213,29 @@ class TestReprojectCliExceptions:
         assert "--position-threshold is required" in err
         err = self._fails(capsys, work_dir, tmp_path / "o", "--position-threshold", "0.1", "--eye", "left")
         assert "--eye applies to --mode temporal" in err
-        assert main(["reproject", "--input", str(work_dir), "--out", str(tmp_path / "o"), "--quiet",
-                     "--position-threshold", "0.1", "--normal-threshold", "0.2"]) == 0
+        assert (
+            main(
+                [
+                    "reproject",
+                    "--input",
+                    str(work_dir),
+                    "--out",
+                    str(tmp_path / "o"),
+                    "--quiet",
+                    "--position-threshold",
+                    "0.1",
+                    "--normal-threshold",
+                    "0.2",
+                ]
+            )
+            == 0
+        )
         # 0.1 is too tight for 18 rows (the scene's 0.05 scaled to this height is 0.28): warned, not silent
         assert "and the thresholds" in capsys.readouterr().err
         assert main(["reproject", "--input", str(work_dir), "--out", str(tmp_path / "x"), "--alpha", "-1"]) == 2
         assert capsys.readouterr().err.strip().splitlines() == [
-            "stereorepro reproject: error: argument --alpha: expected a positive number, got '-1'"]
+            "stereorepro reproject: error: argument --alpha: expected a positive number, got '-1'"
+        ]
         with pytest.raises(SequenceError, match="not a directory"):
             load_sequence(tmp_path / "nope")
 
@@ -246,8 +269,24 @@ class TestReprojectCliExceptions:
 class TestExportSequence:
     def test_smoke(self, tmp_path, capsys):
         out = tmp_path / "seq"
-        assert main(["export-sequence", "--scene", "atrium", "--frames", "2", "--stride", "5",
-                     "--resolution", "16x9", "--out", str(out)]) == 0
+        assert (
+            main(
+                [
+                    "export-sequence",
+                    "--scene",
+                    "atrium",
+                    "--frames",
+                    "2",
+                    "--stride",
+                    "5",
+                    "--resolution",
+                    "16x9",
+                    "--out",
+                    str(out),
+                ]
+            )
+            == 0
+        )
         doc = json.loads((out / "cameras.json").read_text())
         assert doc["meta"]["scene_frames"] == [0, 5] and len(doc["frames"]) == 2
         ch = read_exr(out / "0001_right.exr")
@@ -262,8 +301,22 @@ class TestExportSequence:
 
     def test_exceptions(self, tmp_path, capsys):
         assert main(["export-sequence", "--scene", "nope", "--out", str(tmp_path / "a")]) == 2
-        assert main(["export-sequence", "--scene", "atrium", "--frames", "7", "--stride", "10",
-                     "--out", str(tmp_path / "a")]) == 2
+        assert (
+            main(
+                [
+                    "export-sequence",
+                    "--scene",
+                    "atrium",
+                    "--frames",
+                    "7",
+                    "--stride",
+                    "10",
+                    "--out",
+                    str(tmp_path / "a"),
+                ]
+            )
+            == 2
+        )
         assert "exceed" in capsys.readouterr().err
 
 
@@ -273,8 +326,9 @@ class TestMotionChannels:
 
     @pytest.fixture(scope="class")
     def moving_dir(self, tmp_path_factory):
-        return export_sequence("living_room_moving_objects", [20, 21, 22, 23], 64, 36,
-                               tmp_path_factory.mktemp("mseq"), spp=1, seed=1)
+        return export_sequence(
+            "living_room_moving_objects", [20, 21, 22, 23], 64, 36, tmp_path_factory.mktemp("mseq"), spp=1, seed=1
+        )
 
     def test_export_writes_motion_from_the_second_frame(self, moving_dir, seq_dir):
         assert "M.X" not in read_exr(moving_dir / "0000_left.exr")
@@ -348,13 +402,17 @@ class TestConcurrentRuns:
 
         bad = work_dir / f"{N - 1:04d}_right.exr"
         data = bytearray(bad.read_bytes())
-        data[len(data) // 2:] = bytes(len(data) - len(data) // 2)
+        data[len(data) // 2 :] = bytes(len(data) - len(data) // 2)
         bad.write_bytes(bytes(data))
         out, b_staged, a_done = tmp_path / "out", tmp_path / "b_staged", tmp_path / "a_done"
 
         def run(inp, role, signal, wait_for):
-            return subprocess.Popen([sys.executable, "-c", GATED_RUN, str(inp), str(out), role, str(signal),
-                                     str(wait_for)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            return subprocess.Popen(
+                [sys.executable, "-c", GATED_RUN, str(inp), str(out), role, str(signal), str(wait_for)],
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+            )
 
         a = run(work_dir, "fail", tmp_path / "unused", b_staged)
         t = time.time()
@@ -367,8 +425,7 @@ class TestConcurrentRuns:
         _, b_err = b.communicate(timeout=180)
         assert a.returncode == 2 and len(a_err.strip().splitlines()) == 1 and bad.name in a_err, a_err
         assert b.returncode == 0, b_err
-        names = sorted([f"{i:04d}_{e}_reprojected.exr" for i in range(N) for e in ("left", "right")]
-                       + ["summary.json"])
+        names = sorted([f"{i:04d}_{e}_reprojected.exr" for i in range(N) for e in ("left", "right")] + ["summary.json"])
         assert _frames(out) == names
         reference = tmp_path / "reference"
         reproject_sequence(seq_dir, reference, "both")
@@ -386,7 +443,14 @@ class TestExportReplaces:
         assert main(common + ["--frames", "3"]) == 0
         (out / "notes.txt").write_text("the user's")
         assert main(common + ["--frames", "2"]) == 0
-        assert _frames(out) == ["0000_left.exr", "0000_right.exr", "0001_left.exr", "0001_right.exr",
-                                "cameras.json", "notes.txt"]
-        assert main(["reproject", "--input", str(out), "--out", str(tmp_path / "o"), "--quiet"]) == 0, \
+        assert _frames(out) == [
+            "0000_left.exr",
+            "0000_right.exr",
+            "0001_left.exr",
+            "0001_right.exr",
+            "cameras.json",
+            "notes.txt",
+        ]
+        assert main(["reproject", "--input", str(out), "--out", str(tmp_path / "o"), "--quiet"]) == 0, (
             capsys.readouterr().err
+        )

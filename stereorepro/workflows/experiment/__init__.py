@@ -45,5 +45,15 @@ from .config import REFERENCE_OFFSET, SCHEMES, THRESHOLD_ROWS, ExperimentConfig,
 from .report import cost_markdown, tables_markdown
 from .run import ExperimentResults, run_experiment
 
-__all__ = ["ExperimentConfig", "ExperimentResults", "run_experiment", "REFERENCE_OFFSET", "SCHEMES", "Scheme",
-           "THRESHOLD_ROWS", "RenderCache", "tables_markdown", "cost_markdown"]
+__all__ = [
+    "ExperimentConfig",
+    "ExperimentResults",
+    "run_experiment",
+    "REFERENCE_OFFSET",
+    "SCHEMES",
+    "Scheme",
+    "THRESHOLD_ROWS",
+    "RenderCache",
+    "tables_markdown",
+    "cost_markdown",
+]

@@ -10,9 +10,22 @@ from ..._checks import check_backend_env, check_resolution
 from ...camera import DEFAULT_RESOLUTION, Eye
 from ...scenes import THRESHOLD_ROWS
 
-__all__ = ["REFERENCE_OFFSET", "THRESHOLD_ROWS", "LEFT", "RIGHT", "METRICS", "Scheme", "SCHEMES", "MOTION_SCHEMES",
-           "ExperimentConfig", "schemes", "validate_config", "metric_image", "MIN_REFERENCE_SPP",
-           "EXPERIMENT_BYTES_PER_PIXEL"]
+__all__ = [
+    "REFERENCE_OFFSET",
+    "THRESHOLD_ROWS",
+    "LEFT",
+    "RIGHT",
+    "METRICS",
+    "Scheme",
+    "SCHEMES",
+    "MOTION_SCHEMES",
+    "ExperimentConfig",
+    "schemes",
+    "validate_config",
+    "metric_image",
+    "MIN_REFERENCE_SPP",
+    "EXPERIMENT_BYTES_PER_PIXEL",
+]
 
 #: First sample index of reference renders (ladders use 0..L-1: disjoint streams).
 REFERENCE_OFFSET = 1 << 24
@@ -187,6 +200,7 @@ def validate_config(cfg: ExperimentConfig) -> None:
         ...     print(e)
         ladder_spp must be an integer >= 2, got 1
     """
+
     def need(ok: bool, what: str) -> None:
         if not ok:
             raise ValueError(what)
@@ -195,28 +209,48 @@ def validate_config(cfg: ExperimentConfig) -> None:
         return isinstance(x, int) and not isinstance(x, bool)
 
     need(cfg.metric in ("hdr", "ldr"), f"metric must be 'hdr' or 'ldr', got {cfg.metric!r}")
-    need(is_int(cfg.width) and is_int(cfg.height) and cfg.width >= 1 and cfg.height >= 1,
-         f"resolution must be positive integers, got {cfg.width}x{cfg.height}")
+    need(
+        is_int(cfg.width) and is_int(cfg.height) and cfg.width >= 1 and cfg.height >= 1,
+        f"resolution must be positive integers, got {cfg.width}x{cfg.height}",
+    )
     need(is_int(cfg.ladder_spp) and cfg.ladder_spp >= 2, f"ladder_spp must be an integer >= 2, got {cfg.ladder_spp}")
-    need(is_int(cfg.reference_spp) and cfg.reference_spp >= cfg.ladder_spp,
-         f"reference_spp must be an integer >= ladder_spp ({cfg.ladder_spp}), got {cfg.reference_spp}")
-    need(cfg.reference_chunk_spp is None or (is_int(cfg.reference_chunk_spp) and cfg.reference_chunk_spp >= 1
-                                             and cfg.reference_spp % cfg.reference_chunk_spp == 0),
-         f"reference_chunk_spp must be a positive integer dividing reference_spp ({cfg.reference_spp}), "
-         f"got {cfg.reference_chunk_spp}")
-    need(cfg.scheduler is None or (isinstance(cfg.scheduler, str) and _scheduler_ok(cfg.scheduler)),
-         f"scheduler must be 'local:N' (N >= 1) or 'tcp://HOST:PORT' (PORT in 1..65535), got {cfg.scheduler!r}")
+    need(
+        is_int(cfg.reference_spp) and cfg.reference_spp >= cfg.ladder_spp,
+        f"reference_spp must be an integer >= ladder_spp ({cfg.ladder_spp}), got {cfg.reference_spp}",
+    )
+    need(
+        cfg.reference_chunk_spp is None
+        or (
+            is_int(cfg.reference_chunk_spp)
+            and cfg.reference_chunk_spp >= 1
+            and cfg.reference_spp % cfg.reference_chunk_spp == 0
+        ),
+        f"reference_chunk_spp must be a positive integer dividing reference_spp ({cfg.reference_spp}), "
+        f"got {cfg.reference_chunk_spp}",
+    )
+    need(
+        cfg.scheduler is None or (isinstance(cfg.scheduler, str) and _scheduler_ok(cfg.scheduler)),
+        f"scheduler must be 'local:N' (N >= 1) or 'tcp://HOST:PORT' (PORT in 1..65535), got {cfg.scheduler!r}",
+    )
     _check_ladder_noise(cfg)
-    need(cfg.frames is None or (is_int(cfg.frames) and cfg.frames >= 1),
-         f"frames must be an integer >= 1, got {cfg.frames}")
-    need(cfg.workers is None or (is_int(cfg.workers) and cfg.workers >= 1),
-         f"workers must be an integer >= 1, got {cfg.workers}")
+    need(
+        cfg.frames is None or (is_int(cfg.frames) and cfg.frames >= 1),
+        f"frames must be an integer >= 1, got {cfg.frames}",
+    )
+    need(
+        cfg.workers is None or (is_int(cfg.workers) and cfg.workers >= 1),
+        f"workers must be an integer >= 1, got {cfg.workers}",
+    )
     need(is_int(cfg.seed), f"seed must be an integer, got {cfg.seed!r}")
     for a in cfg.alphas:
-        need(isinstance(a, (int, float)) and math.isfinite(a) and 0.0 < a <= 1.0,
-             f"alphas must be numbers in (0, 1], got {a!r}")
-    need(cfg.threshold_scale is None or (math.isfinite(cfg.threshold_scale) and cfg.threshold_scale > 0),
-         f"threshold_scale must be a positive number, got {cfg.threshold_scale!r}")
+        need(
+            isinstance(a, (int, float)) and math.isfinite(a) and 0.0 < a <= 1.0,
+            f"alphas must be numbers in (0, 1], got {a!r}",
+        )
+    need(
+        cfg.threshold_scale is None or (math.isfinite(cfg.threshold_scale) and cfg.threshold_scale > 0),
+        f"threshold_scale must be a positive number, got {cfg.threshold_scale!r}",
+    )
     for name, value in (("out", cfg.out), ("cache_dir", cfg.cache_dir)):
         if value is not None:
             p = Path(value)
@@ -229,19 +263,23 @@ def _check_ladder_noise(cfg: ExperimentConfig) -> None:
     """ValueError naming the option when a reference the ladder is scored against (the reference, and with chunks
     each power-of-two chunk prefix, the smallest being ``reference_chunk_spp``) has fewer than
     :data:`MIN_REFERENCE_SPP` samples."""
-    for name, p in (("reference_spp (--reference-spp)", cfg.reference_spp),
-                    ("reference_chunk_spp (--reference-chunk-spp)", cfg.reference_chunk_spp)):
+    for name, p in (
+        ("reference_spp (--reference-spp)", cfg.reference_spp),
+        ("reference_chunk_spp (--reference-chunk-spp)", cfg.reference_chunk_spp),
+    ):
         if p is not None and p < MIN_REFERENCE_SPP:
-            raise ValueError(f"{name} must be >= {MIN_REFERENCE_SPP}, got {p}: the ladder is scored against a "
-                             f"{p}-spp reference, whose own noise (and, under the ldr metric, the clamp of a noisy "
-                             "sample) keeps the ladder's error from decreasing, and effective spp needs it to")
+            raise ValueError(
+                f"{name} must be >= {MIN_REFERENCE_SPP}, got {p}: the ladder is scored against a "
+                f"{p}-spp reference, whose own noise (and, under the ldr metric, the clamp of a noisy "
+                "sample) keeps the ladder's error from decreasing, and effective spp needs it to"
+            )
 
 
 def _scheduler_ok(s: str) -> bool:
     if s.startswith("local:"):
-        n = s[len("local:"):]
+        n = s[len("local:") :]
         return n.isdigit() and int(n) >= 1
     if s.startswith("tcp://"):
-        host, _, port = s[len("tcp://"):].rpartition(":")
+        host, _, port = s[len("tcp://") :].rpartition(":")
         return bool(host) and port.isdigit() and 1 <= int(port) <= 65535
     return False

@@ -29,11 +29,27 @@ from dataclasses import dataclass, replace
 from ..._extras import require
 from ...errors import StereoreproError
 from .cache import RenderCache, code_version
-from .inputs import (RenderSpec, eye_tasks, gbuffer_task, jitter_gbuffer_task, jitter_sample_task, ladder_task,
-                     reference_chunk_task, worker_context)
+from .inputs import (
+    RenderSpec,
+    eye_tasks,
+    gbuffer_task,
+    jitter_gbuffer_task,
+    jitter_sample_task,
+    ladder_task,
+    reference_chunk_task,
+    worker_context,
+)
 
-__all__ = ["render_all", "run_task", "connect", "open_cluster", "Cluster", "task_key", "ClusterError",
-           "CONNECT_TIMEOUT"]
+__all__ = [
+    "render_all",
+    "run_task",
+    "connect",
+    "open_cluster",
+    "Cluster",
+    "task_key",
+    "ClusterError",
+    "CONNECT_TIMEOUT",
+]
 
 #: How long the client waits for a ``tcp://`` scheduler.
 CONNECT_TIMEOUT = "30s"
@@ -52,8 +68,14 @@ class ClusterError(StereoreproError, RuntimeError):
         ClusterError True
     """
 
-_TASKS = {"gbuffer_task": gbuffer_task, "reference_chunk_task": reference_chunk_task, "ladder_task": ladder_task,
-          "jitter_gbuffer_task": jitter_gbuffer_task, "jitter_sample_task": jitter_sample_task}
+
+_TASKS = {
+    "gbuffer_task": gbuffer_task,
+    "reference_chunk_task": reference_chunk_task,
+    "ladder_task": ladder_task,
+    "jitter_gbuffer_task": jitter_gbuffer_task,
+    "jitter_sample_task": jitter_sample_task,
+}
 
 
 @functools.lru_cache(maxsize=1)
@@ -89,8 +111,10 @@ def run_task(spec: RenderSpec, name: str, args: tuple, *deps) -> str:
     """
     own = _own_code()
     if spec.client_code and own != spec.client_code:
-        raise RuntimeError(f"worker {socket.gethostname()} (pid {os.getpid()}) runs renderer code {own}, the client "
-                           f"{spec.client_code}: install the same stereorepro version on every worker")
+        raise RuntimeError(
+            f"worker {socket.gethostname()} (pid {os.getpid()}) runs renderer code {own}, the client "
+            f"{spec.client_code}: install the same stereorepro version on every worker"
+        )
     ctx = worker_context(spec)
     _TASKS[name](ctx, *args)
     return name
@@ -127,8 +151,9 @@ def connect(scheduler: str):
     distributed = require("distributed", "--scheduler (Dask)")
     Client, LocalCluster = distributed.Client, distributed.LocalCluster
     if scheduler.startswith("local:"):
-        cluster = LocalCluster(n_workers=int(scheduler.split(":", 1)[1]), threads_per_worker=1, processes=True,
-                               dashboard_address=":0")
+        cluster = LocalCluster(
+            n_workers=int(scheduler.split(":", 1)[1]), threads_per_worker=1, processes=True, dashboard_address=":0"
+        )
         return Client(cluster), cluster
     try:
         return Client(scheduler, timeout=CONNECT_TIMEOUT), None
@@ -180,16 +205,19 @@ def open_cluster(scheduler: str) -> Cluster:
         bad = {w: v for w, v in versions.items() if v != own}
         if bad:
             w, v = next(iter(bad.items()))
-            raise ClusterError(f"worker {w} runs renderer code {v}, this client {own}: install the same stereorepro "
-                               f"version on every worker ({len(bad)} of {len(versions)} differ)")
+            raise ClusterError(
+                f"worker {w} runs renderer code {v}, this client {own}: install the same stereorepro "
+                f"version on every worker ({len(bad)} of {len(versions)} differ)"
+            )
     except BaseException:
         Cluster(scheduler, client, local, 0).close()
         raise
     return Cluster(scheduler, client, local, len(versions))
 
 
-def render_all(spec: RenderSpec, frames, scheduler: str | Cluster, force: bool = False, progress: bool = True,
-               log=print) -> dict:
+def render_all(
+    spec: RenderSpec, frames, scheduler: str | Cluster, force: bool = False, progress: bool = True, log=print
+) -> dict:
     """Render every input of ``frames`` (both eyes) on the cluster ``scheduler`` (a ``"local:N"`` /
     ``"tcp://HOST:PORT"`` address, or a :class:`Cluster` from :func:`open_cluster`, closed here) into
     ``spec.cache_dir``.
@@ -237,8 +265,9 @@ def render_all(spec: RenderSpec, frames, scheduler: str | Cluster, force: bool =
                         path.unlink()
                     cached += path.exists()
                     deps = chunk_futures if name == "ladder_task" else []
-                    fut = client.submit(run_task, spec, name, args, *deps, key=task_key(cache, name, key),
-                                        retries=3, pure=False)
+                    fut = client.submit(
+                        run_task, spec, name, args, *deps, key=task_key(cache, name, key), retries=3, pure=False
+                    )
                     if name == "reference_chunk_task":
                         chunk_futures.append(fut)
                     futures.append(fut)
@@ -248,9 +277,15 @@ def render_all(spec: RenderSpec, frames, scheduler: str | Cluster, force: bool =
             bar.update(1)
         bar.close()
         wall = time.perf_counter() - t0
-        log(f"distributed: {len(futures)} render tasks ({cached} already cached) on {n_workers} workers "
-            f"in {wall:.1f} s")
-        return {"scheduler": cl.scheduler, "workers": n_workers, "tasks": len(futures), "cached": cached,
-                "wall_s": wall}
+        log(
+            f"distributed: {len(futures)} render tasks ({cached} already cached) on {n_workers} workers in {wall:.1f} s"
+        )
+        return {
+            "scheduler": cl.scheduler,
+            "workers": n_workers,
+            "tasks": len(futures),
+            "cached": cached,
+            "wall_s": wall,
+        }
     finally:
         cl.close()

@@ -39,10 +39,24 @@ from ...measure.metrics import rmse
 from .cache import RenderCache
 from .config import METRICS, REFERENCE_OFFSET, metric_image
 
-__all__ = ["EyeData", "RenderSpec", "RenderContext", "render_eye", "gbuffer_task", "reference_chunk_task",
-           "ladder_task", "jitter_gbuffer_task", "jitter_sample_task", "reference", "reference_prefixes", "eye_tasks",
-           "worker_context", "estimate_cache_bytes", "spec_for",
-           "cache_footprint"]
+__all__ = [
+    "EyeData",
+    "RenderSpec",
+    "RenderContext",
+    "render_eye",
+    "gbuffer_task",
+    "reference_chunk_task",
+    "ladder_task",
+    "jitter_gbuffer_task",
+    "jitter_sample_task",
+    "reference",
+    "reference_prefixes",
+    "eye_tasks",
+    "worker_context",
+    "estimate_cache_bytes",
+    "spec_for",
+    "cache_footprint",
+]
 
 
 @dataclass(frozen=True)
@@ -109,12 +123,22 @@ def spec_for(cfg, scene, cache_dir: Path) -> RenderSpec:
 
     code = cfg.renderer_version or code_version()
     base_key = {"scene": scene_fingerprint(scene), "code": code, "seed": cfg.seed, "w": cfg.width, "h": cfg.height}
-    return RenderSpec(scene=cfg.scene, width=cfg.width, height=cfg.height, seed=cfg.seed, ladder_spp=cfg.ladder_spp,
-                      reference_spp=cfg.reference_spp,
-                      reference_chunk_spp=cfg.reference_chunk_spp or cfg.reference_spp,
-                      base_key=json.dumps(base_key, sort_keys=True), cache_dir=str(Path(cache_dir).resolve()),
-                      workers=cfg.workers, moving="moving_objects" in scene.effects, client_code=code_version(),
-                      jitter=bool(cfg.jitter), torch_threads=torch.get_num_threads())
+    return RenderSpec(
+        scene=cfg.scene,
+        width=cfg.width,
+        height=cfg.height,
+        seed=cfg.seed,
+        ladder_spp=cfg.ladder_spp,
+        reference_spp=cfg.reference_spp,
+        reference_chunk_spp=cfg.reference_chunk_spp or cfg.reference_spp,
+        base_key=json.dumps(base_key, sort_keys=True),
+        cache_dir=str(Path(cache_dir).resolve()),
+        workers=cfg.workers,
+        moving="moving_objects" in scene.effects,
+        client_code=code_version(),
+        jitter=bool(cfg.jitter),
+        torch_threads=torch.get_num_threads(),
+    )
 
 
 def reference_prefixes(spec: RenderSpec) -> list[int]:
@@ -267,8 +291,9 @@ def jitter_gbuffer_task(ctx: RenderContext, frame: int, eye: int):
         (['depth', 'normal'], (1, 3, 6, 8))
         >>> tmp.cleanup()
     """
-    return _gbuffer_entry(ctx, _jitter_key(ctx, frame, eye, "gbuffer_jitter"), frame,
-                          *ctx.camera(frame, eye, jittered=True))
+    return _gbuffer_entry(
+        ctx, _jitter_key(ctx, frame, eye, "gbuffer_jitter"), frame, *ctx.camera(frame, eye, jittered=True)
+    )
 
 
 def jitter_sample_task(ctx: RenderContext, frame: int, eye: int):
@@ -326,8 +351,9 @@ def reference_chunk_task(ctx: RenderContext, frame: int, eye: int, i: int):
     c = ctx.spec.reference_chunk_spp
 
     def make():
-        r = ctx.tracer.render(cam, frame, c, sample_offset=REFERENCE_OFFSET + i * c, eye=eye, gbuffers=False,
-                              progress=False)
+        r = ctx.tracer.render(
+            cam, frame, c, sample_offset=REFERENCE_OFFSET + i * c, eye=eye, gbuffers=False, progress=False
+        )
         return {"radiance": r.radiance.numpy()}, {"ms": r.time_s * 1e3, "rays": r.ray_counts}
 
     return ctx.cache.get_or_make(_chunk_key(ctx, frame, eye, i), make)
@@ -366,8 +392,14 @@ def reference(ctx: RenderContext, frame: int, eye: int, spp: int | None = None) 
 
 def _ladder_key(ctx: RenderContext, frame: int, eye: int) -> dict:
     s = ctx.spec
-    return ctx.key(frame, eye, kind="ladder", ladder_spp=s.ladder_spp, reference_spp=s.reference_spp,
-                   reference_chunk_spp=s.reference_chunk_spp)
+    return ctx.key(
+        frame,
+        eye,
+        kind="ladder",
+        ladder_spp=s.ladder_spp,
+        reference_spp=s.reference_spp,
+        reference_chunk_spp=s.reference_chunk_spp,
+    )
 
 
 def ladder_task(ctx: RenderContext, frame: int, eye: int):
@@ -416,8 +448,12 @@ def ladder_task(ctx: RenderContext, frame: int, eye: int):
                 img = _Scored(metric_image(rung, m))
                 for p, ref in enumerate(scored[m]):
                     err[m][p, s] = img.rmse(ref)
-        data = {"first": first.numpy(), "top": rung.numpy(), "prefix_spp": np.asarray(prefixes, np.int64),
-                **{f"rmse_{m}": err[m] for m in METRICS}}
+        data = {
+            "first": first.numpy(),
+            "top": rung.numpy(),
+            "prefix_spp": np.asarray(prefixes, np.int64),
+            **{f"rmse_{m}": err[m] for m in METRICS},
+        }
         return data, {"ms": float(np.sum(times)), "ms_per_spp": float(np.mean(times))}
 
     return ctx.cache.get_or_make(_ladder_key(ctx, frame, eye), make)
@@ -471,12 +507,15 @@ def eye_tasks(spec: RenderSpec, frame: int, eye: int) -> list[tuple[str, tuple, 
     """
     ctx_free = _KeyOnly(spec)
     tasks = [("gbuffer_task", (frame, eye), _gbuffer_key(ctx_free, frame, eye))]
-    tasks += [("reference_chunk_task", (frame, eye, i), _chunk_key(ctx_free, frame, eye, i))
-              for i in range(spec.chunks)]
+    tasks += [
+        ("reference_chunk_task", (frame, eye, i), _chunk_key(ctx_free, frame, eye, i)) for i in range(spec.chunks)
+    ]
     tasks.append(("ladder_task", (frame, eye), _ladder_key(ctx_free, frame, eye)))
     if spec.jitter:
-        tasks += [(f"jitter_{k}_task", (frame, eye), _jitter_key(ctx_free, frame, eye, f"{k}_jitter"))
-                  for k in ("gbuffer", "sample")]
+        tasks += [
+            (f"jitter_{k}_task", (frame, eye), _jitter_key(ctx_free, frame, eye, f"{k}_jitter"))
+            for k in ("gbuffer", "sample")
+        ]
     return tasks
 
 
@@ -609,9 +648,21 @@ def render_eye(ctx: RenderContext, frame: int, eye: int) -> EyeData:
         g, gmeta = jitter_gbuffer_task(ctx, frame, eye)
         sample = torch.from_numpy(jitter_sample_task(ctx, frame, eye)[0]["radiance"])
     opt = {k: torch.from_numpy(g[k]) for k in ("motion", "motion_world", "object_id") if k in g}
-    return EyeData(torch.from_numpy(g["depth"]), torch.from_numpy(g["normal"]), cam.K.float(),
-                   cam.cam_from_world.double(), sample, torch.from_numpy(lad["top"]),
-                   {m: lad[f"rmse_{m}"][-1].tolist() for m in METRICS}, ref, lad["prefix_spp"].tolist(),
-                   {m: lad[f"rmse_{m}"] for m in METRICS}, gmeta["ms"], lmeta["ms_per_spp"], ms_ref, cam,
-                   "center" if jit else "box", **opt)
-
+    return EyeData(
+        torch.from_numpy(g["depth"]),
+        torch.from_numpy(g["normal"]),
+        cam.K.float(),
+        cam.cam_from_world.double(),
+        sample,
+        torch.from_numpy(lad["top"]),
+        {m: lad[f"rmse_{m}"][-1].tolist() for m in METRICS},
+        ref,
+        lad["prefix_spp"].tolist(),
+        {m: lad[f"rmse_{m}"] for m in METRICS},
+        gmeta["ms"],
+        lmeta["ms_per_spp"],
+        ms_ref,
+        cam,
+        "center" if jit else "box",
+        **opt,
+    )

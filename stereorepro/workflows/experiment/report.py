@@ -38,32 +38,47 @@ def tables_markdown(results: dict) -> str:
         '| box | 4.00 | 2.00 | 6.00 | 4.00 | 2.00 | 6.00 | 4.00 | 2.00 | 6.00 |'
     """
     t1, t2 = results["table1"], results["table2"]
-    lines = [f"**Table 1** — discarded pixels (%), {results['scene']}, {results['frames']} frames, "
-             f"{results['resolution']}", "", "| | Avg | Min | Max |", "|---|---:|---:|---:|"]
+    lines = [
+        f"**Table 1** — discarded pixels (%), {results['scene']}, {results['frames']} frames, {results['resolution']}",
+        "",
+        "| | Avg | Min | Max |",
+        "|---|---:|---:|---:|",
+    ]
     for k in ("stereo", "temporal"):
         lines.append(f"| {k} | {_fmt(t1[k]['avg'])} | {_fmt(t1[k]['min'])} | {_fmt(t1[k]['max'])} |")
-    lines += ["", f"**Table 2** — effective spp ({results.get('metric', 'hdr').upper()} RMSE, reference "
-              f"{results['reference_spp']} spp, ladder 1..."
-              f"{results['ladder_spp']} spp)", "",
-              "| | Stereo Avg | Min | Max | Temporal Avg | Min | Max | Stereo+temporal Avg | Min | Max |",
-              "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    lines += [
+        "",
+        f"**Table 2** — effective spp ({results.get('metric', 'hdr').upper()} RMSE, reference "
+        f"{results['reference_spp']} spp, ladder 1..."
+        f"{results['ladder_spp']} spp)",
+        "",
+        "| | Stereo Avg | Min | Max | Temporal Avg | Min | Max | Stereo+temporal Avg | Min | Max |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
     cells = []
     for k in ("stereo", "temporal", "stereo_temporal"):
         cells += [_fmt(t2[k]["avg"]), _fmt(t2[k]["min"]), _fmt(t2[k]["max"])]
     lines.append(f"| {results['scene']} | " + " | ".join(cells) + " |")
     warm = results.get("warmup_frames")
     if warm is not None and t2["stereo"].get("avg_after_warmup") is not None:
-        lines += ["", f"After warm-up (frames {warm}..{results['frames'] - 1}): "
-                  + ", ".join(f"{k} {_fmt(t2[k]['avg_after_warmup'])}" for k in ("stereo", "temporal",
-                                                                             "stereo_temporal"))
-                  + "; discards " + ", ".join(f"{k} {_fmt(t1[k].get('avg_after_warmup'))} %"
-                                             for k in ("stereo", "temporal"))]
+        lines += [
+            "",
+            f"After warm-up (frames {warm}..{results['frames'] - 1}): "
+            + ", ".join(f"{k} {_fmt(t2[k]['avg_after_warmup'])}" for k in ("stereo", "temporal", "stereo_temporal"))
+            + "; discards "
+            + ", ".join(f"{k} {_fmt(t1[k].get('avg_after_warmup'))} %" for k in ("stereo", "temporal")),
+        ]
     study = results.get("reference_study")
     if study:
         keys = list(next(iter(study.values())))
-        lines += ["", "**Reference spp** — the same images scored against references of fewer samples (prefixes of "
-                  "the run's reference) and ladders scored on each: effective spp (avg over frames)", "",
-                  "| reference spp | " + " | ".join(keys) + " |", "|---:|" + "---:|" * len(keys)]
+        lines += [
+            "",
+            "**Reference spp** — the same images scored against references of fewer samples (prefixes of "
+            "the run's reference) and ladders scored on each: effective spp (avg over frames)",
+            "",
+            "| reference spp | " + " | ".join(keys) + " |",
+            "|---:|" + "---:|" * len(keys),
+        ]
         for p, row in study.items():
             lines.append(f"| {p} | " + " | ".join(_fmt(row[k]["avg"]) for k in keys) + " |")
     if "moving_objects" in results:
@@ -75,16 +90,23 @@ def moving_markdown(results: dict) -> str:
     """Moving objects: temporal discards on the moving objects' pixels and on the static rest, and effective spp,
     with camera-only warping (the paper's) and with motion vectors."""
     mo, t2, var = results["moving_objects"], results["table2"], results["table2_variants"]
-    lines = [f"**Moving objects** — {_fmt(mo['moving_pixels_pct']['avg'], 1)} % of the right eye's pixels show "
-             "moving objects (avg); temporal discards (%, avg over frames) and effective spp (avg)", "",
-             "| warping | discards on moving objects | discards on static background | temporal spp | "
-             "stereo+temporal spp |", "|---|---:|---:|---:|---:|"]
-    for label, k, st in (("cameras only (paper)", "temporal", "stereo_temporal"),
-                         ("motion vectors", "temporal_mv", "stereo_temporal_mv")):
+    lines = [
+        f"**Moving objects** — {_fmt(mo['moving_pixels_pct']['avg'], 1)} % of the right eye's pixels show "
+        "moving objects (avg); temporal discards (%, avg over frames) and effective spp (avg)",
+        "",
+        "| warping | discards on moving objects | discards on static background | temporal spp | stereo+temporal spp |",
+        "|---|---:|---:|---:|---:|",
+    ]
+    for label, k, st in (
+        ("cameras only (paper)", "temporal", "stereo_temporal"),
+        ("motion vectors", "temporal_mv", "stereo_temporal_mv"),
+    ):
         spp_t = (t2 if k in t2 else var)[k]["avg"]
         spp_st = (t2 if st in t2 else var)[st]["avg"]
-        lines.append(f"| {label} | {_fmt(mo[k]['moving']['avg'], 1)} | {_fmt(mo[k]['static']['avg'], 1)} | "
-                     f"{_fmt(spp_t)} | {_fmt(spp_st)} |")
+        lines.append(
+            f"| {label} | {_fmt(mo[k]['moving']['avg'], 1)} | {_fmt(mo[k]['static']['avg'], 1)} | "
+            f"{_fmt(spp_t)} | {_fmt(spp_st)} |"
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -97,11 +119,15 @@ def cost_markdown(results: dict) -> str:
         >>> print(cost_markdown({"cost": cost}).splitlines()[-1])
         | stereo | 12.5 | 2.50 | 5.0 |
     """
-    lines = ["| scheme | ms / frame (evaluated eye) | effective spp (avg) | ms per effective spp |",
-             "|---|---:|---:|---:|"]
+    lines = [
+        "| scheme | ms / frame (evaluated eye) | effective spp (avg) | ms per effective spp |",
+        "|---|---:|---:|---:|",
+    ]
     for r in results["cost"]:
-        lines.append(f"| {r['scheme']} | {_fmt(r['ms'], 1)} | {_fmt(r['effective_spp'])} | "
-                     f"{_fmt(r['ms_per_effective_spp'], 1)} |")
+        lines.append(
+            f"| {r['scheme']} | {_fmt(r['ms'], 1)} | {_fmt(r['effective_spp'])} | "
+            f"{_fmt(r['ms_per_effective_spp'], 1)} |"
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -162,8 +188,11 @@ def _figure1(plt, results, per_frame, keep, cfg):
         return None
     panels = [("fig1_stereo", "(a) Stereo"), ("fig1_temporal", "(b) Temporal")]
     if "fig1_temporal_mv" in keep:  # moving objects: the temporal discards with motion vectors beside
-        panels = [("fig1_stereo", "(a) Stereo"), ("fig1_temporal", "(b) Temporal, cameras only"),
-                  ("fig1_temporal_mv", "(c) Temporal, motion vectors")]
+        panels = [
+            ("fig1_stereo", "(a) Stereo"),
+            ("fig1_temporal", "(b) Temporal, cameras only"),
+            ("fig1_temporal_mv", "(c) Temporal, motion vectors"),
+        ]
     fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 3.2))
     for ax, (key, title) in zip(axes, panels):
         if key in keep:
@@ -181,13 +210,21 @@ def _figure3(plt, results, per_frame, keep, cfg):
     fr = [r["frame"] for r in per_frame]
     rungs = [n for n in (1, 2, 8, 16) if n <= cfg.ladder_spp]
     greys = dict(zip(rungs, ("0.15", "0.35", "0.55", "0.75")))
-    panels = [(axes[0], "left", ("stereo", "stereo_temporal"), "(a) left eye"),
-              (axes[1], "right", ("temporal",), "(b) right eye")]
+    panels = [
+        (axes[0], "left", ("stereo", "stereo_temporal"), "(a) left eye"),
+        (axes[1], "right", ("temporal",), "(b) right eye"),
+    ]
     colours = {"stereo": "tab:blue", "stereo_temporal": "tab:red", "temporal": "tab:green"}
     for ax, eye, names, title in panels:
         for n in rungs:
-            ax.plot(fr, [r["ladder_rmse"][eye][n - 1] for r in per_frame], "--", lw=1, color=greys[n],
-                    label=f"path tracing, {n} spp")
+            ax.plot(
+                fr,
+                [r["ladder_rmse"][eye][n - 1] for r in per_frame],
+                "--",
+                lw=1,
+                color=greys[n],
+                label=f"path tracing, {n} spp",
+            )
         for k in names:
             ax.plot(fr, [r["rmse"][k] for r in per_frame], lw=2, color=colours[k], label=k.replace("_", " + "))
         ax.set_xlabel("frame")
@@ -198,8 +235,15 @@ def _figure3(plt, results, per_frame, keep, cfg):
     for ax in axes:  # one entry per label: the rungs appear in both panels
         for h, lab in zip(*ax.get_legend_handles_labels()):
             handles.setdefault(lab, h)
-    fig.legend(handles.values(), handles.keys(), loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=4, fontsize=8,
-               frameon=False)
+    fig.legend(
+        handles.values(),
+        handles.keys(),
+        loc="upper center",
+        bbox_to_anchor=(0.5, 0.0),
+        ncol=4,
+        fontsize=8,
+        frameon=False,
+    )
     fig.suptitle(f"{results['scene']}: framewise RMSE of the paper's schemes")
     fig.tight_layout()
     return fig, "fig3_rmse.png"
@@ -213,16 +257,20 @@ def _figure4(plt, results, per_frame, keep, cfg):
     k = keep["fig4"]
     scheme = next(s for s in SCHEMES if s.figure4)
     fig, axes = plt.subplots(1, 4, figsize=(14, 2.9))
-    panels = [("1 spp", k["one"]), (f"{cfg.reference_spp} spp reference", k["ref"]),
-              (f"{cfg.ladder_spp} spp", k["top"]),
-              (f"{scheme.name.replace('_', ' + ')}: {k['spp']:.2f} effective spp", k["method"])]
+    panels = [
+        ("1 spp", k["one"]),
+        (f"{cfg.reference_spp} spp reference", k["ref"]),
+        (f"{cfg.ladder_spp} spp", k["top"]),
+        (f"{scheme.name.replace('_', ' + ')}: {k['spp']:.2f} effective spp", k["method"]),
+    ]
     for ax, (t, img) in zip(axes, panels):
         ax.imshow(_tonemap(img))
         ax.set_title(t, fontsize=9)
         ax.axis("off")
     eye = "left" if scheme.eye == LEFT else "right"
-    fig.suptitle(f"{results['scene']}, frame {per_frame[-1]['frame']} (the last of {len(per_frame)}), {eye} eye",
-                 fontsize=10)
+    fig.suptitle(
+        f"{results['scene']}, frame {per_frame[-1]['frame']} (the last of {len(per_frame)}), {eye} eye", fontsize=10
+    )
     fig.tight_layout()
     return fig, "fig4_comparison.png"
 
@@ -239,19 +287,31 @@ def _figure_cost(plt, results, per_frame, keep, cfg):
     fig, ax = plt.subplots(figsize=(8.5, 4.5))
     pt = [r for r in results["cost"] if r["scheme"].startswith("path tracing")]
     spp = [r["scheme"].split()[-2] for r in pt]  # "path tracing 16 spp" -> "16"
-    ax.plot([r["ms"] for r in pt], [r["effective_spp"] for r in pt], "k.-",
-            label=f"path tracing, {spp[0]}–{spp[-1]} spp" if pt else "path tracing")
+    ax.plot(
+        [r["ms"] for r in pt],
+        [r["effective_spp"] for r in pt],
+        "k.-",
+        label=f"path tracing, {spp[0]}–{spp[-1]} spp" if pt else "path tracing",
+    )
     for r, n in zip(pt, spp):
         ax.annotate(n, (r["ms"], r["effective_spp"]), fontsize=7, xytext=(4, -9), textcoords="offset points")
     rest = [r for r in results["cost"] if not r["scheme"].startswith("path tracing") and r["effective_spp"]]
     colours = plt.get_cmap("tab20").colors
     for i, r in enumerate(rest):
-        ax.plot(r["ms"], r["effective_spp"], _COST_MARKERS[i % len(_COST_MARKERS)], color=colours[i % len(colours)],
-                ms=6, label=r["scheme"])
+        ax.plot(
+            r["ms"],
+            r["effective_spp"],
+            _COST_MARKERS[i % len(_COST_MARKERS)],
+            color=colours[i % len(colours)],
+            ms=6,
+            label=r["scheme"],
+        )
     ax.set_xscale("log")
     ax.set_yscale("log")
-    for axis, values in ((ax.xaxis, [r["ms"] for r in results["cost"]]),
-                         (ax.yaxis, [r["effective_spp"] for r in results["cost"] if r["effective_spp"]])):
+    for axis, values in (
+        (ax.xaxis, [r["ms"] for r in results["cost"]]),
+        (ax.yaxis, [r["effective_spp"] for r in results["cost"] if r["effective_spp"]]),
+    ):
         decades = np.log10(max(values) / min(values)) if values and min(values) > 0 else 0.0
         axis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0) if decades <= 2.5 else (1.0,)))
         axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
@@ -267,8 +327,15 @@ def _report_markdown(results: dict, tables: str | None = None) -> str:
     """``report.md``: the run's settings, the tables (``tables``: :func:`tables_markdown` of ``results``), the
     variants, the resampling bias, FLIP and SSIM, the time cost, the figures."""
     tables = tables_markdown(results) if tables is None else tables
-    report = _report_header(results) + ["", tables, "", "Variants (same renders):", "",
-                                        "| scheme | Avg | Min | Max |", "|---|---:|---:|---:|"]
+    report = _report_header(results) + [
+        "",
+        tables,
+        "",
+        "Variants (same renders):",
+        "",
+        "| scheme | Avg | Min | Max |",
+        "|---|---:|---:|---:|",
+    ]
     for kk, v in results["table2_variants"].items():
         report.append(f"| {kk} | {_fmt(v['avg'])} | {_fmt(v['min'])} | {_fmt(v['max'])} |")
     report += _bias_section(results) + _metric_sections(results) + _cost_section(results)
@@ -277,36 +344,56 @@ def _report_markdown(results: dict, tables: str | None = None) -> str:
 
 def _report_header(results: dict) -> list[str]:
     th, cache = results["thresholds"], results["cache"]
-    return [f"# Experiment report: {results['scene']}", "",
-            f"{results['frames']} frames at {results['resolution']}, reference {results['reference_spp']} spp, "
-            f"ladder 1..{results['ladder_spp']} spp, seed {results['seed']}; thresholds: position "
-            f"{th['position']:.4g} (scene {th['position_scene']:.4g} × "
-            f"{th['scale']:.3g} for the resolution), normal {th['normal']:.3g}. "
-            f"stereorepro {results['version']} (renderer {results['code']}); wall time {results['wall_s']:.0f} s "
-            f"(cache hits/misses {cache['hits']}/{cache['misses']})."]
+    return [
+        f"# Experiment report: {results['scene']}",
+        "",
+        f"{results['frames']} frames at {results['resolution']}, reference {results['reference_spp']} spp, "
+        f"ladder 1..{results['ladder_spp']} spp, seed {results['seed']}; thresholds: position "
+        f"{th['position']:.4g} (scene {th['position_scene']:.4g} × "
+        f"{th['scale']:.3g} for the resolution), normal {th['normal']:.3g}. "
+        f"stereorepro {results['version']} (renderer {results['code']}); wall time {results['wall_s']:.0f} s "
+        f"(cache hits/misses {cache['hits']}/{cache['misses']}).",
+    ]
 
 
 def _bias_section(results: dict) -> list[str]:
     b = results["bias"]
-    lines = ["", "## Resampling bias", "",
-             "Each scheme fed with the noise-free references instead of 1-spp images: its RMSE is pure bias "
-             "(bilinear blur compounded over frames, edges), the part more samples cannot remove.", "",
-             "| scheme | noise-free RMSE (avg) | share of the scheme's MSE (avg) |", "|---|---:|---:|"]
+    lines = [
+        "",
+        "## Resampling bias",
+        "",
+        "Each scheme fed with the noise-free references instead of 1-spp images: its RMSE is pure bias "
+        "(bilinear blur compounded over frames, edges), the part more samples cannot remove.",
+        "",
+        "| scheme | noise-free RMSE (avg) | share of the scheme's MSE (avg) |",
+        "|---|---:|---:|",
+    ]
     for kk in ("stereo", "temporal", "stereo_temporal"):
         if kk in b:
-            lines.append(f"| {kk} | {_fmt(b[kk]['rmse_noise_free']['avg'], 4)} | "
-                         f"{_fmt(100 * b[kk]['bias_share_of_mse']['avg'], 1)} % |")
-    return lines + ["", f"For scale: the left eye's {results['ladder_spp']}-spp RMSE averages "
-                    f"{_fmt(b['ladder_top_rmse']['avg'], 4)}.", ""]
+            lines.append(
+                f"| {kk} | {_fmt(b[kk]['rmse_noise_free']['avg'], 4)} | "
+                f"{_fmt(100 * b[kk]['bias_share_of_mse']['avg'], 1)} % |"
+            )
+    return lines + [
+        "",
+        f"For scale: the left eye's {results['ladder_spp']}-spp RMSE averages {_fmt(b['ladder_top_rmse']['avg'], 4)}.",
+        "",
+    ]
 
 
 #: The image metrics the report has a section for, if the run measured them, and what each section says.
 _METRIC_SECTIONS = (
-    ("FLIP", "Mean LDR FLIP (NVIDIA's perceptual error, 0 = identical; radiance clamped to [0, 1]) against the "
-             "reference, averaged over frames. Effective spp above stays MSE-based: it rests on the 1/n decay "
-             "of an unbiased estimator's MSE, which FLIP does not have."),
-    ("SSIM", "Mean LDR SSIM (Gaussian window 11, sigma 1.5, radiance clamped to [0, 1]; 1 = identical) of the "
-             "paper's schemes against the reference, averaged over frames."),
+    (
+        "FLIP",
+        "Mean LDR FLIP (NVIDIA's perceptual error, 0 = identical; radiance clamped to [0, 1]) against the "
+        "reference, averaged over frames. Effective spp above stays MSE-based: it rests on the 1/n decay "
+        "of an unbiased estimator's MSE, which FLIP does not have.",
+    ),
+    (
+        "SSIM",
+        "Mean LDR SSIM (Gaussian window 11, sigma 1.5, radiance clamped to [0, 1]; 1 = identical) of the "
+        "paper's schemes against the reference, averaged over frames.",
+    ),
 )
 
 
@@ -315,24 +402,48 @@ def _metric_sections(results: dict) -> list[str]:
     for metric, about in _METRIC_SECTIONS:
         stats = results.get(metric.lower())
         if stats:
-            lines += ["", f"## {metric}", "", about, "",
-                      f"| scheme | {metric} (avg) | Min | Max |", "|---|---:|---:|---:|"]
-            lines += [f"| {kk} | {_fmt(v['avg'], 4)} | {_fmt(v['min'], 4)} | {_fmt(v['max'], 4)} |"
-                      for kk, v in stats.items()]
+            lines += [
+                "",
+                f"## {metric}",
+                "",
+                about,
+                "",
+                f"| scheme | {metric} (avg) | Min | Max |",
+                "|---|---:|---:|---:|",
+            ]
+            lines += [
+                f"| {kk} | {_fmt(v['avg'], 4)} | {_fmt(v['min'], 4)} | {_fmt(v['max'], 4)} |" for kk, v in stats.items()
+            ]
     return lines
 
 
 def _cost_section(results: dict) -> list[str]:
     t = results["timing_ms"]
     flags = ", ".join(f"{k}: {v}" for k, v in results["flags"].get("stereo_temporal", {}).items())
-    return ["", "## What accuracy costs in time", "",
-            f"Median per frame: 1-spp trace of one eye {_fmt(t['trace_1spp_ms'], 1)} ms, G-buffer "
-            f"{_fmt(t['gbuffer_ms'], 1)} ms, tracing only the left eye's discarded pixels "
-            f"{_fmt(t['trace_left_discards_ms'], 1)} ms.", "", cost_markdown(results), "",
-            "![cost](fig_cost.png)", "", "## Figures", "", "![fig1](fig1_discards.png)", "",
-            "![fig3](fig3_rmse.png)", "", "![fig4](fig4_comparison.png)", "",
-            f"Effective-spp flags (stereo+temporal): {flags}. `extrapolated_high` means the value lies beyond "
-            f"the ladder's top rung and was extrapolated on a fit of the ladder (see stereorepro.measure.metrics).", ""]
+    return [
+        "",
+        "## What accuracy costs in time",
+        "",
+        f"Median per frame: 1-spp trace of one eye {_fmt(t['trace_1spp_ms'], 1)} ms, G-buffer "
+        f"{_fmt(t['gbuffer_ms'], 1)} ms, tracing only the left eye's discarded pixels "
+        f"{_fmt(t['trace_left_discards_ms'], 1)} ms.",
+        "",
+        cost_markdown(results),
+        "",
+        "![cost](fig_cost.png)",
+        "",
+        "## Figures",
+        "",
+        "![fig1](fig1_discards.png)",
+        "",
+        "![fig3](fig3_rmse.png)",
+        "",
+        "![fig4](fig4_comparison.png)",
+        "",
+        f"Effective-spp flags (stereo+temporal): {flags}. `extrapolated_high` means the value lies beyond "
+        f"the ladder's top rung and was extrapolated on a fit of the ladder (see stereorepro.measure.metrics).",
+        "",
+    ]
 
 
 def write_frame_exr(root: Path, f: int, eyes: dict, drivers: dict) -> None:

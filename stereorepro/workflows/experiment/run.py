@@ -27,8 +27,16 @@ from ...measure.metrics import effective_spp_many, flip, flip_available, rmse, s
 from .cache import RenderCache
 from .config import LEFT, RIGHT, ExperimentConfig, Scheme, metric_image, validate_config
 from .config import schemes as all_schemes
-from .inputs import (EyeData, RenderContext, RenderSpec, cache_footprint, estimate_cache_bytes, reference,
-                     render_eye, spec_for)
+from .inputs import (
+    EyeData,
+    RenderContext,
+    RenderSpec,
+    cache_footprint,
+    estimate_cache_bytes,
+    reference,
+    render_eye,
+    spec_for,
+)
 from .report import write_frame_exr, write_outputs
 
 __all__ = ["run_experiment", "ExperimentResults"]
@@ -44,8 +52,13 @@ def _stats(xs) -> dict:
     xs = [x for x in xs if x is not None and math.isfinite(x)]
     if not xs:
         return {"avg": None, "min": None, "max": None, "n": 0, "avg_after_warmup": None}
-    return {"avg": float(np.mean(xs)), "min": float(np.min(xs)), "max": float(np.max(xs)), "n": len(xs),
-            "avg_after_warmup": float(np.mean(warm)) if warm else None}
+    return {
+        "avg": float(np.mean(xs)),
+        "min": float(np.min(xs)),
+        "max": float(np.max(xs)),
+        "n": len(xs),
+        "avg_after_warmup": float(np.mean(warm)) if warm else None,
+    }
 
 
 @dataclass(frozen=True)
@@ -100,8 +113,11 @@ class ExperimentResults:
 
     def to_dict(self) -> dict:
         """The ``results.json`` content (``moving_objects`` only for scenes with moving objects)."""
-        return {f.name: getattr(self, f.name) for f in fields(self)
-                if f.name != "moving_objects" or self.moving_objects is not None}
+        return {
+            f.name: getattr(self, f.name)
+            for f in fields(self)
+            if f.name != "moving_objects" or self.moving_objects is not None
+        }
 
 
 def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
@@ -204,9 +220,11 @@ def _prepare(cfg: ExperimentConfig, log, scene, frames: int, cluster, t_start: f
     spec = spec_for(cfg, scene, cache_dir)
     need, free = estimate_cache_bytes(spec, frames), shutil.disk_usage(cache_dir).free
     if need > free:  # a warning, not an error: the cache may already hold most of it
-        log(f"warning: the render cache needs up to {need / 2**30:.1f} GiB for {frames} frames "
+        log(
+            f"warning: the render cache needs up to {need / 2**30:.1f} GiB for {frames} frames "
             f"({need / (2 * frames) / 2**20:.0f} MiB per eye and frame) and {cache_dir} has "
-            f"{free / 2**30:.1f} GiB free")
+            f"{free / 2**30:.1f} GiB free"
+        )
     distributed = None
     if cluster is not None:
         from .distributed import render_all
@@ -214,8 +232,21 @@ def _prepare(cfg: ExperimentConfig, log, scene, frames: int, cluster, t_start: f
         distributed = render_all(spec, range(frames), cluster, force=cfg.force, progress=cfg.progress, log=log)
         cache = RenderCache(cache_dir, log=log, sweep_on_start=False)  # the entries are made: no recomputing
     ctx = RenderContext(spec, cache=cache, scene=scene, tracer=PathTracer(scene, seed=cfg.seed, workers=cfg.workers))
-    return _Run(cfg, scene, frames, out, scale, pos_thr, nrm_thr, cache_dir, spec, ctx,
-                bool(cfg.flip) and flip_available(), distributed, t_start)
+    return _Run(
+        cfg,
+        scene,
+        frames,
+        out,
+        scale,
+        pos_thr,
+        nrm_thr,
+        cache_dir,
+        spec,
+        ctx,
+        bool(cfg.flip) and flip_available(),
+        distributed,
+        t_start,
+    )
 
 
 @dataclass
@@ -232,8 +263,10 @@ class _FrameData:
 
     def ladder(self, eye: int, metric: str) -> tuple[torch.Tensor, torch.Tensor]:
         """The eye's ladder: spp (L,) and RMSE (L,) float64."""
-        return (torch.tensor(self.ladder_spp, dtype=torch.float64),
-                torch.tensor(self.eyes[eye].ladder_rmse[metric], dtype=torch.float64))
+        return (
+            torch.tensor(self.ladder_spp, dtype=torch.float64),
+            torch.tensor(self.eyes[eye].ladder_rmse[metric], dtype=torch.float64),
+        )
 
 
 def _frame_inputs(run: _Run, f: int, timing: dict) -> _FrameData:
@@ -245,12 +278,25 @@ def _frame_inputs(run: _Run, f: int, timing: dict) -> _FrameData:
     timing["gbuffer_ms"] += [L.ms_gbuffer, R.ms_gbuffer]
     timing["reference_ms"] += [L.ms_reference, R.ms_reference]
     surface = {e: has_surface(d.depth) for e, d in eyes.items()}
-    row = {"frame": f, "discard_pct": {}, "rmse": {}, "effective_spp": {}, "flags": {},
-           "ladder_rmse": {}, "no_surface_pct": {}, "rmse_noise_free": {}, "flip": {}, "ssim": {},
-           "reference_study": {}}
+    row = {
+        "frame": f,
+        "discard_pct": {},
+        "rmse": {},
+        "effective_spp": {},
+        "flags": {},
+        "ladder_rmse": {},
+        "no_surface_pct": {},
+        "rmse_noise_free": {},
+        "flip": {},
+        "ssim": {},
+        "reference_study": {},
+    }
     if run.moving:
-        row.update(discard_pct_moving={}, discard_pct_static={}, moving_pct=100.0 * float(
-            ((R.object_id >= 0) & surface[RIGHT]).float().mean()))
+        row.update(
+            discard_pct_moving={},
+            discard_pct_static={},
+            moving_pct=100.0 * float(((R.object_id >= 0) & surface[RIGHT]).float().mean()),
+        )
     prefixes = L.prefix_spp[:-1]
     prefix_refs = {e: {p: metric_image(reference(ctx, f, e, p)[0], cfg.metric) for p in prefixes} for e in eyes}
     for e, d in eyes.items():
@@ -270,8 +316,9 @@ def _run_frames(run: _Run, schemes: list[_SchemeRun]) -> tuple[list[dict], dict,
     timing.update({f"reproject_{s.scheme.name}_ms": [] for s in schemes})
     per_frame, keep = [], {}
     drivers = {s.scheme.name: s.driver for s in schemes}
-    bar = tqdm(range(run.frames), desc=f"{run.scene.name} {cfg.width}x{cfg.height}", unit="frame",
-               disable=not cfg.progress)
+    bar = tqdm(
+        range(run.frames), desc=f"{run.scene.name} {cfg.width}x{cfg.height}", unit="frame", disable=not cfg.progress
+    )
     for f in bar:
         fd = _frame_inputs(run, f, timing)
         for s in schemes:
@@ -279,8 +326,9 @@ def _run_frames(run: _Run, schemes: list[_SchemeRun]) -> tuple[list[dict], dict,
         if cfg.exr:
             write_frame_exr(run.out / "exr", f, fd.eyes, drivers)
         per_frame.append(fd.row)
-        bar.set_postfix(st=f"{fd.row['effective_spp']['stereo_temporal']:.1f}spp",
-                        cache=f"{run.cache.hits}/{run.cache.misses}")
+        bar.set_postfix(
+            st=f"{fd.row['effective_spp']['stereo_temporal']:.1f}spp", cache=f"{run.cache.hits}/{run.cache.misses}"
+        )
     return per_frame, keep, timing
 
 
@@ -301,11 +349,23 @@ class _SchemeRun:
 
     @classmethod
     def make(cls, s: Scheme, run: _Run) -> _SchemeRun:
-        drv = SpatiotemporalReprojection(run.pos_thr, run.nrm_thr, alpha=s.alpha, sampling=s.sampling,
-                                         stereo=s.stereo, temporal=s.temporal, left_mode=s.left_mode,
-                                         alternate=s.alternate)
-        clean = SpatiotemporalReprojection(run.pos_thr, run.nrm_thr, alpha=s.alpha, sampling=s.sampling,
-                                           stereo=s.stereo, temporal=s.temporal) if s.paper else None
+        drv = SpatiotemporalReprojection(
+            run.pos_thr,
+            run.nrm_thr,
+            alpha=s.alpha,
+            sampling=s.sampling,
+            stereo=s.stereo,
+            temporal=s.temporal,
+            left_mode=s.left_mode,
+            alternate=s.alternate,
+        )
+        clean = (
+            SpatiotemporalReprojection(
+                run.pos_thr, run.nrm_thr, alpha=s.alpha, sampling=s.sampling, stereo=s.stereo, temporal=s.temporal
+            )
+            if s.paper
+            else None
+        )
         return cls(s, drv, clean)
 
     def reproject(self, fd: _FrameData) -> tuple[torch.Tensor, torch.Tensor, float]:
@@ -352,8 +412,13 @@ class _SchemeRun:
             _DISCARDS[s.discards](self, run, fd, mask, timing, keep)
         if s.figure4 and fd.frame == run.frames - 1:
             L = fd.eyes[LEFT]
-            keep["fig4"] = {"method": img.clone(), "one": L.sample.clone(), "ref": L.reference.clone(),
-                            "top": L.top.clone(), "spp": row["effective_spp"][s.name]}
+            keep["fig4"] = {
+                "method": img.clone(),
+                "one": L.sample.clone(),
+                "ref": L.reference.clone(),
+                "top": L.top.clone(),
+                "spp": row["effective_spp"][s.name],
+            }
 
     def noise_free_rmse(self, fd: _FrameData, metric: str) -> float:
         s, c = self.scheme, self.clean
@@ -371,7 +436,7 @@ class _SchemeRun:
         spp = torch.tensor(fd.ladder_spp, dtype=torch.float64)
         for i, p in enumerate(fd.prefixes):
             e_p = rmse(metric_image(img, metric), fd.prefix_refs[s.eye][p])
-            spp_p, _ = effective_spp_many(e_p, spp, lad[i:i + 1])
+            spp_p, _ = effective_spp_many(e_p, spp, lad[i : i + 1])
             fd.row["reference_study"].setdefault(str(p), {})[s.name] = float(spp_p[0])
 
 
@@ -384,11 +449,20 @@ def _stereo_discards(sr: _SchemeRun, run: _Run, fd: _FrameData, mask, timing: di
     if fd.frame != run.fig1_frame:
         return
     keep["fig1_" + name] = sr.driver.stereo_reason.clone()
-    r = run.ctx.tracer.render(L.camera, fd.frame, 1, sample_offset=0, eye=LEFT, gbuffers=False,
-                              pixel_mask=mask[0, 0], pixel_sampling=L.pixel_sampling)
+    r = run.ctx.tracer.render(
+        L.camera,
+        fd.frame,
+        1,
+        sample_offset=0,
+        eye=LEFT,
+        gbuffers=False,
+        pixel_mask=mask[0, 0],
+        pixel_sampling=L.pixel_sampling,
+    )
     timing["trace_left_discards_ms"].append(r.time_s * 1e3)
-    row["masked_trace_matches"] = bool(torch.equal(torch.where(mask, r.radiance, 0.0),
-                                                   torch.where(mask, L.sample, 0.0)))
+    row["masked_trace_matches"] = bool(
+        torch.equal(torch.where(mask, r.radiance, 0.0), torch.where(mask, L.sample, 0.0))
+    )
 
 
 def _temporal_discards(sr: _SchemeRun, run: _Run, fd: _FrameData, mask, timing: dict, keep: dict) -> None:
@@ -402,8 +476,7 @@ def _temporal_discards(sr: _SchemeRun, run: _Run, fd: _FrameData, mask, timing: 
     if run.moving:
         mov = (fd.eyes[RIGHT].object_id >= 0) & surf
         for part, sel in (("discard_pct_moving", mov), ("discard_pct_static", surf & ~mov)):
-            row[part][name] = (100.0 * float((~drv.right_valid & sel).sum() / sel.sum())
-                               if bool(sel.any()) else None)
+            row[part][name] = 100.0 * float((~drv.right_valid & sel).sum() / sel.sum()) if bool(sel.any()) else None
     if fd.frame == run.fig1_frame:
         keep["fig1_" + name] = drv.right_reason.clone()
 
@@ -412,49 +485,84 @@ def _temporal_discards(sr: _SchemeRun, run: _Run, fd: _FrameData, mask, timing: 
 _DISCARDS = {"stereo": _stereo_discards, "temporal": _temporal_discards}
 
 
-def _assemble(run: _Run, schemes: list[_SchemeRun], per_frame: list[dict], timing: dict,
-              wall: float) -> ExperimentResults:
+def _assemble(
+    run: _Run, schemes: list[_SchemeRun], per_frame: list[dict], timing: dict, wall: float
+) -> ExperimentResults:
     """The statistics over frames of everything the rows hold, and the run's settings, as one record."""
     cfg, scene = run.cfg, run.scene
     stats = {s.scheme.name: _stats([r["effective_spp"][s.scheme.name] for r in per_frame]) for s in schemes}
     paper = [s.scheme for s in schemes if s.scheme.paper]
     timing_ms = {k: float(np.median(v)) if v else None for k, v in timing.items()}
     return ExperimentResults(
-        scene=scene.name, effects=sorted(scene.effects), frames=run.frames, resolution=f"{cfg.width}x{cfg.height}",
-        reference_spp=cfg.reference_spp, reference_chunk_spp=run.spec.reference_chunk_spp,
-        ladder_spp=cfg.ladder_spp, warmup_frames=WARMUP_FRAMES,
-        reference_study=_reference_study(per_frame, stats, cfg) or None, seed=cfg.seed, metric=cfg.metric,
+        scene=scene.name,
+        effects=sorted(scene.effects),
+        frames=run.frames,
+        resolution=f"{cfg.width}x{cfg.height}",
+        reference_spp=cfg.reference_spp,
+        reference_chunk_spp=run.spec.reference_chunk_spp,
+        ladder_spp=cfg.ladder_spp,
+        warmup_frames=WARMUP_FRAMES,
+        reference_study=_reference_study(per_frame, stats, cfg) or None,
+        seed=cfg.seed,
+        metric=cfg.metric,
         jitter=bool(cfg.jitter),
-        thresholds={"position": run.pos_thr, "normal": run.nrm_thr,
-                    "position_scene": float(scene.position_threshold), "scale": run.scale},
+        thresholds={
+            "position": run.pos_thr,
+            "normal": run.nrm_thr,
+            "position_scene": float(scene.position_threshold),
+            "scale": run.scale,
+        },
         table1={s.name: _stats([r["discard_pct"].get(s.name) for r in per_frame]) for s in paper if s.discards},
-        flip=({s.scheme.name: _stats([r["flip"][s.scheme.name] for r in per_frame]) for s in schemes}
-              if run.use_flip else None),
+        flip=(
+            {s.scheme.name: _stats([r["flip"][s.scheme.name] for r in per_frame]) for s in schemes}
+            if run.use_flip
+            else None
+        ),
         ssim=({s.name: _stats([r["ssim"][s.name] for r in per_frame]) for s in paper} if cfg.ssim else None),
         moving_objects=_moving_table(schemes, per_frame) if run.moving else None,
         table2={s.name: stats[s.name] for s in paper},
         table2_variants={k: v for k, v in stats.items() if k not in {s.name for s in paper}},
-        timing_ms=timing_ms, cost=_cost_table([s.scheme for s in schemes], stats, timing_ms, cfg),
-        bias=_bias_table(schemes, per_frame), per_frame=per_frame, flags=_flag_counts(per_frame),
-        cache={"hits": run.cache.hits, "misses": run.cache.misses, "recomputed_corrupt": run.cache.corrupt,
-               "dir": str(run.cache_dir), **cache_footprint(run.ctx, run.frames)},
-        distributed=run.distributed, wall_s=wall, version=__version__,
-        code=json.loads(run.spec.base_key)["code"])
+        timing_ms=timing_ms,
+        cost=_cost_table([s.scheme for s in schemes], stats, timing_ms, cfg),
+        bias=_bias_table(schemes, per_frame),
+        per_frame=per_frame,
+        flags=_flag_counts(per_frame),
+        cache={
+            "hits": run.cache.hits,
+            "misses": run.cache.misses,
+            "recomputed_corrupt": run.cache.corrupt,
+            "dir": str(run.cache_dir),
+            **cache_footprint(run.ctx, run.frames),
+        },
+        distributed=run.distributed,
+        wall_s=wall,
+        version=__version__,
+        code=json.loads(run.spec.base_key)["code"],
+    )
 
 
 def _moving_table(schemes: list[_SchemeRun], per_frame: list[dict]) -> dict:
     """Temporal discards on moving-object pixels vs the static background, camera-only vs motion vectors."""
     temporal = [s.scheme.name for s in schemes if s.scheme.discards == "temporal"]
-    return {"moving_pixels_pct": _stats([r["moving_pct"] for r in per_frame]),
-            **{k: {part: _stats([r[f"discard_pct_{part}"].get(k) for r in per_frame]) for part in ("moving", "static")}
-               for k in temporal}}
+    return {
+        "moving_pixels_pct": _stats([r["moving_pct"] for r in per_frame]),
+        **{
+            k: {part: _stats([r[f"discard_pct_{part}"].get(k) for r in per_frame]) for part in ("moving", "static")}
+            for k in temporal
+        },
+    }
 
 
 def _bias_table(schemes: list[_SchemeRun], per_frame: list[dict]) -> dict:
-    bias = {k: {"rmse_noise_free": _stats([r["rmse_noise_free"][k] for r in per_frame]),
-                "bias_share_of_mse": _stats([(r["rmse_noise_free"][k] / r["rmse"][k]) ** 2 for r in per_frame
-                                             if r["rmse"][k] > 0])}
-            for k in (s.scheme.name for s in schemes if s.clean is not None)}
+    bias = {
+        k: {
+            "rmse_noise_free": _stats([r["rmse_noise_free"][k] for r in per_frame]),
+            "bias_share_of_mse": _stats(
+                [(r["rmse_noise_free"][k] / r["rmse"][k]) ** 2 for r in per_frame if r["rmse"][k] > 0]
+            ),
+        }
+        for k in (s.scheme.name for s in schemes if s.clean is not None)
+    }
     bias["ladder_top_rmse"] = _stats([r["ladder_rmse"]["left"][-1] for r in per_frame])
     return bias
 
@@ -462,8 +570,10 @@ def _bias_table(schemes: list[_SchemeRun], per_frame: list[dict]) -> dict:
 def _reference_study(per_frame: list[dict], table2: dict, cfg: ExperimentConfig) -> dict:
     """Effective spp against each smaller reference (chunked runs), the run's own reference last for comparison;
     empty without chunks."""
-    study = {p: {k: _stats([r["reference_study"][p][k] for r in per_frame]) for k in per_frame[0]["reference_study"][p]}
-             for p in per_frame[0]["reference_study"]}
+    study = {
+        p: {k: _stats([r["reference_study"][p][k] for r in per_frame]) for k in per_frame[0]["reference_study"][p]}
+        for p in per_frame[0]["reference_study"]
+    }
     if study:
         study[str(cfg.reference_spp)] = {k: table2[k] for k in next(iter(study.values()))}
     return study
@@ -488,8 +598,11 @@ def _cost_table(schemes, table2, t, cfg) -> list[dict]:
     spp_ms = t["trace_1spp_ms"]
     gb = t["gbuffer_ms"]
     masked = t["trace_left_discards_ms"] or 0.0
-    rows = [{"scheme": f"path tracing {n} spp", "ms": n * spp_ms, "effective_spp": float(n),
-             "ms_per_effective_spp": spp_ms} for n in (1, 2, 4, 8, 16) if n <= cfg.ladder_spp]
+    rows = [
+        {"scheme": f"path tracing {n} spp", "ms": n * spp_ms, "effective_spp": float(n), "ms_per_effective_spp": spp_ms}
+        for n in (1, 2, 4, 8, 16)
+        if n <= cfg.ladder_spp
+    ]
     for s in schemes:
         rep = t[f"reproject_{s.name}_ms"]
         if s.stereo:
@@ -497,6 +610,13 @@ def _cost_table(schemes, table2, t, cfg) -> list[dict]:
         else:
             ms = spp_ms + gb + rep
         e = table2[s.name]["avg"]
-        rows.append({"scheme": s.name, "ms": ms, "effective_spp": e,
-                     "ms_per_effective_spp": (ms / e) if e else None, "reprojection_ms": rep})
+        rows.append(
+            {
+                "scheme": s.name,
+                "ms": ms,
+                "effective_spp": e,
+                "ms_per_effective_spp": (ms / e) if e else None,
+                "reprojection_ms": rep,
+            }
+        )
     return rows
