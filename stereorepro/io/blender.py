@@ -245,7 +245,7 @@ def frame_from_channels(channels: dict, where: str = "") -> dict:
 
     Raises:
         SequenceError: no single view layer with the needed passes (:func:`layer_prefix`), or channels of
-        different sizes (naming the channel).
+            different sizes (naming the channel).
 
     Examples:
         >>> import numpy as np
