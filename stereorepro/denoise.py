@@ -50,7 +50,6 @@ then the left eye with stereo features). The other eye has this eye's size.
 
 from __future__ import annotations
 
-import warnings
 from typing import NamedTuple
 
 import torch
@@ -70,7 +69,14 @@ from .reproject import (
     stereo_reproject,
     temporal_reproject,
 )
-from .reproject.functional import as_thresholds, stereo_views, temporal_views
+from .reproject.functional import (
+    as_thresholds,
+    given_keywords,
+    reject_extra_arguments,
+    stereo_views,
+    temporal_views,
+    warn_flat_form,
+)
 from .reproject.view import Field, view_fields
 
 __all__ = [
@@ -239,14 +245,6 @@ class DenoiseResult(NamedTuple):
         return History(self.color, self.history_len)
 
 
-def _deprecated(name: str, new: str) -> None:
-    warnings.warn(
-        f"{name} with flat tensor arguments is deprecated and will be removed in the next release: call {new}",
-        DeprecationWarning,
-        stacklevel=3,
-    )
-
-
 def reprojection_features(
     current_color: Tensor,
     view: View,
@@ -282,25 +280,17 @@ def reprojection_features(
         ((1, 9, 6, 8), 1.0)
     """
     if not isinstance(view, View):
-        _deprecated(
+        warn_flat_form(
             "reprojection_features",
             "reprojection_features(current_color, view: View, history: History, "
             "prev_view: View, (position_threshold, normal_threshold), ...)",
         )
         args = (current_color, view, history, prev_view, thresholds) + legacy_args
-        kw = dict(
-            legacy_kwargs,
-            **({} if sampling == "bilinear" else {"sampling": sampling}),
-            **({} if backend == "auto" else {"backend": backend}),
-        )
+        kw = dict(legacy_kwargs, **given_keywords(sampling=(sampling, "bilinear"), backend=(backend, "auto")))
         if other is not None:
             kw["other"] = other
         return _features_flat(*args, **kw)
-    if legacy_args or legacy_kwargs:
-        raise ParameterTypeError(
-            "reprojection_features: unexpected arguments with View inputs: "
-            f"{len(legacy_args)} positional, {sorted(legacy_kwargs)}"
-        )
+    reject_extra_arguments("reprojection_features", legacy_args, legacy_kwargs)
     thr = as_thresholds(thresholds)
     color, n, valid, _ = temporal_reproject(
         current_color, view, history, prev_view, thr, blend=blend, sampling=sampling, backend=backend
@@ -458,25 +448,17 @@ def reproject_denoise(
         (1, 3, 6, 8)
     """
     if not isinstance(view, View):
-        _deprecated(
+        warn_flat_form(
             "reproject_denoise",
             "reproject_denoise(current_color, view: View, history: History, "
             "prev_view: View, denoiser, (position_threshold, normal_threshold), ...)",
         )
         args = (current_color, view, history, prev_view, denoiser, thresholds) + legacy_args
-        kw = dict(
-            legacy_kwargs,
-            **({} if sampling == "bilinear" else {"sampling": sampling}),
-            **({} if backend == "auto" else {"backend": backend}),
-        )
+        kw = dict(legacy_kwargs, **given_keywords(sampling=(sampling, "bilinear"), backend=(backend, "auto")))
         if other is not None:
             kw["other"] = other
         return tuple(_denoise_flat(*args, **kw))
-    if legacy_args or legacy_kwargs:
-        raise ParameterTypeError(
-            "reproject_denoise: unexpected arguments with View inputs: "
-            f"{len(legacy_args)} positional, {sorted(legacy_kwargs)}"
-        )
+    reject_extra_arguments("reproject_denoise", legacy_args, legacy_kwargs)
     if not callable(denoiser):
         raise ParameterTypeError(
             f"denoiser: expected a module mapping (B, C_in, H, W) to (B, 3, H, W), got {type(denoiser).__name__}"

@@ -5,6 +5,8 @@ name what the caller passed (``src_depth``, ``prev_K[0]``), then the views are b
 
 from __future__ import annotations
 
+import warnings
+
 from torch import Tensor
 
 from .._checks import (
@@ -16,9 +18,10 @@ from .._checks import (
     check_shape,
     tracing,
 )
+from ..errors import ParameterTypeError
 from .view import History, View
 
-__all__ = ["stereo_views", "temporal_views"]
+__all__ = ["stereo_views", "temporal_views", "warn_flat_form", "given_keywords", "reject_extra_arguments"]
 
 
 def stereo_views(
@@ -54,3 +57,26 @@ def temporal_views(
     if not tracing():
         check_motion(*motion, depth, "motion", "motion_world")
     return View.unchecked(*current, *motion), View.unchecked(*previous)
+
+
+def warn_flat_form(name: str, new: str) -> None:
+    """The DeprecationWarning of a flat-argument call of ``name``, naming the ``new`` call (pointing at the caller
+    of the public function)."""
+    warnings.warn(
+        f"{name} with flat tensor arguments is deprecated and will be removed in the next release: call {new}",
+        DeprecationWarning,
+        stacklevel=3,
+    )
+
+
+def given_keywords(**pairs) -> dict:
+    """The keyword arguments of a new-form call that differ from their defaults ``name=(value, default)``, to
+    forward to a flat (deprecated) call without clashing with its positional arguments."""
+    return {k: v for k, (v, default) in pairs.items() if v is not default and v != default}
+
+
+def reject_extra_arguments(op: str, args: tuple, kwargs: dict) -> None:
+    """ParameterTypeError when a View-form call of ``op`` got arguments only its flat form takes."""
+    if args or kwargs:
+        extra = [f"{len(args)} more positional argument(s)"] if args else []
+        raise ParameterTypeError(f"{op}: unexpected arguments with View inputs: {', '.join(extra + sorted(kwargs))}")

@@ -35,7 +35,6 @@ inference fast path :mod:`._fast`) and the native kernels (:mod:`._native`), whi
 
 from __future__ import annotations
 
-import warnings
 from typing import Iterable
 
 import torch
@@ -57,7 +56,7 @@ from .._checks import (
 from ..camera import compose_warp, rectify_warp
 from ..errors import ShapeError
 from . import _fast, _general, _lean, _native
-from ._flat import stereo_views, temporal_views
+from ._flat import given_keywords, reject_extra_arguments, stereo_views, temporal_views, warn_flat_form
 from ._constants import NATIVE_MAX_CHANNELS
 from ._general import as_scalar, compute_dtype, inference_only, squared_thresholds
 from .view import Blend, History, ReprojectionResult, TemporalResult, Thresholds, View
@@ -163,26 +162,6 @@ def select_backend(
         backend, BACKENDS, lambda: native_unsupported(images, others, soft, motion, channels), reference_only=tracing()
     )
     return "native" if chosen == "native" else "torch"
-
-
-def _deprecated(name: str, new: str) -> None:
-    warnings.warn(
-        f"{name} with flat tensor arguments is deprecated and will be removed in the next release: call {new}",
-        DeprecationWarning,
-        stacklevel=3,
-    )
-
-
-def _given(**pairs) -> dict:
-    """The keyword arguments of a new-form call that differ from their defaults ``name=(value, default)``, to
-    forward to a flat (deprecated) call without clashing with its positional arguments."""
-    return {k: v for k, (v, default) in pairs.items() if v is not default and v != default}
-
-
-def _no_extra(op: str, args: tuple, kwargs: dict) -> None:
-    if args or kwargs:
-        extra = [f"{len(args)} more positional argument(s)"] if args else []
-        raise TypeError(f"{op}: unexpected arguments with View inputs: {', '.join(extra + sorted(kwargs))}")
 
 
 def as_thresholds(thresholds) -> Thresholds:
@@ -296,7 +275,7 @@ def backward_reproject(
         (True, True, 1.0)
     """
     if not isinstance(src, View):
-        _deprecated(
+        warn_flat_form(
             "backward_reproject",
             "backward_reproject(values, src: View, dst: View, (position_threshold, normal_threshold), ...)",
         )
@@ -306,7 +285,7 @@ def backward_reproject(
             dst,
             thresholds,
             *legacy_args,
-            **_given(
+            **given_keywords(
                 sampling=(sampling, "bilinear"),
                 soft=(soft, False),
                 backend=(backend, "auto"),
@@ -314,7 +293,7 @@ def backward_reproject(
             ),
             **legacy_kwargs,
         )
-    _no_extra("backward_reproject", legacy_args, legacy_kwargs)
+    reject_extra_arguments("backward_reproject", legacy_args, legacy_kwargs)
     thr = as_thresholds(thresholds)
     _check_op_inputs("backward_reproject", values, "values", "C", src, dst, thr, sampling)
     if rectified and dst.motion is not None:
@@ -559,7 +538,7 @@ def stereo_reproject(
         (True, True, 0)
     """
     if not isinstance(src, View):
-        _deprecated(
+        warn_flat_form(
             "stereo_reproject",
             "stereo_reproject(src_color, src: View, dst: View, (position_threshold, normal_threshold), ...)",
         )
@@ -569,7 +548,7 @@ def stereo_reproject(
             dst,
             thresholds,
             *legacy_args,
-            **_given(
+            **given_keywords(
                 sampling=(sampling, "bilinear"),
                 soft=(soft, False),
                 backend=(backend, "auto"),
@@ -577,7 +556,7 @@ def stereo_reproject(
             ),
             **legacy_kwargs,
         )
-    _no_extra("stereo_reproject", legacy_args, legacy_kwargs)
+    reject_extra_arguments("stereo_reproject", legacy_args, legacy_kwargs)
     thr = as_thresholds(thresholds)
     _check_op_inputs("stereo_reproject", color, "color", "3", src, dst, thr, sampling)
     return warp_values(color, src, dst.without_motion(), thr, sampling, soft, backend, rectified, confidence=False)
@@ -723,7 +702,7 @@ def temporal_reproject(
         (0.5, 2.0)
     """
     if not isinstance(view, View):
-        _deprecated(
+        warn_flat_form(
             "temporal_reproject",
             "temporal_reproject(current_color, view: View, history: History, "
             "prev_view: View, (position_threshold, normal_threshold), ...)",
@@ -735,7 +714,7 @@ def temporal_reproject(
             prev_view,
             thresholds,
             *legacy_args,
-            **_given(
+            **given_keywords(
                 sampling=(sampling, "bilinear"),
                 soft=(soft, False),
                 backend=(backend, "auto"),
@@ -743,7 +722,7 @@ def temporal_reproject(
             ),
             **legacy_kwargs,
         )
-    _no_extra("temporal_reproject", legacy_args, legacy_kwargs)
+    reject_extra_arguments("temporal_reproject", legacy_args, legacy_kwargs)
     thr = as_thresholds(thresholds)
     history = _as_pair(history, History, "temporal_reproject: history")
     blend = _as_pair(blend, Blend, "temporal_reproject: blend")
