@@ -627,6 +627,19 @@ def temporal_blend(
     if not tracing():
         check_blend(alpha, max_history)
         check_blend_inputs(current_color, history_color, history_len, confidence)
+    return _blend_checked(current_color, history_color, history_len, confidence, alpha, warmup, max_history)
+
+
+def _blend_checked(
+    current_color: Tensor,
+    history_color: Tensor,
+    history_len: Tensor,
+    confidence: Tensor,
+    alpha,
+    warmup: bool,
+    max_history,
+) -> History:
+    """:func:`temporal_blend` of arguments the caller has checked (the temporal step's own warped history)."""
     wdt = compute_dtype(current_color, history_color)
     cur = current_color.to(wdt)
     hist = history_color.to(wdt)
@@ -798,7 +811,7 @@ def reproject_history(
         warped, valid, reason, den = _torch_backward(values, prev_view, view, thr, sampling, soft)
         confidence = den if soft else valid
     # exporting the reprojection's export formulation: its blend too (the history it warps is finite)
-    blend_fn = _lean.lean_blend if not native and _exporting_lean(soft) else temporal_blend
+    blend_fn = _lean.lean_blend if not native and _exporting_lean(soft) else _blend_checked
     color, n = blend_fn(current_color, warped[:, :3], warped[:, 3:4], confidence, *blend)
     return TemporalResult(color, n, valid, reason if return_reason else None)
 
