@@ -9,6 +9,16 @@ import torch
 torch.set_num_threads(max(1, min(2, os.cpu_count() or 1)))
 
 
+@pytest.fixture(autouse=True)
+def _isolated_environment():
+    """Each test sees the environment variables it started with: a test that runs the CLI in this process
+    (``--shared-scenes`` sets ``STEREOREPRO_SHARED_SCENES``, for one) leaves nothing behind for the next."""
+    saved = dict(os.environ)
+    yield
+    os.environ.clear()
+    os.environ.update(saved)
+
+
 def _devices():
     devs = ["cpu"]
     if torch.cuda.is_available():

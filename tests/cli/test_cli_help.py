@@ -100,11 +100,6 @@ class TestMessages:
 
 
 class TestScenes:
-    @pytest.fixture(autouse=True)
-    def _restore_env(self, monkeypatch):
-        """``--shared-scenes`` sets the environment variable of this process: restored after each test."""
-        monkeypatch.delenv("STEREOREPRO_SHARED_SCENES", raising=False)
-
     def test_lists_the_shared_scenes_with_their_availability(self, tmp_path, capsys):
         """Without ``--all``; with the meshes' folder empty each shared scene says which file it misses."""
         assert main(["scenes", "--shared-scenes", str(tmp_path)]) == 0
