@@ -60,6 +60,7 @@ from .measure.metrics import (
     ssim,
     suggest_reference_spp,
 )
+from .measure.temporal import temporal_error
 from .reproject import (
     Blend,
     History,
@@ -143,6 +144,7 @@ __all__ = [
     "rmse",
     "ssim",
     "suggest_reference_spp",
+    "temporal_error",
     # errors
     "StereoreproError",
     "ParameterError",

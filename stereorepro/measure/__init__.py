@@ -1,4 +1,5 @@
-"""Measurement: image metrics and effective spp (:mod:`.metrics`), where an image's error lives (:mod:`.anatomy`).
+"""Measurement: image metrics and effective spp (:mod:`.metrics`), temporal stability (:mod:`.temporal`), where an
+image's error lives (:mod:`.anatomy`).
 The paper's experiment, which drives them, is in the application layer (:mod:`stereorepro.workflows.experiment`)."""
 
 from .metrics import (
@@ -13,6 +14,7 @@ from .metrics import (
     ssim,
     suggest_reference_spp,
 )
+from .temporal import TEMPORAL_TONEMAPS, temporal_error
 
 __all__ = [
     "EFFECTIVE_SPP_FLAGS",
@@ -25,4 +27,6 @@ __all__ = [
     "rmse",
     "ssim",
     "suggest_reference_spp",
+    "TEMPORAL_TONEMAPS",
+    "temporal_error",
 ]
