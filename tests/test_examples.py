@@ -250,3 +250,90 @@ class TestSupportTable:
             gpu = module.cuda()(*_inputs(module, torch.float32, "cuda"))
             assert gpu[0].is_cuda
             self._assert_outputs_agree(module, cpu, gpu)
+
+
+class TestRecurrentDenoiser:
+    """examples/recurrent_denoiser.py: the smoke run's outputs, and what each variant's network sees."""
+
+    def test_smoke(self, tmp_path):
+        pytest.importorskip("pyoidn")
+        pytest.importorskip("flip_evaluator")
+        ex = load_example("recurrent_denoiser")
+        res = ex.main(["--smoke", "--out", str(tmp_path)])
+        saved = json.loads((tmp_path / "recurrent_denoiser.json").read_text())
+        assert saved["table"] == res["table"] and saved["smoke"] is True
+        assert len(saved["commit"]) == 40 and saved["machine"]["cpu"]
+        assert {"data", "training", "evaluation", "report", "total"} <= set(saved["seconds"])
+        assert saved["in_channels"] == 19 and saved["groups"] == ["held-out frames", "held-out scene"]
+        methods = saved["methods"]
+        assert list(methods) == [*ex.BASELINES, "U-Net recurrent", "U-Net per_frame"]
+        one = methods["1 spp"]["metrics"]["all"]
+        assert one["effective_spp_median"] == pytest.approx(1.0, abs=0.05)  # the ladder's first rung itself
+        assert methods["accumulation"]["metrics"]["all"]["temporal_error"] < one["temporal_error"]
+        for name in ("U-Net recurrent", "U-Net per_frame"):
+            rec = methods[name]
+            assert list(rec["seeds"]) == ["0"]
+            for group in ("all", "held-out frames", "held-out scene", "left eye", "right eye"):
+                for key in ("rmse", "flip", "temporal_error"):
+                    sp = rec["spread"][group][key]
+                    assert np.isfinite(sp["mean"]) and sp["min"] <= sp["mean"] <= sp["max"] and sp["n"] == 1
+        for variant in ex.VARIANTS:
+            ckpt = torch.load(tmp_path / f"{variant}_seed0.pt", weights_only=False)
+            assert ckpt["network"]["name"] == "recurrent_denoiser.build_network"
+            assert ckpt["feature_options"] == {"stereo": True, "recurrent": True, "albedo": True}
+            assert json.loads(json.dumps(ckpt["settings"])) == saved["settings"]
+            assert set(ckpt["thresholds"]) == set(saved["thresholds"])
+            ex.build_network(**ckpt["network"]["kwargs"]).load_state_dict(ckpt["state_dict"])
+        assert (tmp_path / "recurrent_denoiser.md").read_text().count("| U-Net recurrent |") == 3
+        assert (tmp_path / "report.html").read_text().startswith("<!DOCTYPE html>")
+
+    @staticmethod
+    def _clip(frames: int = 3, height: int = 6, width: int = 8) -> dict:
+        """Both eyes of a static wall 2 units ahead, the left camera 0.1 to the left of the right one."""
+        from stereorepro import intrinsics_from_fov
+
+        g = torch.Generator().manual_seed(0)
+        clip = {"thresholds": torch.tensor([0.1, 0.3], dtype=torch.float64)}
+        for eye, x in (("left", 0.1), ("right", 0.0)):
+            T = torch.eye(4, dtype=torch.float64).repeat(frames, 1, 1)
+            T[:, 0, 3] = x
+            normal = torch.zeros(frames, 3, height, width)
+            normal[:, 2] = -1
+            clip[eye] = {
+                "color": torch.rand(frames, 3, height, width, generator=g),
+                "albedo": torch.rand(frames, 3, height, width, generator=g),
+                "depth": torch.full((frames, 1, height, width), 2.0),
+                "normal": normal,
+                "K": intrinsics_from_fov(60.0, width, height).double().repeat(frames, 1, 1),
+                "T": T,
+            }
+        return clip
+
+    def test_per_frame_state_hides_the_warped_inputs(self):
+        """Per-frame: every warped channel (valid, stereo, previous output) is 0 at every frame and eye, so the
+        network sees only this frame. Recurrent: from the second frame the previous output is there, and the left
+        eye sees the right eye's output; the first frame is a cold start like the per-frame state."""
+        from stereorepro.denoise import feature_names
+
+        ex = load_example("recurrent_denoiser")
+        names = feature_names(**ex.FEATURE_OPTIONS)
+        warped = [names.index(n) for n in names if n == "valid" or "stereo" in n or "previous" in n]
+        assert len(names) == ex.in_channels() == 19 and len(warped) == 8
+        seen = []
+
+        def net(x):
+            seen.append(x)
+            return torch.expm1(x[:, :3])
+
+        clip = self._clip()
+        stereo = [i for i in warped if "stereo" in names[i]]
+        temporal = [i for i in warped if i not in stereo]  # valid and the previous output
+        for recurrent in (False, True):
+            seen.clear()
+            list(ex.sequence(net, clip, torch.zeros(1, dtype=torch.long), 3, recurrent))
+            assert len(seen) == 6  # 3 frames x (right, left)
+            for i, x in enumerate(seen):
+                frame, left = divmod(i, 2)
+                has_temporal, has_stereo = recurrent and frame > 0, recurrent and left == 1
+                assert bool(x[:, temporal].abs().max() > 0) == has_temporal, (recurrent, i)
+                assert bool(x[:, stereo].abs().max() > 0) == has_stereo, (recurrent, i)
