@@ -18,8 +18,9 @@ a slider (or dragging on the image) wipes between them, a menu picks the method;
 all crops of the comparison. Images are ``(3, H, W)``, ``(1, 3, H, W)``, ``(H, W, 3)`` or ``(H, W)`` arrays or
 torch tensors: floats are linear radiance, shown clamped to [0, 1] with gamma 2.2 (:func:`tonemap`, the
 experiment's figures do the same); ``uint8`` arrays are shown as they are. :func:`abs_error`, :func:`colorize`
-and :func:`colorbar` make error maps, :func:`mask_image` shows a mask, :func:`png_bytes` encodes a PNG (zlib and
-struct: no imaging library). Nothing here imports torch or matplotlib.
+and :func:`colorbar` make error maps, :func:`mask_image` shows a mask, :func:`downscale` box-averages a large image
+to a width, :func:`png_bytes` encodes a PNG (zlib and struct: no imaging library). Nothing here imports torch or
+matplotlib.
 
 Examples:
     >>> import tempfile, pathlib
@@ -62,6 +63,7 @@ __all__ = [
     "colorize",
     "colorbar",
     "mask_image",
+    "downscale",
     "png_bytes",
 ]
 
@@ -253,6 +255,25 @@ def mask_image(mask, color: tuple[int, int, int] = (255, 255, 255), background: 
     return np.where(on[..., None], np.array(color, np.uint8), np.array(background, np.uint8))
 
 
+def downscale(image, max_width: int) -> np.ndarray:
+    """``image`` as ``(H, W, C)``, box-averaged by the smallest integer factor that makes it at most ``max_width``
+    pixels wide (floats averaged as they are; ``uint8`` averaged and rounded); as it is when it fits.
+
+    Examples:
+        >>> import numpy as np
+        >>> from stereorepro.workflows.html_report import downscale
+        >>> downscale(np.arange(8.0).reshape(2, 4), 2)[..., 0].tolist()
+        [[2.5, 4.5]]
+
+    Raises:
+        ParameterError: ``max_width`` below 1.
+    """
+    if max_width < 1:
+        raise ParameterError(f"downscale: max_width must be >= 1, got {max_width!r}")
+    a = _hwc(image, "downscale")
+    return _region(a, Crop("", 0, 0, a.shape[0], a.shape[1]), int(max_width))[0]
+
+
 def png_bytes(image) -> bytes:
     """An 8-bit image ``(H, W)`` (grey), ``(H, W, 3)`` (RGB) or ``(H, W, 4)`` (RGBA) encoded as a PNG file's bytes
     (every row with PNG's "up" filter, zlib level 6).
@@ -359,9 +380,9 @@ h3{font-size:1.1em}code{background:#f2f2f2;padding:0 .25em;border-radius:3px}
 nav{font-size:.92em}nav a{margin-right:1em}
 table{border-collapse:collapse;margin:.6em 0;font-size:.92em}
 th,td{border:1px solid #ccc;padding:.2em .6em}th{background:#f4f4f4}td.n{text-align:right;
-font-variant-numeric:tabular-nums}caption{caption-side:top;text-align:left;font-weight:600;padding:.3em 0}
+font-variant-numeric:tabular-nums}p.tcap{margin:1em 0 .2em}
 figure{display:inline-block;margin:.4em 1em .8em 0;vertical-align:top}figcaption{font-size:.85em;color:#444;
-max-width:640px}img.px{image-rendering:pixelated}
+max-width:640px}img.px{image-rendering:pixelated}figure>img{max-width:100%;height:auto}
 .cmp{border:1px solid #ddd;border-radius:6px;padding:.6em;margin:.8em 0}
 .ctl{display:flex;gap:1em;align-items:center;flex-wrap:wrap;font-size:.92em}
 .ctl input{width:16em}
@@ -483,19 +504,18 @@ class Page:
         self._parts.append(str(markup))
 
     def table(self, rows, header=None, caption: str | None = None) -> None:
-        """A table: ``rows`` a sequence of rows (sequences of cells), ``header`` the column titles. Numbers are
-        right-aligned, floats written with 4 significant digits (pass strings to choose another format), None as
-        "–".
+        """A table: ``rows`` a sequence of rows (sequences of cells), ``header`` the column titles, ``caption`` a line
+        above it (marked up as :meth:`text` does). Numbers are right-aligned, floats written with 4 significant
+        digits (pass strings to choose another format), None as "–".
 
         Examples:
             >>> from stereorepro.workflows.html_report import Page
             >>> page = Page("t"); page.table([["x", 2]], header=["k", "v"], caption="T")
-            >>> "<caption>T</caption>" in page.render(), '<td class="n">2</td>' in page.render()
+            >>> '<p class="tcap">T</p>' in page.render(), '<td class="n">2</td>' in page.render()
             (True, True)
         """
-        out = ["<table>"]
-        if caption:
-            out.append(f"<caption>{_inline(caption)}</caption>")
+        out = [f'<p class="tcap">{_inline(caption)}</p>'] if caption else []
+        out.append("<table>")
         if header is not None:
             out.append("<tr>" + "".join(f"<th>{_esc(h)}</th>" for h in header) + "</tr>")
         for row in rows:

@@ -204,3 +204,166 @@ class TestPage:
 
     def test_light_import(self):
         assert "matplotlib" not in html_report.__dict__ and "torch" not in html_report.__dict__
+
+
+# --- the experiment's report.html ---------------------------------------------------------------------------------
+
+SMALL = dict(
+    scene="living_room", frames=3, width=48, height=27, reference_spp=16, ladder_spp=4, progress=False, alphas=(0.5,)
+)
+
+
+@pytest.fixture(scope="module")
+def experiment(tmp_path_factory):
+    """A tiny experiment run: its folder, ``results`` and the images it kept for its figures (``keep``, captured
+    from ``write_outputs``), and its ``report.html``."""
+    pytest.importorskip("embreex")
+    from stereorepro.workflows.experiment import ExperimentConfig
+    from stereorepro.workflows.experiment import run as run_module
+    from stereorepro.workflows.experiment.report_html import write_report_html
+
+    out, captured = tmp_path_factory.mktemp("exp"), {}
+    write_outputs = run_module.write_outputs
+
+    def capture(where, results, per_frame, keep, cfg):
+        captured.update(results=results, keep=keep)
+        write_outputs(where, results, per_frame, keep, cfg)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(run_module, "write_outputs", capture)
+        run_module.run_experiment(ExperimentConfig(out=str(out), flip=False, **SMALL), log=lambda *a: None)
+    write_report_html(out, captured["results"], captured["keep"])
+    return out, captured["results"], captured["keep"]
+
+
+def last_frame_from(keep: dict) -> dict:
+    """A ``keep["last_frame"]`` entry (the layout report_html documents) made of the run's Figure-4 images."""
+    f4 = keep["fig4"]
+    return {
+        "images": {"stereo_temporal": f4["method"], "stereo": f4["one"] * 0.5 + f4["ref"] * 0.5, "temporal": f4["ref"]},
+        "eyes": {"stereo_temporal": "left", "stereo": "left", "temporal": "right"},
+        "references": {"left": f4["ref"], "right": f4["ref"] * 0.9},
+        "one_spp": {"left": f4["one"], "right": f4["one"]},
+    }
+
+
+class TestExperimentPage:
+    def test_smoke(self, experiment):
+        out, results, keep = experiment
+        text = (out / "report.html").read_text()
+        check_self_contained(text)
+        for part in ("Table 1", "Table 2", "Resampling bias", "Left eye", "Error maps", "Discarded pixels"):
+            assert part in text, part
+        assert "fig_cost.png" in text and "fig3_rmse.png" in text  # both plots embedded
+        assert text.count('class="cmp"') == 1 and text.count('class="top"') == 3 * 3  # 3 crops x 3 methods
+        assert not list(out.glob("*.tmp"))
+
+    def test_every_scheme_of_the_last_frame(self, experiment):
+        from stereorepro.workflows.experiment.report_html import report_page
+
+        out, results, keep = experiment
+        text = report_page(results, dict(keep, last_frame=last_frame_from(keep)), figures=out).render()
+        check_self_contained(text)
+        assert text.count('class="cmp"') == 2 and "Right eye" in text
+        menus = re.findall(r"<select>(.*?)</select>", text)
+        assert [re.findall(r">([^<]+)</option>", m) for m in menus] == [
+            ["stereo_temporal", "stereo", "1 spp", "path tracing, 4 spp"],
+            ["temporal", "1 spp"],
+        ]
+
+    def test_without_kept_images(self, experiment):
+        from stereorepro.workflows.experiment.report_html import report_page
+
+        out, results, _ = experiment
+        text = report_page(results, {}).render()
+        check_self_contained(text)
+        assert "Table 2" in text and 'class="cmp"' not in text and "<img" not in text
+
+
+# --- in a real browser --------------------------------------------------------------------------------------------
+
+#: Set (to 1) where the browser check must run: CI (.ci/run), which installs Chromium first. Elsewhere the browser
+#: tests skip when Chromium or playwright is missing.
+REQUIRE_BROWSER = "STEREOREPRO_REQUIRE_BROWSER"
+
+
+def _chromium() -> str | None:
+    """The Chromium (or Chrome) executable: $STEREOREPRO_CHROMIUM (None if it names no executable), else the first
+    of the usual names on PATH."""
+    import shutil
+
+    if os.environ.get("STEREOREPRO_CHROMIUM"):
+        return shutil.which(os.environ["STEREOREPRO_CHROMIUM"])
+    names = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
+    return next(filter(None, map(shutil.which, names)), None)
+
+
+@pytest.fixture(scope="module")
+def browser():
+    """Headless Chromium driven by playwright (the system's browser: playwright downloads none)."""
+    missing = []
+    try:
+        from playwright.sync_api import sync_playwright
+    except ImportError:
+        missing.append("playwright (pip install '.[test]')")
+    exe = _chromium()
+    if exe is None:
+        missing.append("chromium (apt-get install chromium; or set STEREOREPRO_CHROMIUM)")
+    if missing:
+        why = "the browser check needs " + " and ".join(missing)
+        if os.environ.get(REQUIRE_BROWSER) == "1":
+            pytest.fail(f"{why}, and {REQUIRE_BROWSER}=1 requires it")
+        pytest.skip(why)
+    with sync_playwright() as pw:
+        b = pw.chromium.launch(executable_path=exe, args=["--disable-dev-shm-usage"])
+        try:
+            yield b
+        finally:
+            b.close()
+
+
+def open_page(browser, path):
+    """The page at ``path`` loaded from file://, with what it logged: console errors and warnings, uncaught
+    exceptions and every request other than the page itself and its data: images."""
+    page = browser.new_page(viewport={"width": 1280, "height": 900})
+    log = {"console": [], "errors": [], "requests": []}
+    page.on("console", lambda m: m.type in ("error", "warning") and log["console"].append(f"{m.type}: {m.text}"))
+    page.on("pageerror", lambda e: log["errors"].append(str(e)))
+    url = path.resolve().as_uri()
+    page.on("request", lambda r: r.url != url and not r.url.startswith("data:") and log["requests"].append(r.url))
+    page.goto(url, wait_until="load")
+    return page, log
+
+
+class TestInBrowser:
+    def test_builder_page(self, browser, tmp_path):
+        page, log = open_page(browser, sample_page().write(tmp_path / "sample.html"))
+        assert log == {"console": [], "errors": [], "requests": []}
+        assert page.evaluate("[...document.images].every(i => i.complete && i.naturalWidth > 0)")
+        page.close()
+
+    def test_experiment_report(self, browser, experiment):
+        out, _, _ = experiment
+        page, log = open_page(browser, out / "report.html")
+        assert page.evaluate("[...document.images].every(i => i.complete && i.naturalWidth > 0)")
+        visible = "[...document.querySelectorAll('.cmp img.top')].filter(i => !i.hidden)"
+        clips = f"{visible}.map(i => i.style.clipPath)"
+        assert set(page.evaluate(clips)) == {"inset(0px 50% 0px 0px)"}  # the script ran: the wipe at its middle
+        page.evaluate(
+            "() => { const r = document.querySelector('.cmp input[type=range]'); r.value = '30';"
+            " r.dispatchEvent(new Event('input')); }"
+        )
+        assert set(page.evaluate(clips)) == {"inset(0px 70% 0px 0px)"}
+        stack = page.locator(".cmp .stack").first
+        stack.scroll_into_view_if_needed()
+        box = stack.bounding_box()
+        page.mouse.click(box["x"] + 0.8 * box["width"], box["y"] + box["height"] / 2)  # dragging on the image
+        assert 78 <= int(page.evaluate("document.querySelector('.cmp input[type=range]').value")) <= 82
+        page.select_option(".cmp select", "1")  # the menu shows the second method on every crop
+        assert set(page.evaluate(f"{visible}.map(i => i.dataset.i)")) == {"1"}
+        assert page.inner_text(".cmp .who") == page.evaluate("document.querySelector('.cmp option[value=\"1\"]').text")
+        shot = out / "report_screenshot.png"
+        page.screenshot(path=str(shot), full_page=True)
+        assert decode_png(shot.read_bytes()).shape[1] == 1280
+        assert log == {"console": [], "errors": [], "requests": []}
+        page.close()
