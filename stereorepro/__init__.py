@@ -35,7 +35,14 @@ from .camera import (
     unproject,
     world_motion_from_view_z,
 )
-from .denoise import ReprojectionDenoiser, denoise_features, empty_history, reproject_denoise, reprojection_features
+from .denoise import (
+    ReprojectionDenoiser,
+    denoise_features,
+    empty_history,
+    empty_state,
+    reproject_denoise,
+    reprojection_features,
+)
 from .errors import (
     CameraError,
     MissingDependencyError,
@@ -133,6 +140,7 @@ __all__ = [
     "reprojection_features",
     "denoise_features",
     "empty_history",
+    "empty_state",
     # metrics
     "EFFECTIVE_SPP_FLAGS",
     "EffectiveSppLadder",

@@ -18,6 +18,7 @@ from stereorepro import (
     ReprojectionDenoiser,
     ShapeError,
     TemporalReprojection,
+    backward_reproject,
     denoise_features,
     empty_history,
     export_onnx,
@@ -26,7 +27,17 @@ from stereorepro import (
     stereo_reproject,
     temporal_step,
 )
-from stereorepro.denoise import FEATURES, OTHER_NAMES, STEREO_FEATURES, denoiser_example_inputs, feature_channels
+from stereorepro.denoise import (
+    ALBEDO_FEATURES,
+    FEATURES,
+    OTHER_NAMES,
+    RECURRENT_FEATURES,
+    STEREO_FEATURES,
+    denoiser_example_inputs,
+    empty_state,
+    feature_channels,
+    feature_names,
+)
 from stereorepro.errors import StereoreproError
 from stereorepro.reproject import History, View
 from stereorepro.io.onnx import onnx_input_dims
@@ -48,9 +59,16 @@ class TinyDenoiser(nn.Module):
         return x[:, :3] + self.out(torch.relu(self.conv(x)))
 
 
-def make(stereo: bool = False, seed: int = 0, **kw) -> ReprojectionDenoiser:
+def make(stereo: bool = False, recurrent: bool = False, albedo: bool = False, seed: int = 0, **kw):
+    """A ReprojectionDenoiser with a TinyDenoiser for the options' features (fixed seed)."""
     torch.manual_seed(seed)
-    return ReprojectionDenoiser(TinyDenoiser(feature_channels(stereo)), *THR, stereo=stereo, **kw).eval()
+    net = TinyDenoiser(feature_channels(stereo, recurrent, albedo))
+    return ReprojectionDenoiser(net, *THR, stereo=stereo, recurrent=recurrent, albedo=albedo, **kw).eval()
+
+
+#: (stereo, recurrent, albedo) of every variant with a recurrent or albedo input.
+NEW_OPTIONS = [(s, r, a) for s in (False, True) for r in (False, True) for a in (False, True) if r or a]
+OPTION_IDS = ["-".join(n for n, on in zip(("stereo", "recurrent", "albedo"), o) if on) for o in NEW_OPTIONS]
 
 
 def inputs(model, height=H, width=W, dtype=torch.float32, seed=0, device="cpu"):
@@ -298,6 +316,244 @@ class TestReprojectionDenoiser(BaseTester):
             bad[i] = bad[i] + np.float32(delta)
             with pytest.raises(AssertionError):
                 assert_parity(ref, bad)
+
+
+def split(model, xs):
+    """(current_color, view, history, prev_view, other, prev_denoised, albedo) of ``model``'s flat inputs ``xs``."""
+    named = dict(zip(model.input_names, xs))
+    other = (named["other_color"], View(*(named[n] for n in OTHER_NAMES[1:]))) if model.stereo else None
+    return (
+        xs[0],
+        View(*xs[1:5]),
+        History(xs[5], xs[6]),
+        View(*xs[7:11]),
+        other,
+        named.get("prev_denoised"),
+        named.get("albedo"),
+    )
+
+
+class TestRecurrentAndAlbedo(BaseTester):
+    """The recurrent input (the denoiser's previous output, warped like the history) and the albedo input."""
+
+    @pytest.mark.parametrize("options", NEW_OPTIONS, ids=OPTION_IDS)
+    def test_channel_order(self, options):
+        """FEATURES [+ STEREO] [+ RECURRENT] [+ ALBEDO]; the first 9 (13) channels are those of the variant
+        without the new inputs, bit for bit."""
+        stereo, recurrent, albedo = options
+        model = make(*options)
+        xs = inputs(model)
+        with torch.no_grad():
+            feats = model.features(*xs)[0]
+            base = make(stereo).features(*xs[: 11 + 5 * stereo])[0]
+        names = feature_names(*options)
+        assert feats.shape[1] == model.in_channels == feature_channels(*options) == len(names)
+        assert names == FEATURES + STEREO_FEATURES * stereo + RECURRENT_FEATURES * recurrent + ALBEDO_FEATURES * albedo
+        assert model.feature_names == names and model.input_names[11 + 5 * stereo :] == (
+            ["prev_denoised"] * recurrent + ["albedo"] * albedo
+        )
+        assert torch.equal(feats[:, : base.shape[1]], base)
+        if albedo:
+            assert torch.equal(feats[:, -3:], xs[-1])
+        if recurrent:
+            i = names.index("log1p_previous_r")
+            assert feats[:, i : i + 3].abs().max() > 0
+
+    def test_recurrent_channels_are_backward_reproject(self, backend):
+        """log1p of backward_reproject(previous_output, prev_view → view) where it is valid, 0 elsewhere; valid
+        exactly where the history was kept (the same geometry and tests)."""
+        be = self.backend_arg(backend)
+        model = make(recurrent=True, backend=be)
+        xs = inputs(model)
+        color, view, history, prev_view, _, previous, _ = split(model, xs)
+        with torch.no_grad():
+            feats = reprojection_features(color, view, history, prev_view, THR, previous_output=previous, backend=be)[0]
+            ref = backward_reproject(previous, prev_view, view, THR, backend=be)
+        valid = ref.valid.expand(-1, 3, -1, -1)
+        expected = torch.where(valid, torch.log1p(ref.values.clamp_min(0)), torch.zeros(()))
+        torch.testing.assert_close(feats[:, 9:12], expected, rtol=1e-6, atol=1e-6)
+        assert torch.equal(feats[:, 9:12][~valid], torch.zeros(int((~valid).sum())))
+        assert torch.equal(feats[:, 4:5].bool(), ref.valid)
+        assert 0.05 < ref.valid.float().mean() < 0.95  # both kept and discarded pixels
+
+    def test_albedo_channels(self):
+        model = make(albedo=True)
+        xs = list(inputs(model))
+        albedo = xs[-1].clone()
+        albedo[0, :, 0, :3] = torch.tensor([float("nan"), float("inf"), -float("inf")])
+        with torch.no_grad():
+            feats = model.features(*xs[:-1], albedo)[0]
+        assert torch.equal(feats[:, 9:12], torch.nan_to_num(albedo, nan=0.0, posinf=0.0, neginf=0.0))
+
+    def test_per_frame_state_zeroes_every_warped_channel(self):
+        """empty_state (and empty_history(recurrent=True) for the module): the network sees this frame only."""
+        model = make(True, recurrent=True, albedo=True)
+        xs = inputs(model)
+        color, view, _, _, other, previous, albedo = split(model, xs)
+        state = empty_state(view, recurrent=True, stereo=True)
+        for prev in (state.previous_output, previous):  # zeros, or any previous output: no surface to read it from
+            with torch.no_grad():
+                out = reprojection_features(
+                    color,
+                    view,
+                    state.history,
+                    state.prev_view,
+                    THR,
+                    other=state.other,
+                    previous_output=prev,
+                    albedo=albedo,
+                )
+            feats = out.features
+            assert torch.equal(feats[:, 4], torch.zeros_like(feats[:, 4]))  # valid
+            assert torch.equal(feats[:, 9:16], torch.zeros_like(feats[:, 9:16]))  # stereo, recurrent
+            assert torch.equal(feats[:, 0:3], torch.log1p(color.clamp_min(0))) and (out.history_len == 1).all()
+            assert torch.equal(feats[:, 16:19], albedo)
+        flat = empty_history(*xs[1:5], recurrent=True)
+        assert len(empty_history(*xs[1:5])) == 6 and len(flat) == 7 and torch.equal(flat[6], torch.zeros_like(color))
+        no_other = dict(zip(OTHER_NAMES, (state.other[0], state.other[1].depth, state.other[1].normal, *xs[14:16])))
+        with torch.no_grad():
+            module_feats = model.features(*xs[:5], *flat[:6], **no_other, prev_denoised=flat[6], albedo=albedo)[0]
+        assert torch.equal(module_feats, feats)
+
+    def test_gradcheck(self):
+        """float64 gradcheck of the new channels w.r.t. previous_output and albedo (backend "auto")."""
+        model = make(recurrent=True, albedo=True)
+        xs = inputs(model, 6, 8, dtype=torch.float64)
+        color, view, history, prev_view, _, previous, albedo = split(model, xs)
+
+        def f(prev, alb):
+            out = reprojection_features(color, view, history, prev_view, THR, previous_output=prev, albedo=alb)
+            return out.features[:, 9:]
+
+        prev = previous.clone().requires_grad_(True)
+        alb = albedo.clone().requires_grad_(True)
+        assert torch.autograd.gradcheck(f, (prev, alb))
+        assert f(prev, alb)[:, :3].abs().max() > 0  # some of the previous output is kept
+
+    def test_auto_backend_differentiates_the_previous_output(self):
+        """float32 on the CPU (where "auto" would run native): with grad the previous output's warp runs torch."""
+        model = make(recurrent=True, albedo=True)
+        xs = inputs(model)
+        color, view, history, prev_view, _, previous, albedo = split(model, xs)
+        prev = previous.clone().requires_grad_(True)
+        out = reproject_denoise(
+            color, view, history, prev_view, model.denoiser, THR, previous_output=prev, albedo=albedo
+        )
+        out.denoised.sum().backward()
+        assert prev.grad is not None and torch.isfinite(prev.grad).all() and prev.grad.abs().sum() > 0
+
+    @pytest.mark.parametrize("options", NEW_OPTIONS, ids=OPTION_IDS)
+    def test_module_equals_function(self, options, backend):
+        be = self.backend_arg(backend)
+        model = make(*options, backend=be)
+        xs = inputs(model)
+        color, view, history, prev_view, other, previous, albedo = split(model, xs)
+        with torch.no_grad():
+            got = model(*xs)
+            by_name = model(*xs[:11], **dict(zip(model.input_names[11:], xs[11:])))
+            ref = reproject_denoise(
+                color,
+                view,
+                history,
+                prev_view,
+                model.denoiser,
+                THR,
+                backend=be,
+                other=other,
+                previous_output=previous,
+                albedo=albedo,
+            )
+        for g, n, r in zip(got, by_name, ref):
+            assert torch.equal(g, r) and torch.equal(n, r)
+
+    def test_recurrent_unroll(self, backend):
+        """Three frames through the module (state and denoised fed back) equal the function's unroll; gradients
+        of the last frame reach the first frame's output (training unrolls through time)."""
+        be = self.backend_arg(backend)
+        model = make(recurrent=True, albedo=True, backend=be)
+        albedo = torch.rand(1, 3, H, W, generator=torch.Generator().manual_seed(5))
+        state = None
+        with torch.set_grad_enabled(be != "native"):  # native runs without autograd only
+            for i in range(3):
+                f = frame(i)
+                cur = (f["color"], f["depth"], f["normal"], f["K"], f["cam_from_world"])
+                view = View(*cur[1:])
+                if state is None:
+                    flat = empty_history(*cur[1:], recurrent=True)
+                    s = empty_state(view, recurrent=True)
+                    state = (s.history, s.prev_view, s.previous_output)
+                got = model(*cur, *flat, albedo)
+                ref = reproject_denoise(
+                    cur[0],
+                    view,
+                    state[0],
+                    state[1],
+                    model.denoiser,
+                    THR,
+                    backend=be,
+                    previous_output=state[2],
+                    albedo=albedo,
+                )
+                for g, r in zip(got, ref):
+                    assert torch.equal(g, r)
+                if i == 0:
+                    first = got[0]
+                flat = (got[1], got[2], *cur[1:], got[0])
+                state = (ref.history, view, ref.denoised)
+        if be != "native":
+            (grad,) = torch.autograd.grad(got[0].square().mean(), first)
+            assert grad.abs().sum() > 0
+
+    @pytest.mark.onnx
+    @pytest.mark.parametrize("options", NEW_OPTIONS, ids=OPTION_IDS)
+    def test_onnx_parity(self, options, tmp_path):
+        """Every variant exports to one graph whose inputs are input_names (symbolic sizes), run by onnxruntime at
+        another size: every output within 1e-5 of torch (float32)."""
+        ort = pytest.importorskip("onnxruntime")
+        model = make(*options)
+        path = export_onnx(model, tmp_path / "m.onnx", inputs=inputs(model, 12, 16))
+        dims = onnx_input_dims(path)
+        assert list(dims) == model.input_names
+        if model.recurrent:
+            assert dims["prev_denoised"] == ["B", 3, "Hp", "Wp"]
+        if model.albedo:
+            assert dims["albedo"] == ["B", 3, "H", "W"]
+        sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+        xs = inputs(model, 20, 28, seed=1)
+        got = sess.run(None, {n: x.numpy() for n, x in zip(model.input_names, xs)})
+        with torch.no_grad():
+            ref = model(*xs)
+        assert_parity(ref, got, atol=1e-5)
+
+    def test_exceptions(self):
+        model = make(True, recurrent=True, albedo=True)
+        xs = inputs(model)
+        color, view, history, prev_view, other, previous, albedo = split(model, xs)
+        args = (color, view, history, prev_view, THR)
+        with pytest.raises(ShapeError, match=r"previous_output \(the previous frame's denoised output\)"):
+            reprojection_features(*args, previous_output=previous[..., :-1])
+        with pytest.raises(ShapeError, match=r"^albedo"):
+            reprojection_features(*args, albedo=albedo[:, :2])
+        with pytest.raises(TypeError, match="^albedo: expected a floating"):
+            reprojection_features(*args, albedo=albedo.int())
+        with pytest.raises(ShapeError, match="warped_previous"):
+            denoise_features(color, xs[6], xs[6] > 0, xs[1], xs[2], warped_previous=color[..., :-1])
+        with pytest.raises(TypeError, match="needs prev_denoised, albedo"):
+            model(*xs[:16])
+        with pytest.raises(ShapeError, match=r"^prev_denoised"):
+            model(*xs[:16], previous[:, :, :-1], albedo)
+        with pytest.raises(TypeError, match="twice"):
+            model(*xs, albedo=albedo)
+        with pytest.raises(TypeError, match="got prev_denoised: construct it with recurrent=True"):
+            make()(*xs[:11], prev_denoised=previous)
+        with pytest.raises(TypeError, match="albedo=True"):
+            make(recurrent=True)(*xs[:11], previous, albedo)
+        with pytest.raises(TypeError, match="unexpected arguments with View inputs"):
+            reprojection_features(*args, "bilinear")
+        with pytest.raises(TypeError, match="view: expected a stereorepro.View"):
+            empty_state(xs[1])
+        with pytest.raises(ShapeError, match=r"C_in = 19: .*albedo_b"):
+            ReprojectionDenoiser(TinyDenoiser(9), *THR, stereo=True, recurrent=True, albedo=True)(*xs)
 
 
 # ---------------------------------------------------------------------------------------------- the example
