@@ -59,12 +59,12 @@ from torch.nn import functional as F
 from stereorepro import (
     reproject_denoise,
     temporal_error,
-    History,
     PathTracer,
     TemporalReprojection,
     View,
     backward_reproject,
     effective_spp_many,
+    empty_state,
     ladder_rmse,
     load_scene,
     rmse,
@@ -118,7 +118,7 @@ FULL = Settings(
     (40, 54),
     4,
     256,
-    1024,
+    512,
     (1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64),
     500,
     2,
@@ -249,17 +249,6 @@ def _view(eye_data: dict, idx: Tensor) -> View:
     return View.unchecked(eye_data["depth"][idx], eye_data["normal"][idx], eye_data["K"][idx], eye_data["T"][idx])
 
 
-def _nowhere(view: View) -> View:
-    """``view``'s camera seeing no surface anywhere: every tap warped from it is rejected."""
-    return View.unchecked(torch.zeros_like(view.depth), torch.zeros_like(view.normal), view.K, view.cam_from_world)
-
-
-def _cold(view: View) -> tuple[History, View, Tensor]:
-    """The per-frame state (also a recurrent sequence's first frame): empty history, a zero previous output seen
-    from a view with no surface."""
-    return History.empty(view), _nowhere(view), torch.zeros_like(view.normal)
-
-
 def sequence(net: nn.Module, clip: dict, starts: Tensor, count: int, recurrent: bool, grad_from: int = 0):
     """Run the denoiser over frames ``starts + k`` (k < count) of both eyes (a cold start at ``starts``).
 
@@ -276,11 +265,12 @@ def sequence(net: nn.Module, clip: dict, starts: Tensor, count: int, recurrent: 
             for name, _ in EYES:
                 d = clip[name]
                 view = _view(d, idx)
-                history, prev_view, prev_out = states[name] if recurrent and name in states else _cold(view)
+                cold = empty_state(view, recurrent=True, stereo=True)
+                history, prev_view, prev_out = states[name] if recurrent and name in states else cold[:3]
                 if recurrent and name == "left":
                     other = (outputs["right"], views["right"])  # the right eye's denoised frame
                 else:
-                    other = (torch.zeros_like(d["color"][idx]), _nowhere(view))
+                    other = cold.other  # an other eye with no surface: the stereo channels are 0
                 res = reproject_denoise(
                     d["color"][idx],
                     view,
@@ -422,21 +412,33 @@ def score(images: Tensor, eye_data: dict, thresholds: Tensor, s: Settings) -> di
         _view(eye_data, idx - 1),
         thr,
     )
+    # where the temporal reprojection keeps a history (the other pixels are disoccluded or new in the frame)
+    kept = backward_reproject(torch.ones_like(img[:, :1]), _view(eye_data, idx - 1), _view(eye_data, idx), thr).valid
+    sq = (_ldr(img) - _ldr(ref)).double().pow(2).mean(1, keepdim=True)
     return {
         "rmse": r.tolist(),
         "effective_spp": [x if math.isfinite(x) else None for x in spp.tolist()],
         "spp_flags": flags,
         "flip": flip(img, ref).tolist(),
         "temporal_error": te.tolist(),
+        "sq_history": (sq * kept).sum((1, 2, 3)).tolist(),
+        "n_history": kept.sum((1, 2, 3)).tolist(),
+        "sq_no_history": (sq * ~kept).sum((1, 2, 3)).tolist(),
+        "n_no_history": (~kept).sum((1, 2, 3)).tolist(),
     }
 
 
 def _pooled(scores: list[dict]) -> dict:
     """Means over frames and eyes of a list of :func:`score` results (effective spp: the median, frames beyond
-    the ladder's floor counted as above it)."""
-    cat = {k: [v for sc in scores for v in sc[k]] for k in ("rmse", "flip", "temporal_error", "effective_spp")}
+    the ladder's floor counted as above it); RMSE over the pixels with and without a reprojected history (pixel
+    RMSE pooled over the frames)."""
+    cat = {k: [v for sc in scores for v in sc[k]] for k in scores[0] if k != "spp_flags"}
     spp = [math.inf if v is None else v for v in cat["effective_spp"]]
+    n_new, n_old = sum(cat["n_no_history"]), sum(cat["n_history"])
     return {
+        "rmse_history": math.sqrt(sum(cat["sq_history"]) / n_old) if n_old else math.nan,
+        "rmse_no_history": math.sqrt(sum(cat["sq_no_history"]) / n_new) if n_new else math.nan,
+        "no_history_share": n_new / (n_new + n_old),
         "rmse": statistics.mean(cat["rmse"]),
         "effective_spp_median": statistics.median(spp),
         "beyond_ladder_share": sum(1 for v in spp if math.isinf(v)) / len(spp),
@@ -559,13 +561,17 @@ def evaluate(nets: dict, test_clips: dict, groups: dict, s: Settings) -> tuple[d
     for variant in VARIANTS:
         rec = methods[f"U-Net {variant}"] = {"kind": "network", "seeds": {}}
         for seed, net in nets[variant].items():
-            scores = {}
+            scores, seconds, frames = {}, 0.0, 0
             for label, clip in test_clips.items():
+                t0 = time.perf_counter()
                 eyes = network_outputs(net, clip, variant == "recurrent")
+                seconds += time.perf_counter() - t0
+                frames += clip["right"]["color"].shape[0]
                 scores[label] = {e: score(img, clip[e], clip["thresholds"], s) for e, img in eyes.items()}
                 if seed == min(nets[variant]):
                     shown[label][f"U-Net {variant}"] = eyes["left"]
             rec["seeds"][str(seed)] = summarise(scores, groups)
+            rec.setdefault("ms_per_stereo_frame", {})[str(seed)] = 1e3 * seconds / frames  # both eyes, 1 thread
         rec["spread"] = {
             group: {k: spread([m[group][k] for m in rec["seeds"].values()]) for k in METRIC_KEYS}
             for group in next(iter(rec["seeds"].values()))
@@ -574,7 +580,7 @@ def evaluate(nets: dict, test_clips: dict, groups: dict, s: Settings) -> tuple[d
 
 
 #: The pooled metrics that get a spread over seeds.
-METRIC_KEYS = ("rmse", "effective_spp_median", "flip", "temporal_error")
+METRIC_KEYS = ("rmse", "effective_spp_median", "flip", "temporal_error", "rmse_history", "rmse_no_history")
 
 
 def _cell(rec: dict, group: str, key: str, digits: int) -> str:
@@ -596,10 +602,17 @@ COLUMNS = (
 )
 
 
-def table_rows(methods: dict, group: str) -> tuple[list[str], list[list[str]]]:
+#: The columns of the table of where the error is: pixels with and without a reprojected history.
+WHERE_COLUMNS = (
+    ("rmse_history", "LDR RMSE, pixels with history ↓", 4),
+    ("rmse_no_history", "LDR RMSE, disoccluded pixels ↓", 4),
+)
+
+
+def table_rows(methods: dict, group: str, columns=COLUMNS) -> tuple[list[str], list[list[str]]]:
     """(header, rows) of one group's table."""
-    header = ["method"] + [c[1] for c in COLUMNS]
-    return header, [[m] + [_cell(rec, group, k, d) for k, _, d in COLUMNS] for m, rec in methods.items()]
+    header = ["method"] + [c[1] for c in columns]
+    return header, [[m] + [_cell(rec, group, k, d) for k, _, d in columns] for m, rec in methods.items()]
 
 
 def table(methods: dict, groups: list[str]) -> str:
@@ -609,6 +622,11 @@ def table(methods: dict, groups: list[str]) -> str:
         header, rows = table_rows(methods, group)
         lines += [f"**{group}**", "", "| " + " | ".join(header) + " |", "|---|" + "---:|" * len(COLUMNS)]
         lines += ["| " + " | ".join(r) + " |" for r in rows] + [""]
+    share = methods["1 spp"]["metrics"]["all"]["no_history_share"]  # the same pixels for every method
+    header, rows = table_rows(methods, "all", WHERE_COLUMNS)
+    lines += [f"**where (all; {100 * share:.1f} % of the scored pixels are disoccluded)**", ""]
+    lines += ["| " + " | ".join(header) + " |", "|---|" + "---:|" * len(WHERE_COLUMNS)]
+    lines += ["| " + " | ".join(r) + " |" for r in rows] + [""]
     return "\n".join(lines)
 
 
@@ -639,6 +657,8 @@ def write_report(path: Path, results: dict, shown: dict, test_clips: dict) -> No
     for group in ("all", *results["groups"]):
         header, rows = table_rows(results["methods"], group)
         page.table(rows, header=header, caption=group)
+    header, rows = table_rows(results["methods"], "all", WHERE_COLUMNS)
+    page.table(rows, header=header, caption="where the error is (all scored frames)")
     for label, images in shown.items():
         clip, f = test_clips[label], images["reference"].shape[0] - 1
         ref = images["reference"][f]
