@@ -345,6 +345,10 @@ def _inline(text: str) -> str:
     return re.sub(r"`([^`]+)`", r"<code>\1</code>", t)
 
 
+#: Text cells that read as numbers (right-aligned like them): "1.5", "-2", "12.3 %", "1e-05", "–".
+_NUMBER = re.compile(r"[-+]?(\d[\d,]*\.?\d*|\.\d+)([eE][-+]?\d+)?( ?%)?|–")
+
+
 def _cell(x) -> tuple[str, bool]:
     """A table cell's text and whether it is a number (right-aligned)."""
     if x is None:
@@ -355,7 +359,7 @@ def _cell(x) -> tuple[str, bool]:
         return str(int(x)), True
     if isinstance(x, (float, np.floating)):
         return f"{float(x):.4g}", True
-    return str(x), False
+    return str(x), bool(_NUMBER.fullmatch(str(x)))
 
 
 def _region(a: np.ndarray, crop: Crop, max_width: int) -> tuple[np.ndarray, int]:
@@ -386,7 +390,8 @@ max-width:640px}img.px{image-rendering:pixelated}figure>img{max-width:100%;heigh
 .cmp{border:1px solid #ddd;border-radius:6px;padding:.6em;margin:.8em 0}
 .ctl{display:flex;gap:1em;align-items:center;flex-wrap:wrap;font-size:.92em}
 .ctl input{width:16em}
-.stack{position:relative;display:inline-block;line-height:0;user-select:none;touch-action:none;cursor:ew-resize}
+.stack{position:relative;display:inline-block;line-height:0;user-select:none;touch-action:none;cursor:ew-resize;
+outline:1px solid #999}
 .stack img{display:block;width:100%;image-rendering:pixelated}
 .stack img.top{position:absolute;left:0;top:0}.stack img[hidden]{display:none}
 .bar{position:absolute;top:0;bottom:0;width:2px;margin-left:-1px;background:#fff;box-shadow:0 0 2px #000;

@@ -23,11 +23,15 @@ import numpy as np
 
 from ...reproject import reason_to_rgb
 from ..html_report import Page, abs_error, colorbar, colorize, downscale, full_frame, tonemap, worst_crop
+from .config import metric_image
 
 __all__ = ["report_page", "write_report_html"]
 
-#: The widest image the page shows (pixels): larger frames are box-averaged down.
+#: The widest image the page shows (pixels): larger frames are box-averaged down; smaller ones, and the zoomed
+#: regions, are shown enlarged by an integer factor up to this width.
 MAX_WIDTH = 480
+#: The width the error maps and discard maps are enlarged towards (pixels; an integer factor, pixelated).
+_GALLERY_WIDTH = 320
 
 #: The metric tables the page shows when the run measured them: results key, title, what it measures.
 _METRICS = (
@@ -40,6 +44,21 @@ _METRICS = (
         "change, RMSE, averaged over frames 1.. (0 = as stable as the reference)",
     ),
 )
+
+
+#: What the error maps and the zoomed regions measure, per metric (:func:`~.config.metric_image`).
+_METRIC_IMAGE = {"ldr": "radiance clamped to [0, 1]", "hdr": "linear radiance"}
+
+
+def _metric(results: dict) -> str:
+    return results.get("metric", "ldr")
+
+
+def _error(image, reference, results: dict) -> np.ndarray:
+    """Per-pixel error ``(H, W)`` of the images the run's metric scores (clamped to [0, 1] for ``"ldr"``): where
+    the error that effective spp counts lies."""
+    m = _metric(results)
+    return abs_error(metric_image(image, m), metric_image(reference, m))
 
 
 def _f(x, nd: int = 2) -> str:
@@ -59,7 +78,7 @@ def _settings(page: Page, results: dict) -> None:
             ["scene", results["scene"]],
             ["frames, resolution", f"{results['frames']} frames at {results['resolution']}"],
             ["reference, ladder", f"{results['reference_spp']} spp, 1..{results['ladder_spp']} spp"],
-            ["metric", f"{results.get('metric', 'ldr').upper()} RMSE (effective spp)"],
+            ["metric", f"{_metric(results).upper()} RMSE (effective spp)"],
             [
                 "thresholds",
                 f"position {th['position']:.4g} (scene {th['position_scene']:.4g} × {th['scale']:.3g} for the "
@@ -80,7 +99,7 @@ def _tables(page: Page, results: dict) -> None:
     page.table(
         _stats_rows({k: t1[k] for k in ("stereo", "temporal") if k in t1}), head, "**Table 1**: discarded pixels (%)"
     )
-    metric = results.get("metric", "ldr").upper()
+    metric = _metric(results).upper()
     page.table(
         _stats_rows(t2) + _stats_rows(results.get("table2_variants") or {}),
         head,
@@ -137,7 +156,7 @@ def _comparisons(page: Page, keep: dict, results: dict) -> dict:
         "method in the menu. Zoomed regions: where the lead scheme's error is highest."
     )
     for eye, (methods, ref, lead) in sorted(eyes.items()):
-        err = abs_error(methods[lead], ref)
+        err = _error(methods[lead], ref, results)
         h, w = err.shape
         size = max(8, min(h, w) // 6)  # shown enlarged: 2x at 1280x720
         first = worst_crop(err, size, f"{lead}'s highest error")
@@ -147,24 +166,26 @@ def _comparisons(page: Page, keep: dict, results: dict) -> dict:
         if rest.any():
             crops.append(worst_crop(rest, size, f"{lead}'s next-highest error"))
         page.section(f"{eye.capitalize()} eye", level=3)
-        page.compare(
-            methods, ref, crops, reference_label=f"reference ({results['reference_spp']} spp)", max_width=MAX_WIDTH
-        )
+        label = f"reference ({results['reference_spp']} spp)"
+        page.compare(methods, ref, crops, reference_label=label, max_width=MAX_WIDTH, min_width=MAX_WIDTH)
     return eyes
 
 
-def _error_maps(page: Page, eyes: dict) -> None:
+def _error_maps(page: Page, eyes: dict, results: dict) -> None:
     """Per eye, each method's error map on one scale (the 99th percentile of that eye's errors)."""
     if not eyes:
         return
     page.section("Error maps")
     for eye, (methods, ref, _) in sorted(eyes.items()):
-        errs = {k: downscale(abs_error(v, ref), MAX_WIDTH)[..., 0] for k, v in methods.items()}
+        errs = {k: downscale(_error(v, ref, results), MAX_WIDTH)[..., 0] for k, v in methods.items()}
         vmax = float(np.percentile(np.concatenate([e.ravel() for e in errs.values()]), 99)) or 1.0
         page.section(f"{eye.capitalize()} eye", level=3)
-        page.text(f"Mean absolute error over R, G, B (linear radiance): black 0, light yellow {vmax:.3g} and above.")
+        page.text(
+            f"Mean absolute error over R, G, B of the images the metric scores ({_METRIC_IMAGE[_metric(results)]}): "
+            f"black 0, light yellow {vmax:.3g} and above."
+        )
         page.image(colorbar(256, 10), caption=f"0 … {vmax:.3g}")
-        scale = max(1, 240 // next(iter(errs.values())).shape[1])
+        scale = max(1, _GALLERY_WIDTH // next(iter(errs.values())).shape[1])
         page.gallery({k: colorize(e, vmax) for k, e in errs.items()}, scale=scale)
 
 
@@ -185,7 +206,7 @@ def _discards(page: Page, keep: dict, results: dict) -> None:
         "The pixels each step discards (Figure 1): green the position test, cyan the normal test, red out of "
         "frame, black kept or no surface."
     )
-    scale = max(1, 240 // next(iter(images.values())).shape[1])
+    scale = max(1, _GALLERY_WIDTH // next(iter(images.values())).shape[1])
     page.gallery({k: tonemap(v, gamma=1.0) for k, v in images.items()}, scale=scale)
 
 
@@ -228,7 +249,7 @@ def report_page(results: dict, keep: dict, figures: str | Path | None = None) ->
     _settings(page, results)
     _tables(page, results)
     eyes = _comparisons(page, keep, results)
-    _error_maps(page, eyes)
+    _error_maps(page, eyes, results)
     _discards(page, keep, results)
     _plots(page, results, None if figures is None else Path(figures))
     return page
