@@ -284,7 +284,7 @@ class TestRecurrentDenoiser:
             assert json.loads(json.dumps(ckpt["settings"])) == saved["settings"]
             assert set(ckpt["thresholds"]) == set(saved["thresholds"])
             ex.build_network(**ckpt["network"]["kwargs"]).load_state_dict(ckpt["state_dict"])
-        assert (tmp_path / "recurrent_denoiser.md").read_text().count("| U-Net recurrent |") == 3
+        assert (tmp_path / "recurrent_denoiser.md").read_text().count("| U-Net recurrent |") == 4  # 3 groups, where
         assert (tmp_path / "report.html").read_text().startswith("<!DOCTYPE html>")
 
     @staticmethod
