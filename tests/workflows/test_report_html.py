@@ -255,7 +255,10 @@ class TestExperimentPage:
         for part in ("Table 1", "Table 2", "Resampling bias", "Left eye", "Error maps", "Discarded pixels"):
             assert part in text, part
         assert "fig_cost.png" in text and "fig3_rmse.png" in text  # both plots embedded
-        assert text.count('class="cmp"') == 1 and text.count('class="top"') == 3 * 3  # 3 crops x 3 methods
+        menus = [re.findall(r">([^<]+)</option>", m) for m in re.findall(r"<select>(.*?)</select>", text)]
+        assert {"stereo_temporal", "1 spp", "path tracing, 4 spp"} <= set(menus[0])  # the left eye's comparison
+        for block, menu in zip(text.split('class="cmp"')[1:], menus):  # each method's image on every crop
+            assert block.count('class="top"') == len(menu) * block.count('class="stack"') >= 2 * len(menu)
         assert not list(out.glob("*.tmp"))
 
     def test_every_scheme_of_the_last_frame(self, experiment):
