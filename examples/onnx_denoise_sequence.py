@@ -293,6 +293,9 @@ def main(argv=None) -> dict:
     p.add_argument("--scene", default=None, help="default: the checkpoint's first held-out scene, else living_room")
     p.add_argument("--reference-spp", type=int, default=None, help="default: the checkpoint's test references")
     p.add_argument(
+        "--cache", default=None, help="with --checkpoint: the study's render cache; its clip of the frames is used"
+    )
+    p.add_argument(
         "--steps", type=int, default=None, help="training steps without a checkpoint (default 300, smoke 10)"
     )
     p.add_argument("--seed", type=int, default=0)
@@ -331,6 +334,7 @@ def _setup(args) -> dict:
             thresholds=_scene_thresholds(ckpt.get("thresholds", {}), scene),
             denoiser=f"examples/recurrent_denoiser.py build_network({ckpt['network']['kwargs']}) from {args.checkpoint}",
             checkpoint={"path": str(args.checkpoint), "variant": ckpt.get("variant"), "training": ckpt.get("training")},
+            clip=_study_clip(args.cache, scene, st) if args.cache and not args.reference_spp else None,
         )
     from stereorepro.denoise import feature_channels
 
@@ -362,6 +366,22 @@ def _setup(args) -> dict:
     )
 
 
+def _study_clip(cache, scene: str, settings: dict) -> dict | None:
+    """The study's cached clip of ``scene`` at its test frames (``examples/recurrent_denoiser.py``: same frames,
+    inputs and references), in this example's layout, or None when the cache does not have it."""
+    from recurrent_denoiser import Settings, _cache_key, load_clip
+
+    s = Settings(**{k: tuple(v) if isinstance(v, list) else v for k, v in settings.items()})
+    if not (Path(cache) / f"{_cache_key(scene, s.test_frames, s, True)}.pt").exists():
+        return None
+    clip = load_clip(scene, s.test_frames, s, True, Path(cache))
+    names = {"current_color": "color", "cam_from_world": "T"}
+    return {
+        eye: {k: clip[eye][names.get(k, k)].float().unsqueeze(1) for k in (*FRAME, "albedo", "reference")}
+        for eye in EYES
+    }
+
+
 def _scene_thresholds(thresholds: dict, scene: str):
     """The checkpoint's thresholds of ``scene`` (keyed by the scene's name or its clips' labels, "name (frames
     a-b)"), or None (then the scene's own at this height, which is what the study uses)."""
@@ -389,7 +409,7 @@ def _run(args) -> dict:
     t_start = time.perf_counter()
     frames = cfg["train_frames"]
     train_clip = render_clip(scene, frames, W, H, cfg["reference_spp"], args.seed) if frames else None
-    seq = render_clip(scene, cfg["test_frames"], W, H, cfg["reference_spp"], args.seed)
+    seq = cfg.get("clip") or render_clip(scene, cfg["test_frames"], W, H, cfg["reference_spp"], args.seed)
     t_render = time.perf_counter() - t_start
 
     model = ReprojectionDenoiser(net, pos, nrm, alpha=0.2, **OPTIONS).eval()
@@ -487,6 +507,7 @@ def _results(cfg: dict, seq: dict, ref: dict, ort_out: dict, warmup: int) -> dic
         "test_frames": [cfg["test_frames"][0], cfg["test_frames"][-1] + 1],
         "eyes": list(EYES),
         "reference_spp": cfg["reference_spp"],
+        "clip_from_study_cache": cfg.get("clip") is not None,
         "warmup": warmup,
         "max_abs_diff": max_abs,
         "max_abs_diff_denoised": max_abs["denoised"],
