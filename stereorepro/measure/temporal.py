@@ -65,7 +65,8 @@ def temporal_error(
     the camera's rotation alone, which a depth-based warp cannot place) are left out. A batch item with no valid
     pixel gives NaN (nothing was comparable), never a number made up.
 
-    The warp runs in the images' dtype (float32 for float32 inputs); the difference and the mean in float64.
+    Computed as ``d = e − W(e_prev)`` with ``e = T(image) − T(reference)`` (``W`` is linear: one warp instead of
+    two), the differences in the images' dtype, their squares and the mean in float64.
 
     Args:
         image: (B, C, H, W) the current frame, e.g. a denoiser's output (linear radiance), finite.
@@ -151,12 +152,11 @@ def _squared_residual(
     def T(t: Tensor) -> Tensor:
         return t.clamp(0.0, 1.0) if tonemap == "clamp" else t
 
-    B, C = image.shape[:2]
+    # W is linear (accepted bilinear weights renormalised, the same for every channel): warping the previous error
+    # image once equals W(T(prev_image)) − W(T(prev_reference)), at half the cost
     dtype = torch.promote_types(prev_image.dtype, prev_reference.dtype)
-    both = torch.cat([T(prev_image).to(dtype), T(prev_reference).to(dtype).expand(B, -1, -1, -1)], 1)  # Bx2CxHpxWp
-    warped = backward_reproject(both, prev_view, view, thresholds)
-    w = warped.values.to(torch.float64)  # Bx2CxHxW
-    cur = T(image).to(torch.float64) - w[:, :C]
-    ref = T(reference).to(torch.float64) - w[:, C:]
-    d = cur - ref  # BxCxHxW
+    prev_error = T(prev_image).to(dtype) - T(prev_reference).to(dtype)  # BxCxHpxWp
+    warped = backward_reproject(prev_error, prev_view, view, thresholds)
+    error = T(image) - T(reference)  # BxCxHxW
+    d = error.to(torch.float64) - warped.values.to(torch.float64)
     return (d * d).mean(1, keepdim=True), warped.valid

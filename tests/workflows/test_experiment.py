@@ -96,6 +96,59 @@ class TestExperiment:
         one = torch.from_numpy(ladder_task(ctx, 0, RIGHT)[0]["first"])
         assert f0 == float(ssim(one, reference(ctx, 0, RIGHT)[0], tonemap="clamp")[0])
 
+    def test_temporal_error_reported(self, first_run):
+        out, res = first_run
+        data = json.loads((out / "results.json").read_text())
+        schemes = set(data["table2"]) | set(data["table2_variants"])
+        assert set(data["temporal_error"]) == schemes
+        # frame 0 has no previous frame: frames 1.. are scored, every scheme in each
+        assert all(v["n"] == SMALL["frames"] - 1 for v in data["temporal_error"].values())
+        assert data["per_frame"][0]["temporal_error"] == {}
+        for r in data["per_frame"][1:]:
+            assert set(r["temporal_error"]) == schemes and all(0.0 < v < 1.0 for v in r["temporal_error"].values())
+        assert data["timing_ms"]["temporal_error_ms"] > 0
+        assert "**Temporal error** (lower = steadier)" in (out / "tables.md").read_text()
+        assert "## Temporal stability" in (out / "report.md").read_text()
+
+    def test_temporal_error_value(self, first_run, tmp_path, monkeypatch):
+        """Frame 1 of the temporal scheme, recomputed from the cache: its previous image is the right eye's frame-0
+        1-spp render (no history yet), warped by the right eye's G-buffers with the run's thresholds."""
+        from stereorepro.measure import temporal_error
+        from stereorepro.reproject import View
+        from stereorepro.scenes import load_scene
+        from stereorepro.workflows.experiment import run as run_module
+        from stereorepro.workflows.experiment.config import RIGHT
+        from stereorepro.workflows.experiment.inputs import RenderContext, ladder_task, render_eye, spec_for
+
+        out, _ = first_run
+        seen = []
+
+        def spy(image, *args, **kwargs):
+            seen.append(image)
+            return temporal_error(image, *args, **kwargs)
+
+        monkeypatch.setattr(run_module, "temporal_error", spy)
+        cfg = ExperimentConfig(out=str(tmp_path), cache_dir=str(out / "cache"), **dict(SMALL, frames=2))
+        res = run_experiment(cfg)
+        assert res["cache"]["misses"] == 0 and res["temporal_error"]["temporal"]["n"] == 1
+        image = seen[list(res["per_frame"][1]["temporal_error"]).index("temporal")]  # the scheme's frame-1 output
+        ctx = RenderContext(spec_for(cfg, load_scene(cfg.scene), out / "cache"), scene=load_scene(cfg.scene))
+        now, before = render_eye(ctx, 1, RIGHT), render_eye(ctx, 0, RIGHT)
+        one = torch.from_numpy(ladder_task(ctx, 0, RIGHT)[0]["first"])
+        th = res["thresholds"]
+
+        def view(e):
+            return View(e.depth, e.normal, e.K, e.cam_from_world)
+
+        expected = temporal_error(
+            image, now.reference, one, before.reference, view(now), view(before), (th["position"], th["normal"])
+        )
+        assert res["per_frame"][1]["temporal_error"]["temporal"] == float(expected[0])
+        one_frame = run_experiment(
+            ExperimentConfig(out=str(tmp_path), cache_dir=str(out / "cache"), **dict(SMALL, frames=1))
+        )
+        assert one_frame["temporal_error"] is None and "Temporal error" not in (tmp_path / "tables.md").read_text()
+
     def test_cached_run_is_identical(self, first_run, tmp_path):
         out, res = first_run
         again = run_experiment(ExperimentConfig(out=str(out), **SMALL))

@@ -34,9 +34,10 @@ LEFT, RIGHT = Eye.LEFT, Eye.RIGHT
 #: reference's noise, and the ldr metric's clamp of a noisy sample, make the ladder's error stop decreasing with spp
 #: (a ladder 1..2 against 2 spp, 1..16 against a 1-spp prefix) and effective spp is undefined.
 MIN_REFERENCE_SPP = 4
-#: Peak memory of a run per pixel (both eyes' renders, every scheme's state, the scores and the figures), with a
-#: margin: the estimate of the resolution guard (:func:`stereorepro._checks.check_resolution`).
-EXPERIMENT_BYTES_PER_PIXEL = 2304
+#: Peak memory of a run per pixel (both eyes' renders and the previous frame's, every scheme's state and previous
+#: output, the scores and the figures), with a margin: the estimate of the resolution guard
+#: (:func:`stereorepro._checks.check_resolution`).
+EXPERIMENT_BYTES_PER_PIXEL = 2560
 
 #: The experiment's image metrics: ``"ldr"`` scores images clamped to [0, 1], ``"hdr"`` linear radiance.
 METRICS = ("ldr", "hdr")

@@ -1,5 +1,6 @@
 """The experiment's run loop: per frame, render (or read from the cache) both eyes' inputs, run every scheme on
-the same 1-spp inputs, and measure it against the reference as effective spp.
+the same 1-spp inputs, and measure it against the reference as effective spp (and FLIP, SSIM and, from the second
+frame on, the temporal error against the previous frame).
 
 :func:`run_experiment` is four steps: :func:`_start` (checks, the scene, the render cache, a cluster's renders),
 one :class:`_SchemeRun` per scheme of :func:`~.config.schemes` (its drivers and what it records),
@@ -24,6 +25,8 @@ from ..._version import __version__
 from ...accumulate import SpatiotemporalReprojection
 from ...camera import has_surface
 from ...measure.metrics import effective_spp_many, flip, flip_available, rmse, ssim
+from ...measure.temporal import temporal_error
+from ...reproject import View
 from .cache import RenderCache
 from .config import LEFT, RIGHT, ExperimentConfig, Scheme, metric_image, validate_config
 from .config import schemes as all_schemes
@@ -95,6 +98,9 @@ class ExperimentResults:
     table1: dict  #: scheme -> discarded pixels (%): the paper's Table 1 (stereo, temporal)
     flip: dict | None  #: scheme -> mean LDR FLIP statistics; None when not measured
     ssim: dict | None  #: paper scheme -> mean LDR SSIM statistics; None when not measured
+    #: scheme -> temporal error statistics (:func:`~stereorepro.measure.temporal.temporal_error` against the previous
+    #: frame, tonemapped as ``metric``), over frames 1.. (frame 0 has no previous frame); None for a one-frame run
+    temporal_error: dict | None
     #: scenes with moving objects only: ``moving_pixels_pct`` and, per temporal scheme, discards on the moving
     #: objects' pixels and on the static rest (absent from :meth:`to_dict` otherwise)
     moving_objects: dict | None
@@ -260,6 +266,7 @@ class _FrameData:
     ladder_spp: list  #: 1..ladder_spp
     prefixes: list  #: smaller references of the reference-spp study (chunked runs)
     prefix_refs: dict  #: eye -> prefix spp -> metric image of that reference
+    previous: dict | None = None  #: LEFT / RIGHT -> EyeData of the previous frame; None at the first frame
 
     def ladder(self, eye: int, metric: str) -> tuple[torch.Tensor, torch.Tensor]:
         """The eye's ladder: spp (L,) and RMSE (L,) float64."""
@@ -289,6 +296,7 @@ def _frame_inputs(run: _Run, f: int, timing: dict) -> _FrameData:
         "rmse_noise_free": {},
         "flip": {},
         "ssim": {},
+        "temporal_error": {},
         "reference_study": {},
     }
     if run.moving:
@@ -312,17 +320,21 @@ def _run_frames(run: _Run, schemes: list[_SchemeRun]) -> tuple[list[dict], dict,
     tqdm = require("tqdm.auto", "the experiment's progress bar", extra="experiment").tqdm
 
     cfg = run.cfg
-    timing = {k: [] for k in ("trace_1spp_ms", "gbuffer_ms", "trace_left_discards_ms", "reference_ms")}
+    timing = {
+        k: [] for k in ("trace_1spp_ms", "gbuffer_ms", "trace_left_discards_ms", "reference_ms", "temporal_error_ms")
+    }
     timing.update({f"reproject_{s.scheme.name}_ms": [] for s in schemes})
-    per_frame, keep = [], {}
+    per_frame, keep, previous = [], {}, None
     drivers = {s.scheme.name: s.driver for s in schemes}
     bar = tqdm(
         range(run.frames), desc=f"{run.scene.name} {cfg.width}x{cfg.height}", unit="frame", disable=not cfg.progress
     )
     for f in bar:
         fd = _frame_inputs(run, f, timing)
+        fd.previous = previous
         for s in schemes:
             s.score(run, fd, timing, keep)
+        previous = fd.eyes  # one frame back only: fd.previous is dropped with fd
         if cfg.exr:
             write_frame_exr(run.out / "exr", f, fd.eyes, drivers)
         per_frame.append(fd.row)
@@ -337,6 +349,13 @@ def _motion(eye: EyeData, scheme: Scheme) -> tuple:
     return (eye.motion, eye.motion_world) if scheme.motion else (None, None)
 
 
+def _view(eye: EyeData) -> View:
+    """The eye's G-buffer and camera as a :class:`~stereorepro.View`, with its motion vectors to the previous frame
+    when the scene has moving objects (the known motion the temporal error follows)."""
+    motion_world = eye.motion_world if eye.motion is not None else None
+    return View(eye.depth, eye.normal, eye.K, eye.cam_from_world, eye.motion, motion_world)
+
+
 @dataclass
 class _SchemeRun:
     """One scheme in a run: its driver on the 1-spp inputs and, for the paper's schemes, the same scheme fed with
@@ -346,6 +365,8 @@ class _SchemeRun:
     scheme: Scheme
     driver: SpatiotemporalReprojection
     clean: SpatiotemporalReprojection | None
+    #: the evaluated eye's output of the previous frame (the temporal error's previous image; one frame only)
+    prev_image: torch.Tensor | None = None
 
     @classmethod
     def make(cls, s: Scheme, run: _Run) -> _SchemeRun:
@@ -390,7 +411,8 @@ class _SchemeRun:
 
     def score(self, run: _Run, fd: _FrameData, timing: dict, keep: dict) -> None:
         """Run the scheme on the frame and write its scores into the frame's row (RMSE, effective spp and its
-        flag, FLIP, SSIM, the noise-free RMSE, the reference-spp study, the discards it reports)."""
+        flag, FLIP, SSIM, the temporal error, the noise-free RMSE, the reference-spp study, the discards it
+        reports)."""
         s, cfg, row = self.scheme, run.cfg, fd.row
         img, mask, ms = self.reproject(fd)
         timing[f"reproject_{s.name}_ms"].append(ms)
@@ -402,6 +424,9 @@ class _SchemeRun:
             row["flip"][s.name] = float(flip(img, ref)[0])
         if cfg.ssim and s.paper:  # LDR SSIM (clamp), the paper's three schemes: seconds per image at 720p
             row["ssim"][s.name] = float(ssim(img, ref, tonemap="clamp")[0])
+        if fd.previous is not None and self.prev_image is not None:
+            row["temporal_error"][s.name] = self.temporal_error(run, fd, img, timing)
+        self.prev_image = img
         if self.clean is not None:
             row["rmse_noise_free"][s.name] = self.noise_free_rmse(fd, cfg.metric)
         row["effective_spp"][s.name] = float(spp[0])
@@ -419,6 +444,24 @@ class _SchemeRun:
                 "top": L.top.clone(),
                 "spp": row["effective_spp"][s.name],
             }
+
+    def temporal_error(self, run: _Run, fd: _FrameData, img: torch.Tensor, timing: dict) -> float | None:
+        """The evaluated eye's temporal error against the previous frame (None where no pixel could be warped)."""
+        now, before = fd.eyes[self.scheme.eye], fd.previous[self.scheme.eye]
+        t0 = time.perf_counter()
+        err = temporal_error(
+            img,
+            now.reference,
+            self.prev_image,
+            before.reference,
+            _view(now),
+            _view(before),
+            (run.pos_thr, run.nrm_thr),
+            tonemap="clamp" if run.cfg.metric == "ldr" else "none",
+        )
+        timing["temporal_error_ms"].append((time.perf_counter() - t0) * 1e3)
+        value = float(err[0])
+        return value if math.isfinite(value) else None
 
     def noise_free_rmse(self, fd: _FrameData, metric: str) -> float:
         s, c = self.scheme, self.clean
@@ -519,6 +562,11 @@ def _assemble(
             else None
         ),
         ssim=({s.name: _stats([r["ssim"][s.name] for r in per_frame]) for s in paper} if cfg.ssim else None),
+        temporal_error=(
+            {s.scheme.name: _stats([r["temporal_error"].get(s.scheme.name) for r in per_frame]) for s in schemes}
+            if run.frames > 1
+            else None
+        ),
         moving_objects=_moving_table(schemes, per_frame) if run.moving else None,
         table2={s.name: stats[s.name] for s in paper},
         table2_variants={k: v for k, v in stats.items() if k not in {s.name for s in paper}},
