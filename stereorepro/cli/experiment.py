@@ -112,7 +112,9 @@ def run_command(args) -> int:
     except (ValueError, FileNotFoundError, ClusterError) as e:  # SceneError and the config's checks are ValueErrors
         raise UserError(str(e)) from None
     print(tables_markdown(results))
-    print(f"report: {Path(cfg.out) / 'report.md'} (figures and results.json beside it); wall {results['wall_s']:.0f} s")
+    print(
+        f"report: {Path(cfg.out) / 'report.md'} and report.html (figures and results.json beside it); wall {results['wall_s']:.0f} s"
+    )
     return 0
 
 

@@ -37,8 +37,10 @@ SMALL = dict(
 def same_tables(a: dict, b: dict) -> None:
     assert a["table1"] == b["table1"] and a["table2"] == b["table2"]
     assert a["table2_variants"] == b["table2_variants"] and a["reference_study"] == b["reference_study"]
+    assert a["temporal_error"] == b["temporal_error"]
     for ra, rb in zip(a["per_frame"], b["per_frame"], strict=True):
         assert ra["rmse"] == rb["rmse"] and ra["ladder_rmse"] == rb["ladder_rmse"]
+        assert ra["temporal_error"] == rb["temporal_error"]
 
 
 @pytest.fixture(scope="module")

@@ -26,6 +26,7 @@ class TestExperiment:
             "results.json",
             "tables.md",
             "report.md",
+            "report.html",
             "fig1_discards.png",
             "fig3_rmse.png",
             "fig4_comparison.png",

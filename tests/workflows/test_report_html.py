@@ -220,7 +220,6 @@ def experiment(tmp_path_factory):
     pytest.importorskip("embreex")
     from stereorepro.workflows.experiment import ExperimentConfig
     from stereorepro.workflows.experiment import run as run_module
-    from stereorepro.workflows.experiment.report_html import write_report_html
 
     out, captured = tmp_path_factory.mktemp("exp"), {}
     write_outputs = run_module.write_outputs
@@ -232,7 +231,8 @@ def experiment(tmp_path_factory):
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(run_module, "write_outputs", capture)
         run_module.run_experiment(ExperimentConfig(out=str(out), flip=False, **SMALL), log=lambda *a: None)
-    write_report_html(out, captured["results"], captured["keep"])
+    assert (out / "report.html").is_file()  # written by the run itself
+    assert "last_frame" in captured["keep"]
     return out, captured["results"], captured["keep"]
 
 
@@ -349,7 +349,8 @@ class TestInBrowser:
         out, _, _ = experiment
         page, log = open_page(browser, out / "report.html")
         assert page.evaluate("[...document.images].every(i => i.complete && i.naturalWidth > 0)")
-        visible = "[...document.querySelectorAll('.cmp img.top')].filter(i => !i.hidden)"
+        # the first comparison (left eye): its slider drives its own crops only
+        visible = "[...document.querySelector('.cmp').querySelectorAll('img.top')].filter(i => !i.hidden)"
         clips = f"{visible}.map(i => i.style.clipPath)"
         assert set(page.evaluate(clips)) == {"inset(0px 50% 0px 0px)"}  # the script ran: the wipe at its middle
         page.evaluate(

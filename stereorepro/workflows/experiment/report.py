@@ -1,5 +1,5 @@
-"""The experiment's outputs: ``results.json``, ``tables.md``, ``report.md`` and the figures (1, 3, 4 and the
-time-cost plot), each written atomically."""
+"""The experiment's outputs: ``results.json``, ``tables.md``, ``report.md``, ``report.html`` and the figures (1, 3,
+4 and the time-cost plot), each written atomically."""
 
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ from ..._extras import require
 from ...io.atomic import atomic_path, atomic_write, staged_outputs
 from ...reproject import reason_to_rgb
 from .config import LEFT, SCHEMES
+from .report_html import write_report_html
 
 __all__ = ["tables_markdown", "cost_markdown", "write_outputs", "write_frame_exr"]
 
@@ -160,7 +161,7 @@ def _tonemap(x: torch.Tensor) -> np.ndarray:
 
 
 def write_outputs(out: Path, results: dict, per_frame, keep, cfg) -> None:
-    """Write the figures, ``tables.md``, ``report.md`` and ``results.json`` into ``out`` as one set
+    """Write the figures, ``tables.md``, ``report.md``, ``report.html`` and ``results.json`` into ``out`` as one set
     (:func:`~stereorepro.io.atomic.staged_outputs`): all of them or none, ``results.json`` last.
 
     Examples:
@@ -176,7 +177,7 @@ def write_outputs(out: Path, results: dict, per_frame, keep, cfg) -> None:
         >>> out = Path(tmp.name) / "again"
         >>> write_outputs(out, results, results["per_frame"], {}, cfg)  # no kept images: Figures 1 and 4 left out
         >>> sorted(os.listdir(out))
-        ['fig3_rmse.png', 'fig_cost.png', 'report.md', 'results.json', 'tables.md']
+        ['fig3_rmse.png', 'fig_cost.png', 'report.html', 'report.md', 'results.json', 'tables.md']
         >>> tmp.cleanup()
     """
     with staged_outputs(out, last=["results.json"]) as stage:
@@ -199,6 +200,7 @@ def _write_outputs(out: Path, results: dict, per_frame, keep, cfg) -> None:
         made = figure(plt, results, per_frame, keep, cfg)
         if made is not None:
             save(*made)
+    write_report_html(out, results, keep)  # embeds the figures written above
     atomic_write(out / "results.json", json.dumps(results, indent=1))
     tables = tables_markdown(results)
     atomic_write(out / "tables.md", tables)

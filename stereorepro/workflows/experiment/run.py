@@ -141,7 +141,7 @@ def run_experiment(cfg: ExperimentConfig, log=print) -> dict:
         ...     print(sorted(os.listdir(d))[:4])
         ...     print(sorted(os.listdir(d))[4:])
         ['cache', 'fig1_discards.png', 'fig3_rmse.png', 'fig4_comparison.png']
-        ['fig_cost.png', 'report.md', 'results.json', 'tables.md']
+        ['fig_cost.png', 'report.html', 'report.md', 'results.json', 'tables.md']
         >>> r["frames"], r["resolution"], sorted(r["table2"]), r["table2"]["stereo"]["n"]
         (2, '8x6', ['stereo', 'stereo_temporal', 'temporal'], 2)
     """
@@ -444,6 +444,11 @@ class _SchemeRun:
                 "top": L.top.clone(),
                 "spp": row["effective_spp"][s.name],
             }
+        if fd.frame == run.frames - 1:  # report.html: every scheme's image at the last frame, with its eye's inputs
+            last = keep.setdefault("last_frame", {"images": {}, "eyes": {}, "references": {}, "one_spp": {}})
+            eye, data = str(s.eye), fd.eyes[s.eye]
+            last["images"][s.name], last["eyes"][s.name] = img.clone(), eye
+            last["references"][eye], last["one_spp"][eye] = data.reference.clone(), data.sample.clone()
 
     def temporal_error(self, run: _Run, fd: _FrameData, img: torch.Tensor, timing: dict) -> float | None:
         """The evaluated eye's temporal error against the previous frame (None where no pixel could be warped)."""
