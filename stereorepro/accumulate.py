@@ -73,6 +73,7 @@ from ._tensors import as_scalar, compute_dtype
 from .camera import Eye
 from .errors import ParameterError, ParameterTypeError
 from .reproject import History, Reason, StereoReprojection, TemporalReprojection, Thresholds, View, temporal_reproject
+from .reproject.view import _check_history_rounding
 from .reproject.functional import temporal_blend, temporal_views, warp_values
 
 __all__ = [
@@ -291,6 +292,7 @@ def blend_histories(
     warmup: bool = True,
     max_history: float = 255.0,
     stereo_weight=STEREO_WEIGHT,
+    history_rounding: str = "none",
 ) -> tuple[Tensor, Tensor]:
     """The blended left eye: the stereo-reprojected history, the eye's own warped history and the traced samples.
 
@@ -327,6 +329,9 @@ def blend_histories(
         history_valid: (B, 1, H, W) bool, where the own history was kept.
         alpha, warmup, max_history: the EMA's settings (see :func:`~stereorepro.reproject.temporal_blend`).
         stereo_weight: ρ >= 0, a finite number or one-element tensor (learnable).
+        history_rounding: ``"none"`` or ``"bmfr"``: integer counts, as BMFR stores them: the traced pixels'
+            through :func:`~stereorepro.reproject.temporal_blend`'s ``"bmfr"`` rule, the kept pixels' count
+            rounded half to even (the weights use the unrounded counts).
 
     Returns:
         color: (B, C, H, W), dtype of ``traced_color``; finite wherever the inputs it selects are.
@@ -372,6 +377,7 @@ def blend_histories(
         check_scalar(alpha, "alpha")
         check_scalar(max_history, "max_history", 1.0, allow_inf=True)
         check_scalar(stereo_weight, "stereo_weight", 0.0)
+    _check_history_rounding(history_rounding, "blend_histories")
     wdt = compute_dtype(traced_color, stereo_color, history_color, stereo_len, history_len)
     dev = traced_color.device
     zero = torch.zeros((), dtype=wdt, device=dev)
@@ -400,10 +406,16 @@ def blend_histories(
     # the traced samples where the stereo reprojection discarded: the EMA into the own history (the fill rule)
     trace = ~stereo_valid
     cur = torch.where(trace, traced_color, torch.zeros((), dtype=traced_color.dtype, device=dev))
-    filled, n_filled = temporal_blend(cur, hist, n_hist, history_valid, alpha, warmup, max_history)
+    filled, n_filled = temporal_blend(cur, hist, n_hist, history_valid, alpha, warmup, max_history, history_rounding)
     out = torch.where(stereo_valid, hist.to(filled.dtype), filled)
-    n = torch.where(stereo_valid, n_hist.to(n_filled.dtype), n_filled)
+    n = torch.where(stereo_valid, _stored_count(n_hist, history_rounding).to(n_filled.dtype), n_filled)
     return out, n
+
+
+def _stored_count(n: Tensor, history_rounding: str) -> Tensor:
+    """A count an eye keeps without adding a sample (a reprojected or blended one): ``n``, or with ``"bmfr"``
+    ``n`` rounded half to even (BMFR's integer storage)."""
+    return torch.round(n) if history_rounding == "bmfr" else n
 
 
 class SpatiotemporalReprojection:
@@ -427,6 +439,9 @@ class SpatiotemporalReprojection:
         stereo_weight: ρ of :func:`blend_histories` (``"blend"`` only).
         alternate: trace the right eye in full on even frames and the left eye on odd frames (see
             :meth:`fully_traced_eye`); needs ``stereo``.
+
+    The stored history lengths are floats; set :attr:`history_rounding` to ``"bmfr"`` after construction for
+    BMFR's integer counts (every temporal step, the reprojected eye's kept stereo counts and the blend's).
 
     Example (one frame; ``trace`` is your renderer)::
 
@@ -488,6 +503,26 @@ class SpatiotemporalReprojection:
         self.stereo_weight = stereo_weight
         self.alternate = bool(alternate)
         self.reset()
+
+    @property
+    def history_rounding(self) -> str:
+        """How the eyes store their history lengths: ``"none"`` (floats, the default) or ``"bmfr"`` (BMFR's
+        integer counts: :func:`~stereorepro.reproject.temporal_blend`'s rule in every temporal step, counts kept
+        without a new sample rounded half to even). The temporal module's setting; set it before the first frame.
+
+        Examples:
+            >>> from stereorepro import SpatiotemporalReprojection
+            >>> st = SpatiotemporalReprojection(0.03, 0.2)
+            >>> st.history_rounding = "bmfr"
+            >>> st.history_rounding, st.temporal_module.history_rounding
+            ('bmfr', 'bmfr')
+        """
+        return self.temporal_module.history_rounding
+
+    @history_rounding.setter
+    def history_rounding(self, value: str) -> None:
+        _check_history_rounding(value, "SpatiotemporalReprojection")
+        self.temporal_module.history_rounding = value
 
     def reset(self) -> None:
         """Forget all history (e.g. at a camera cut); the next frame is frame 0 (right eye in full)."""
@@ -732,6 +767,7 @@ class SpatiotemporalReprojection:
                 m.warmup,
                 m.max_history,
                 self.stereo_weight,
+                m.history_rounding,
             )
             self.other_valid = valid
         else:
@@ -744,7 +780,7 @@ class SpatiotemporalReprojection:
             if self._stereo_out is not None:
                 s_color, s_len = self._stereo_out
                 out = torch.where(self.stereo_valid, s_color.to(filled.dtype), filled)
-                n = torch.where(self.stereo_valid, s_len, n)
+                n = torch.where(self.stereo_valid, _stored_count(s_len, self.history_rounding), n)
             else:
                 out = filled
         self.left_valid = self.other_valid if eye == "left" else None

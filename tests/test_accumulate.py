@@ -293,6 +293,24 @@ class TestBlendHistories(BaseTester):
 
         assert torch.autograd.gradcheck(f, leaves, eps=1e-6, atol=1e-6)
 
+    def test_bmfr_rounds_the_counts_only(self):
+        """history_rounding="bmfr": the colours of "none"; kept stereo pixels store the count rounded half to even,
+        traced ones temporal_blend's "bmfr" count; gradients of the colours unchanged."""
+        traced, s, n_s, sv, hist, n_h, hv = _blend_inputs()
+        out, n = blend_histories(traced, s, n_s, sv, hist, n_h, hv)
+        out_b, n_b = blend_histories(traced, s, n_s, sv, hist, n_h, hv, history_rounding="bmfr")
+        assert torch.equal(out_b, out)
+        assert torch.equal(n_b[sv], n[sv].round())
+        assert bool((n_b == n_b.round()).all()) and not bool((n == n.round()).all())
+        with pytest.raises(ParameterError, match="blend_histories: history_rounding"):
+            blend_histories(traced, s, n_s, sv, hist, n_h, hv, history_rounding="floor")
+        leaves = [t.clone().requires_grad_() for t in (traced, s, hist)]
+
+        def f(tr, sc, hc):
+            return blend_histories(tr, sc, n_s, sv, hc, n_h, hv, history_rounding="bmfr")[0]
+
+        assert torch.autograd.gradcheck(f, leaves, eps=1e-6, atol=1e-6)
+
     def test_nothing_reprojected_is_the_fill(self):
         """Nothing kept by the stereo reprojection: the fill rule (the EMA of the traced samples into the own
         history), bit for bit, also without warm-up and at other alphas."""
@@ -364,14 +382,18 @@ class TestBlendHistories(BaseTester):
 
 
 class TestBlendedLeftEye(BaseTester):
-    def test_default_is_the_fill_bit_for_bit(self, backend):
+    @pytest.mark.parametrize("history_rounding", ["none", "bmfr"])
+    def test_default_is_the_fill_bit_for_bit(self, backend, history_rounding):
         """The default (and ``left_mode="fill"``) is today's rule, re-derived here from the pure functions:
         right = the temporal chain, left = stereo reprojection where kept, the traced samples accumulated into
-        the left eye's own history elsewhere."""
+        the left eye's own history elsewhere. With ``"bmfr"`` every step stores BMFR's integer count and the
+        kept stereo counts are rounded half to even."""
         be = self.backend_arg(backend)
+        bmfr = history_rounding == "bmfr"
         frames = [frame(i) for i in range(4)]
         st = SpatiotemporalReprojection(*THR, backend=be)
         st_fill = SpatiotemporalReprojection(*THR, backend=be, left_mode="fill")
+        st.history_rounding = st_fill.history_rounding = history_rounding
         outs = run_eyes(st, frames)
         outs_fill = run_eyes(st_fill, frames)
         r_state = l_state = None
@@ -425,16 +447,32 @@ class TestBlendedLeftEye(BaseTester):
                     l_state.cam_from_world,
                     *THR,
                     backend=be,
+                    history_rounding=history_rounding,
                 )
             left = torch.where(valid, ref_s, filled)
+            s_len = ref_len[:, :1].round() if bmfr else ref_len[:, :1]
             l_state = EyeState(
-                left, torch.where(valid, ref_len[:, :1], n), lf["depth"], lf["normal"], lf["K"], lf["cam_from_world"]
+                left, torch.where(valid, s_len, n), lf["depth"], lf["normal"], lf["K"], lf["cam_from_world"]
             )
             assert torch.equal(mask, ~valid) and torch.equal(out["right"], r_state.color)
             assert torch.equal(out["left"], left)
         assert torch.equal(st.left_state.history_len, l_state.history_len)
         assert torch.equal(st.right_state.history_len, r_state.history_len)
         _assert_states_equal(st, st_fill)
+        for n in (st.left_state.history_len, st.right_state.history_len):
+            assert bool((n == n.round()).all()) == bmfr and float(n.max()) > 2
+
+    def test_blend_mode_bmfr_counts(self):
+        """left_mode="blend" with "bmfr": integer counts in both eyes, every frame; and the option is checked."""
+        st = SpatiotemporalReprojection(*THR, left_mode="blend")
+        st.history_rounding = "bmfr"
+        assert st.temporal_module.history_rounding == "bmfr"
+        for _, _, out in run_eyes(st, [frame(i) for i in range(3)]):
+            assert torch.isfinite(out["left"]).all()
+            for n in (st.left_state.history_len, st.right_state.history_len):
+                assert bool((n == n.round()).all())
+        with pytest.raises(ParameterError, match="SpatiotemporalReprojection: history_rounding"):
+            st.history_rounding = "nearest"
 
     def test_empty_right_history_is_the_fill(self, backend):
         """A right eye with nothing to give (no surface anywhere: every left pixel discarded): the blend is the

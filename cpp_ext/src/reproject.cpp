@@ -722,8 +722,8 @@ SR_AVX2 int64_t warp_row(const Source &s, const Dest &d, const Camera &cam, cons
 
 // TemporalSink::finish for x in [0, W - W % 8): the same operations as the scalar loop, 8 pixels at a time.
 SR_AVX2 int64_t blend_row(const float *n, const uint8_t *valid, const float *const *hist, const Plane *cur,
-                          const OutPlane *out, float *len, float alpha, float max_history, bool warmup, int64_t Cc,
-                          int64_t W) {
+                          const OutPlane *out, float *len, float alpha, float max_history, bool warmup,
+                          bool round_history, int64_t Cc, int64_t W) {
     const __m256 zero = _mm256_setzero_ps(), one = set(1.0f), va = set(alpha), cap = set(max_history);
     int64_t x = 0;
     for (; x + 8 <= W; x += 8) {
@@ -733,7 +733,9 @@ SR_AVX2 int64_t blend_row(const float *n, const uint8_t *valid, const float *con
         const __m256 nx = _mm256_max_ps(_mm256_loadu_ps(n + x), zero);
         // std::max(p, q) is (p < q) ? q : p, i.e. _mm256_max_ps(q, p) (which returns its second operand on ties)
         const __m256 a = warmup ? _mm256_max_ps(va, _mm256_div_ps(one, add(nx, one))) : va;
-        _mm256_storeu_ps(len + x, sel(v, _mm256_min_ps(add(nx, one), cap), one));
+        // round_history: round half to even (the default rounding mode), as torch.round and ONNX Round
+        const __m256 nr = round_history ? _mm256_round_ps(nx, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC) : nx;
+        _mm256_storeu_ps(len + x, sel(v, _mm256_min_ps(add(nr, one), cap), one));
         const __m256 ga = sub(one, a);
         for (int64_t c = 0; c < Cc; ++c) {
             const __m256 h = _mm256_loadu_ps(hist[c] + x), cx = ld8(cur[c], x);
@@ -789,6 +791,7 @@ struct TemporalSink {
     bool *valid;
     float alpha, max_history;
     bool warmup;
+    bool round_history;  // store round_half_even(n) + 1 (BMFR's integer count) instead of n + 1
     int64_t C, H, W;
     bool vector;  // AVX2 blend
     bool needs_scratch() const { return true; }
@@ -802,7 +805,8 @@ struct TemporalSink {
     }
     void finish(int64_t b, int64_t y, const RowOut &o) const {
         // same operations as reproject.temporal_blend: n = n > 0 ? n : 0, a = max(1/(n + 1), alpha) (warmup) or
-        // alpha, out = (1 - a)·hist + a·cur where valid else cur, n_out = min(n + 1, max_history) where valid else 1.
+        // alpha, out = (1 - a)·hist + a·cur where valid else cur, n_out = min(n + 1, max_history) where valid else 1
+        // (round_history: min(nearbyint(n) + 1, max_history), nearbyint rounding half to even).
         const int64_t Cc = C - 1, row = (b * H + y) * W;
         const float *n = o.num[Cc].f32();
         const uint8_t *v = o.valid;
@@ -818,12 +822,13 @@ struct TemporalSink {
         }
         int64_t x0 = 0;
 #ifdef SR_AVX2_PATH
-        if (vector) x0 = v8::blend_row(n, v, hist, cur, out, lo, alpha, max_history, warmup, Cc, W);
+        if (vector) x0 = v8::blend_row(n, v, hist, cur, out, lo, alpha, max_history, warmup, round_history, Cc, W);
 #endif
         for (int64_t x = x0; x < W; ++x) {
             const float nx = n[x] > 0.0f ? n[x] : 0.0f;
             const float a = warmup ? std::max(1.0f / (nx + 1.0f), alpha) : alpha;
-            lo[x] = v[x] ? std::min(nx + 1.0f, max_history) : 1.0f;
+            const float nr = round_history ? std::nearbyint(nx) : nx;
+            lo[x] = v[x] ? std::min(nr + 1.0f, max_history) : 1.0f;
             for (int64_t c = 0; c < Cc; ++c) {
                 const float cx = cur[c][x];
                 out[c].set(x, v[x] ? (1.0f - a) * hist[c][x] + a * cx : cx);
@@ -1009,7 +1014,8 @@ void reproject(CA src_values, CA src_depth, CA src_normal, CF P, CF kt, CF M, CF
 void temporal_reproject(CA current, CA history_color, CA history_len, CA prev_depth, CA prev_normal, CF P, CF kt,
                         CF M, CF t, CF Ks_inv, CA depth, CA normal, float pos_thr2, float nrm_thr2, bool bilinear,
                         float alpha, bool warmup, float max_history, OA out_color, OF out_len, OB out_valid,
-                        std::optional<CA> motion, std::optional<CA> motion_world, std::optional<CF> R) {
+                        std::optional<CA> motion, std::optional<CA> motion_world, std::optional<CF> R,
+                        bool round_history) {
     if (history_color.ndim() != 4)
         throw std::invalid_argument("temporal_reproject: history_color must be 4-D (B, C, Hs, Ws)");
     Batch bt;
@@ -1039,7 +1045,7 @@ void temporal_reproject(CA current, CA history_color, CA history_len, CA prev_de
     vector = use_avx2();
 #endif
     const TemporalSink sink{plane_of(current, "current"), plane_of(out_color, "out_color"), out_len.data(),
-                            out_valid.data(), alpha, max_history, warmup, bt.C, bt.H, bt.W, vector};
+                            out_valid.data(), alpha, max_history, warmup, round_history, bt.C, bt.H, bt.W, vector};
     dispatch(bt, Tests{pos_thr2, nrm_thr2}, bilinear, sink);
 }
 
@@ -1088,8 +1094,11 @@ void bind_reproject(nb::module_ &m) {
           nb::arg("max_history"), nb::arg("out_color").noconvert(), nb::arg("out_len").noconvert(),
           nb::arg("out_valid").noconvert(), nb::arg("motion").noconvert().none() = nb::none(),
           nb::arg("motion_world").noconvert().none() = nb::none(), nb::arg("R").noconvert().none() = nb::none(),
+          nb::arg("round_history") = false,
           "Fused temporal reprojection: warps [history_color, history_len] like `reproject` and blends with "
-          "`current` in the same pass (a = max(1/(n+1), alpha) with warmup, else alpha). Writes out_color "
+          "`current` in the same pass (a = max(1/(n+1), alpha) with warmup, else alpha). Where the history is "
+          "kept out_len = min(n + 1, max_history), or with round_history min(round_half_even(n) + 1, "
+          "max_history) (BMFR's integer count). Writes out_color "
           "(float32 or float16), out_len (float32) and out_valid in place; image inputs float32 or float16. "
           "motion, motion_world, R: as in `reproject` (the motion of this frame to the previous one).");
 }

@@ -500,7 +500,14 @@ def lean_reproject(
 
 
 def lean_blend(
-    current_color: Tensor, history_color: Tensor, history_len: Tensor, valid: Tensor, alpha, warmup: bool, max_history
+    current_color: Tensor,
+    history_color: Tensor,
+    history_len: Tensor,
+    valid: Tensor,
+    alpha,
+    warmup: bool,
+    max_history,
+    history_rounding: str = "none",
 ) -> tuple[Tensor, Tensor]:
     """:func:`~stereorepro.reproject.temporal_blend` with hard tests in the export formulation, for the history
     :func:`lean_reproject` warps (finite everywhere: its values are sums of finite table entries), with arithmetic
@@ -509,11 +516,14 @@ def lean_blend(
     The current frame's weight ``a`` is raised to 1 where the history is discarded, so one expression,
     ``(1 − a)·history + a·current``, gives the blend where the history is kept (the same operations as
     :func:`temporal_blend`) and ``0·history + current`` elsewhere and where ``a`` reaches 1: the current sample
-    (a zero's sign aside), non-finite ones included. The new count is ``n_next·v + (1 − v)``: ``n_next`` or 1.
+    (a zero's sign aside), non-finite ones included. The new count is ``n_next·v + (1 − v)``: ``n_next`` or 1;
+    with ``history_rounding="bmfr"`` ``n_next`` rounds ``n`` half to even first (ONNX ``Round``) and its cap is 1
+    where ``alpha >= 1`` (a scalar ``Where``), as ``temporal_blend``.
 
     Args:
         current_color: (B, 3, H, W); history_color: (B, 3, H, W) and history_len: (B, 1, H, W) as warped by
-            :func:`lean_reproject`; valid: (B, 1, H, W) bool; alpha, warmup, max_history: as ``temporal_blend``.
+            :func:`lean_reproject`; valid: (B, 1, H, W) bool; alpha, warmup, max_history, history_rounding: as
+            ``temporal_blend``.
 
     Returns:
         color (B, 3, H, W) in the dtype of ``current_color``, history_len (B, 1, H, W) in the compute dtype.
@@ -526,7 +536,11 @@ def lean_blend(
     a = torch.maximum(1.0 / (n + 1.0), a_min) if warmup else a_min
     a = torch.maximum(a, 1.0 - v)  # 1 where the history is discarded
     out = (1.0 - a) * hist + a * cur
-    n_out = torch.minimum(n + 1.0, as_scalar(max_history, n)) * v + (1.0 - v)
+    cap = as_scalar(max_history, n)
+    if history_rounding == "bmfr":
+        n = torch.round(n)
+        cap = torch.where(a_min >= 1.0, torch.ones((), dtype=wdt, device=n.device), cap)
+    n_out = torch.minimum(n + 1.0, cap) * v + (1.0 - v)
     if out.dtype != current_color.dtype:
         out = out.to(current_color.dtype)
     return out, n_out

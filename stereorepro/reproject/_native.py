@@ -166,6 +166,7 @@ def temporal_reproject(
     motion: Tensor | None = None,
     motion_world: Tensor | None = None,
     src_rotation: Tensor | None = None,
+    round_history: bool = False,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Temporal reprojection in one fused pass: warp [history_color, history_len] and blend with the current frame.
 
@@ -179,6 +180,9 @@ def temporal_reproject(
             max_history: cap of n.
         motion, motion_world, src_rotation: this frame's motion to the previous one, as :func:`reproject`
             (src_rotation: the previous camera's).
+        round_history: store ``min(round_half_even(n) + 1, max_history)`` instead of ``min(n + 1, max_history)``
+            where the history is kept (``history_rounding="bmfr"``; the caller passes BMFR's cap, 1 where
+            ``alpha >= 1``).
 
     Returns:
         color (B, 3, H, W) of current_color's dtype, history_len (B, 1, H, W) float32, valid (B, 1, H, W) bool.
@@ -215,5 +219,6 @@ def temporal_reproject(
         n_out,
         valid,
         *_motion_args(motion, motion_world, src_rotation),
+        **({"round_history": True} if round_history else {}),  # a core built before the option serves "none"
     )
     return color, n_out, valid

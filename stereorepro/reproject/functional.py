@@ -59,7 +59,7 @@ from . import _fast, _general, _lean, _native
 from ._flat import given_keywords, reject_extra_arguments, stereo_views, temporal_views, warn_flat_form
 from ._constants import NATIVE_MAX_CHANNELS
 from ._general import as_scalar, compute_dtype, inference_only, squared_thresholds
-from .view import Blend, History, ReprojectionResult, TemporalResult, Thresholds, View
+from .view import Blend, History, ReprojectionResult, TemporalResult, Thresholds, View, _check_history_rounding
 
 __all__ = [
     "BACKENDS",
@@ -185,7 +185,8 @@ def as_thresholds(thresholds) -> Thresholds:
 def _as_pair(x, cls, what: str):
     if isinstance(x, cls):
         return x
-    if isinstance(x, (tuple, list)) and len(x) == len(cls._fields):
+    required = len(cls._fields) - len(cls._field_defaults) if cls is not Blend else 3  # (alpha, warmup, max_history)
+    if isinstance(x, (tuple, list)) and required <= len(x) <= len(cls._fields):
         return cls(*x)
     raise TypeError(f"{what}: expected {cls.__name__}({', '.join(cls._fields)}), got {type(x).__name__}")
 
@@ -478,6 +479,7 @@ def _native_temporal(
     like = torch.empty((), dtype=torch.float32)
     alpha = blend.alpha
     a = as_scalar(alpha.detach() if isinstance(alpha, Tensor) else alpha, like).clamp(0.0, 1.0)
+    rounding = blend.history_rounding
     warp = compose_warp(prev_view.K, prev_view.cam_from_world, view.K, view.cam_from_world, torch.float32)
     return _native.temporal_reproject(
         current_color,
@@ -492,10 +494,11 @@ def _native_temporal(
         sampling == "bilinear",
         float(a),
         bool(blend.warmup),
-        float(as_scalar(blend.max_history, like)),
+        float(_length_cap(blend.max_history, a, rounding)),
         view.motion,
         view.motion_world,
         prev_view.cam_from_world[:, :3, :3],
+        rounding == "bmfr",
     )
 
 
@@ -589,6 +592,7 @@ def temporal_blend(
     alpha=0.2,
     warmup: bool = True,
     max_history: float = 255.0,
+    history_rounding: str = "none",
 ) -> History:
     """Blend a (reprojected) history into the current frame: the paper's 20 % exponential moving average.
 
@@ -597,6 +601,21 @@ def temporal_blend(
     discarded the output restarts from the current sample with ``n = 1``. With hard tests ``confidence`` is the
     valid mask (0/1); with soft tests it is the accepted weight and the output mixes
     ``confidence·blend + (1 − confidence)·current``.
+
+    ``history_rounding`` says how the new length is stored where the history is kept:
+
+    * ``"none"`` (default): the float ``min(n + 1, max_history)``;
+    * ``"bmfr"``: BMFR's integer count (Koskela et al. 2019, kernel ``accumulate_noisy_data``, which keeps it in
+      an 8-bit buffer): ``min(round_half_even(n) + 1, max_history)``, and 1 where ``a = 1`` (``alpha >= 1``: the
+      history is not used). ``n`` is the warped length, i.e. the bilinear interpolation over the accepted taps
+      (weights renormalised) of the stored integer lengths, which BMFR also interpolates; the rounding is of
+      that interpolated count, *before* the new sample's ``+ 1``. The colour weight ``a`` is computed from the
+      unrounded ``n``, as BMFR computes it (``max(1/(n + 1), alpha)``): rounding changes only what the next frame
+      reads. BMFR's cap is the default ``max_history = 255`` (an integer cap keeps the lengths integers; an
+      ``inf`` one lets them grow). With soft tests the rounded length is mixed like the float one
+      (``confidence·n_next + 1 − confidence``). ``round`` has a zero gradient: the colour's gradient is that of
+      ``"none"`` on the same inputs, the length's is zero. Where histories start from :meth:`History.empty` and
+      every step rounds, the lengths stay integers and this op stores what BMFR would store.
 
     Args:
         current_color: (B, C, H, W) this frame's samples.
@@ -607,6 +626,7 @@ def temporal_blend(
             clamped to [0, 1] (a learnable alpha may step outside); NaN or ±inf raise ValueError.
         warmup: use ``max(1/(n+1), alpha)`` instead of a fixed ``alpha``.
         max_history: cap of n, a number >= 1 (``inf``: no cap).
+        history_rounding: ``"none"`` or ``"bmfr"`` (see above); anything else raises ParameterError.
 
     A negative or NaN ``history_len`` counts as no history (n = 0). The output colour is finite wherever
     ``current_color`` is (a non-finite history never leaks; a non-finite current sample passes through where the
@@ -623,11 +643,20 @@ def temporal_blend(
         >>> out = temporal_blend(cur, hist, torch.full((1, 1, 2, 2), 9.0), torch.ones(1, 1, 2, 2, dtype=torch.bool))
         >>> round(float(out.color[0, 0, 0, 0]), 6), float(out.length[0, 0, 0, 0])
         (0.2, 10.0)
+        >>> n = torch.full((1, 1, 2, 2), 2.5)  # an interpolated length between taps of 2 and 3 samples
+        >>> valid = torch.ones(1, 1, 2, 2, dtype=torch.bool)
+        >>> float(temporal_blend(cur, hist, n, valid).length[0, 0, 0, 0])  # the float count
+        3.5
+        >>> float(temporal_blend(cur, hist, n, valid, history_rounding="bmfr").length[0, 0, 0, 0])  # 2.5 -> 2, + 1
+        3.0
     """
+    _check_history_rounding(history_rounding, "temporal_blend")
     if not tracing():
         check_blend(alpha, max_history)
         check_blend_inputs(current_color, history_color, history_len, confidence)
-    return _blend_checked(current_color, history_color, history_len, confidence, alpha, warmup, max_history)
+    return _blend_checked(
+        current_color, history_color, history_len, confidence, alpha, warmup, max_history, history_rounding
+    )
 
 
 def _blend_checked(
@@ -638,6 +667,7 @@ def _blend_checked(
     alpha,
     warmup: bool,
     max_history,
+    history_rounding: str = "none",
 ) -> History:
     """:func:`temporal_blend` of arguments the caller has checked (the temporal step's own warped history)."""
     wdt = compute_dtype(current_color, history_color)
@@ -650,7 +680,7 @@ def _blend_checked(
     a = torch.maximum(1.0 / (n + 1.0), a_min) if warmup else a_min.expand_as(n)
     # a == 1 gives exactly the current sample, even where the history is not finite
     blended = torch.where(a >= 1.0, cur, (1.0 - a) * hist + a * cur)
-    n_next = torch.minimum(n + 1.0, as_scalar(max_history, n))
+    n_next = torch.minimum(_stored_length(n, history_rounding), _length_cap(max_history, a_min, history_rounding))
     if confidence.dtype == torch.bool:
         out = torch.where(confidence, blended, cur)
         n_out = torch.where(confidence, n_next, one)
@@ -660,6 +690,21 @@ def _blend_checked(
         out = torch.where(keep, s * torch.where(keep, blended, cur) + (1.0 - s) * cur, cur)
         n_out = torch.where(keep, s * n_next + (1.0 - s), one)
     return History(out.to(current_color.dtype), n_out)
+
+
+def _stored_length(n: Tensor, history_rounding: str) -> Tensor:
+    """The length a kept history stores before the cap: ``n + 1``, or ``round_half_even(n) + 1`` (``"bmfr"``)."""
+    return (torch.round(n) if history_rounding == "bmfr" else n) + 1.0
+
+
+def _length_cap(max_history, a_min: Tensor, history_rounding: str) -> Tensor:
+    """The cap of the stored length: ``max_history``; with ``"bmfr"`` 1 where ``alpha >= 1`` (BMFR stores one
+    sample when its blend weight is 1; with warm-up the weight also reaches 1 at ``n = 0``, where the rounded
+    length is 1 already)."""
+    cap = as_scalar(max_history, a_min)
+    if history_rounding != "bmfr":
+        return cap
+    return torch.where(a_min >= 1.0, torch.ones((), dtype=cap.dtype, device=cap.device), cap)
 
 
 def temporal_reproject(
@@ -689,7 +734,9 @@ def temporal_reproject(
             previous call's :attr:`TemporalResult.history`; first frame: :meth:`History.empty`).
         prev_view: the previous frame's :class:`View` (Hp, Wp).
         thresholds, sampling, soft, backend: see :func:`backward_reproject`.
-        blend: :class:`Blend` ``(alpha, warmup, max_history)``: see :func:`temporal_blend`.
+        blend: :class:`Blend` ``(alpha, warmup, max_history, history_rounding)``: see :func:`temporal_blend`
+            (``history_rounding="bmfr"``: the stored length is BMFR's integer count, on every backend and in the
+            exported graph).
         return_reason: also return the discard reasons of the history (the native backend then warps and blends
             in two passes, with the same results).
 
@@ -751,6 +798,7 @@ def temporal_reproject(
         {"B": prev_view.batch_size, "H": prev_view.height, "W": prev_view.width},
     )
     check_floating(history.length, "history.length")
+    _check_history_rounding(blend.history_rounding, "temporal_reproject: blend")
     if not tracing():
         check_blend(blend.alpha, blend.max_history)
     return reproject_history(
@@ -918,6 +966,7 @@ def _flat_temporal(
     return_reason=False,
     motion=None,
     motion_world=None,
+    history_rounding="none",
 ) -> tuple[Tensor, ...]:
     """The flat form of :func:`~stereorepro.reproject.temporal_reproject` (deprecated)."""
     history = History(history_color, history_len)
@@ -929,6 +978,7 @@ def _flat_temporal(
         (motion, motion_world),
     )
     check_sampling(sampling)
+    _check_history_rounding(history_rounding, "temporal_reproject")
     if not tracing():
         check_thresholds(position_threshold, normal_threshold)
         check_blend(alpha, max_history)
@@ -938,7 +988,7 @@ def _flat_temporal(
         history,
         prev_view,
         Thresholds(position_threshold, normal_threshold, temperature),
-        Blend(alpha, warmup, max_history),
+        Blend(alpha, warmup, max_history, history_rounding),
         sampling,
         soft,
         backend,

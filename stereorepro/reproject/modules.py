@@ -12,7 +12,7 @@ from .._checks import check_blend, check_sampling, check_scalar, check_threshold
 from ..errors import ParameterTypeError
 from . import _flat
 from .functional import BACKENDS, stereo_reproject, temporal_reproject
-from .view import Blend, Field, History, Thresholds, view_fields
+from .view import Blend, Field, History, Thresholds, _check_history_rounding, view_fields
 
 __all__ = ["StereoReprojection", "TemporalReprojection"]
 
@@ -156,6 +156,9 @@ class TemporalReprojection(_ReprojectionBase):
         alpha: minimum weight of the current frame (paper: 0.2); learnable when ``soft``.
         warmup: running mean until the weight reaches ``alpha`` (BMFR); ``False`` = fixed EMA.
         max_history: cap of the accumulated sample count.
+        history_rounding: ``"none"`` (the float count) or ``"bmfr"`` (BMFR's integer count, see
+            :func:`~stereorepro.reproject.temporal_blend`); also an attribute that may be set after construction
+            (checked when set).
         motion_vectors: the forward takes two more inputs, ``motion`` (B,2,H,W) and ``motion_world`` (B,3,H,W),
             the renderer's motion to the previous frame (moving objects; see :func:`temporal_reproject`); they are
             then part of ``input_names`` and of the exported ONNX graph. Without it they may still be passed by
@@ -203,8 +206,10 @@ class TemporalReprojection(_ReprojectionBase):
         temperature: float = 0.1,
         backend: str = "auto",
         motion_vectors: bool = False,
+        history_rounding: str = "none",
     ):
         super().__init__(position_threshold, normal_threshold, sampling, soft, temperature, backend)
+        self.history_rounding = history_rounding
         self.motion_vectors = bool(motion_vectors)
         if self.motion_vectors:
             self.input_fields = type(self).input_fields + view_fields(motion=True)[-2:]
@@ -221,8 +226,21 @@ class TemporalReprojection(_ReprojectionBase):
     def extra_repr(self) -> str:
         return (
             super().extra_repr() + f", alpha={float(self.alpha):g}, warmup={self.warmup}, "
-            f"max_history={self.max_history:g}" + (", motion_vectors=True" if self.motion_vectors else "")
+            f"max_history={self.max_history:g}"
+            + (f", history_rounding={self.history_rounding!r}" if self.history_rounding != "none" else "")
+            + (", motion_vectors=True" if self.motion_vectors else "")
         )
+
+    @property
+    def history_rounding(self) -> str:
+        """How the new history length is stored: ``"none"`` or ``"bmfr"`` (see
+        :func:`~stereorepro.reproject.temporal_blend`)."""
+        return self._history_rounding
+
+    @history_rounding.setter
+    def history_rounding(self, value: str) -> None:
+        _check_history_rounding(value, "TemporalReprojection")
+        self._history_rounding = value
 
     def forward(
         self,
@@ -268,4 +286,4 @@ class TemporalReprojection(_ReprojectionBase):
     @property
     def blend(self) -> Blend:
         """The accumulation settings as the functions take them."""
-        return Blend(self.alpha, self.warmup, self.max_history)
+        return Blend(self.alpha, self.warmup, self.max_history, self.history_rounding)

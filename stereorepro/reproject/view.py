@@ -17,6 +17,7 @@ import torch
 from torch import Tensor
 
 from .._checks import check_camera, check_device, check_floating, check_motion, check_shape, tracing
+from ..errors import ParameterError
 
 __all__ = [
     "View",
@@ -244,20 +245,38 @@ class Thresholds(NamedTuple):
     temperature: float = 0.1
 
 
+#: Values of ``history_rounding`` (:class:`Blend`, :func:`~stereorepro.reproject.temporal_blend`): ``"none"``
+#: stores the float history length, ``"bmfr"`` BMFR's integer one.
+HISTORY_ROUNDINGS = ("none", "bmfr")
+
+
+def _check_history_rounding(history_rounding, where: str) -> None:
+    """ParameterError naming ``where`` and the choices unless ``history_rounding`` is one of
+    :data:`HISTORY_ROUNDINGS`."""
+    if not (isinstance(history_rounding, str) and history_rounding in HISTORY_ROUNDINGS):
+        raise ParameterError(f"{where}: history_rounding must be one of {HISTORY_ROUNDINGS}, got {history_rounding!r}")
+
+
 class Blend(NamedTuple):
     """Temporal accumulation: ``a = max(1/(n+1), alpha)`` with ``warmup`` (BMFR's running mean until the weight
     reaches ``alpha``), else ``a = alpha``; ``out = (1 − a)·history + a·current``; n capped at ``max_history``.
-    ``alpha`` may be a learnable one-element tensor.
+    ``alpha`` may be a learnable one-element tensor. ``history_rounding``: how the new length is stored,
+    ``"none"`` (the float ``min(n + 1, max_history)``) or ``"bmfr"`` (BMFR's integer
+    ``min(round_half_even(n) + 1, max_history)``; see :func:`~stereorepro.reproject.temporal_blend`). A
+    ``(alpha, warmup, max_history)`` triple still works where a Blend is taken.
 
     Examples:
         >>> from stereorepro import Blend
         >>> Blend(), Blend(alpha=0.1, warmup=False).alpha
-        (Blend(alpha=0.2, warmup=True, max_history=255.0), 0.1)
+        (Blend(alpha=0.2, warmup=True, max_history=255.0, history_rounding='none'), 0.1)
+        >>> Blend(history_rounding="bmfr").history_rounding
+        'bmfr'
     """
 
     alpha: float | Tensor = 0.2
     warmup: bool = True
     max_history: float = 255.0
+    history_rounding: str = "none"
 
 
 class History(NamedTuple):

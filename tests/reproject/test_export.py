@@ -240,12 +240,13 @@ class TestLeanBlend(BaseTester):
     @pytest.mark.parametrize("warmup", [True, False])
     @pytest.mark.parametrize("alpha", [0.2, 1.0, 1e-6])
     @pytest.mark.parametrize("max_history", [1.0, 8.0, float("inf")])
-    def test_equals_temporal_blend(self, warmup, alpha, max_history):
+    @pytest.mark.parametrize("history_rounding", ["none", "bmfr"])
+    def test_equals_temporal_blend(self, warmup, alpha, max_history, history_rounding):
         """Values equal to temporal_blend's (a zero's sign aside), NaN where it has NaN; counts identical."""
         for seed in range(3):
             cur, hist, n, valid = self.case(seed)
-            ref = temporal_blend(cur, hist, n, valid, alpha, warmup, max_history)
-            got = _lean.lean_blend(cur, hist, n, valid, alpha, warmup, max_history)
+            ref = temporal_blend(cur, hist, n, valid, alpha, warmup, max_history, history_rounding)
+            got = _lean.lean_blend(cur, hist, n, valid, alpha, warmup, max_history, history_rounding)
             torch.testing.assert_close(got[0], ref[0], atol=0, rtol=0, equal_nan=True)
             assert torch.equal(got[1], ref[1])
 
@@ -281,11 +282,16 @@ MODULES = {
     "temporal": lambda: TemporalReprojection(*THR),
     "temporal_fixed_alpha": lambda: TemporalReprojection(*THR, warmup=False),
     "temporal_motion": lambda: TemporalReprojection(*THR, motion_vectors=True),
+    "temporal_bmfr": lambda: TemporalReprojection(*THR, history_rounding="bmfr"),
 }
 
 
 def _inputs(name, module, seed=0, **kw):
     inp = example_inputs(module, head_motion=name != "stereo_rectified", seed=seed, **kw)
+    if name == "temporal_bmfr":  # integer counts that differ between taps: interpolated counts to round
+        k = module.input_names.index("history_len")
+        g = torch.Generator().manual_seed(seed)
+        inp = (*inp[:k], torch.randint(1, 30, inp[k].shape, generator=g).to(inp[k].dtype), *inp[k + 1 :])
     return moving(inp, seed, hostile=True) if name == "temporal_motion" else inp
 
 

@@ -13,7 +13,7 @@ from base import BaseTester
 from reference import reference_backward_reproject
 from test_reproject import scene_pair
 from stereorepro import StereoReprojection, TemporalReprojection, backward_reproject, stereo_reproject, temporal_blend
-from stereorepro.errors import ShapeError
+from stereorepro.errors import ParameterError, ShapeError
 from stereorepro._testing import example_inputs
 from stereorepro.reproject import Reason
 
@@ -249,20 +249,30 @@ class TestTemporalBlend(BaseTester):
         cur, hist, n, valid = self._inputs()
         with pytest.raises(ShapeError, match="temporal_blend: history_color"):  # named, not torch's broadcasting error
             temporal_blend(cur, hist[..., :-1], n, valid)
+        with pytest.raises(ParameterError, match="temporal_blend: history_rounding must be one of"):
+            temporal_blend(cur, hist, n, valid, history_rounding="nearest")
 
-    def test_gradcheck(self):
+    @pytest.mark.parametrize("history_rounding", ["none", "bmfr"])
+    def test_gradcheck(self, history_rounding):
         cur, hist, n, valid = self._inputs(torch.float64, H=3, W=4)
+        n = n + 0.3  # interpolated counts
         conf = torch.rand(valid.shape, dtype=torch.float64)
         args = [x.clone().requires_grad_(True) for x in (cur, hist, conf)]
         alpha = torch.tensor(0.3, dtype=torch.float64, requires_grad=True)
         assert torch.autograd.gradcheck(
-            lambda c, h, s, a: temporal_blend(c, h, n, s, a)[0], (*args, alpha), eps=1e-6, atol=1e-5
+            lambda c, h, s, a: temporal_blend(c, h, n, s, a, history_rounding=history_rounding)[0],
+            (*args, alpha),
+            eps=1e-6,
+            atol=1e-5,
         )
 
-    def test_module_equals_function(self, backend):
+    @pytest.mark.parametrize("history_rounding", ["none", "bmfr"])
+    def test_module_equals_function(self, backend, history_rounding):
         """TemporalReprojection is backward_reproject of [history colour, length] followed by this blend."""
-        m = TemporalReprojection(0.05, 0.3, backend=self.backend_arg(backend))
+        m = TemporalReprojection(0.05, 0.3, backend=self.backend_arg(backend), history_rounding=history_rounding)
         xs = dict(zip(m.input_names, example_inputs(m, height=10, width=12)))
+        g = torch.Generator().manual_seed(1)
+        xs["history_len"] = torch.randint(1, 12, xs["history_len"].shape, generator=g).float()  # integer counts
         with torch.no_grad():
             color, n, valid = m(*[xs[k] for k in m.input_names])
             warped, valid_w, _, _ = backward_reproject(
@@ -280,9 +290,17 @@ class TestTemporalBlend(BaseTester):
                 backend=self.backend_arg(backend),
             )
             ref, n_ref = temporal_blend(
-                xs["current_color"], warped[:, :3], warped[:, 3:], valid_w, m.alpha, m.warmup, m.max_history
+                xs["current_color"],
+                warped[:, :3],
+                warped[:, 3:],
+                valid_w,
+                m.alpha,
+                m.warmup,
+                m.max_history,
+                history_rounding,
             )
         assert valid.any() and (~valid).any()
+        assert bool((n == n.round()).all()) == (history_rounding == "bmfr")
         self.assert_identical((color, n, valid), (ref, n_ref, valid_w))
 
     def test_restart_where_discarded(self):

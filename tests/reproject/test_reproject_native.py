@@ -515,6 +515,10 @@ class TestNativeTemporal(BaseTester):
             dict(alpha=1e-9),
             dict(max_history=4.0),
             dict(sampling="nearest"),
+            dict(history_rounding="bmfr"),
+            dict(history_rounding="bmfr", alpha=1.0),
+            dict(history_rounding="bmfr", max_history=4.0),
+            dict(history_rounding="bmfr", alpha=0.5, warmup=False),
         ],
         ids=str,
     )
@@ -816,6 +820,8 @@ class TestNativeFloat16(BaseTester):
             dict(max_history=4.0),
             dict(sampling="nearest"),
             dict(return_reason=True),
+            dict(history_rounding="bmfr"),
+            dict(history_rounding="bmfr", alpha=1.0),
         ],
         ids=str,
     )
