@@ -488,7 +488,7 @@ def train_or_load(clips: list[dict], s: Settings, variant: str, seed: int, out: 
         if ckpt.get("settings") == settings and ckpt.get("train_version") == TRAIN_VERSION:
             net = build_network(**ckpt["network"]["kwargs"])
             net.load_state_dict(ckpt["state_dict"])
-            return net.eval(), ckpt["training"]
+            return net.eval(), {**ckpt["training"], "loaded_from_checkpoint": True}
     net, info = train(clips, s, variant == "recurrent", seed)
     info["parameters"] = sum(p.numel() for p in net.parameters())
     ckpt = {
