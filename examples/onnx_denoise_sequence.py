@@ -396,6 +396,7 @@ def _run(args) -> dict:
 
     import numpy as np
     import torch
+    from _example_common import provenance
 
     from stereorepro import ReprojectionDenoiser, load_scene
     from stereorepro.io.atomic import atomic_path, atomic_write
@@ -460,6 +461,7 @@ def _run(args) -> dict:
         torch=torch.__version__,
         torch_reprojection_backend=model.temporal.backend,
         seconds={"render": t_render, "export": t_export, "total": time.perf_counter() - t_start},
+        provenance=provenance("examples", "stereorepro"),
     )
     atomic_write(out / "onnx_denoise_sequence.json", json.dumps(res, indent=1) + "\n")
     _print(res, out)
