@@ -55,6 +55,12 @@ def add_arguments(p: argparse.ArgumentParser, defaults: dict | None = None) -> N
         action="store_true",
         help="TAA-style Halton(2,3) sub-pixel jitter of the schemes' inputs (both eyes alike)",
     )
+    p.add_argument(
+        "--history-rounding",
+        choices=("none", "bmfr"),
+        default="none",
+        help="how the temporal steps store history lengths: floats (none, default) or BMFR's integer counts (bmfr)",
+    )
     p.add_argument("--no-flip", action="store_true", help="skip the FLIP scores (seconds per image at 720p)")
     p.add_argument("--no-ssim", action="store_true", help="skip the SSIM scores (seconds per image at 720p)")
     p.add_argument(
@@ -101,6 +107,7 @@ def config_from_args(args) -> ExperimentConfig:
         ssim=not args.no_ssim,
         scheduler=args.scheduler,
         jitter=args.jitter,
+        history_rounding=args.history_rounding,
     )
 
 

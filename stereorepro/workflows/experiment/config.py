@@ -155,6 +155,9 @@ class ExperimentConfig:
     #: :func:`stereorepro.camera.jitter_offset`): their G-buffers and 1-spp samples come from the jittered cameras,
     #: one sample through each pixel centre; the ladders and the references stay unjittered (box-filtered pixels).
     jitter: bool = False
+    #: How every scheme's temporal steps store history lengths: ``"none"`` (floats) or ``"bmfr"`` (BMFR's integer
+    #: counts, :attr:`stereorepro.SpatiotemporalReprojection.history_rounding`).
+    history_rounding: str = "none"
 
 
 #: Variants of scenes with moving objects: the temporal steps read the history through the motion vectors.
@@ -248,6 +251,10 @@ def validate_config(cfg: ExperimentConfig) -> None:
             isinstance(a, (int, float)) and math.isfinite(a) and 0.0 < a <= 1.0,
             f"alphas must be numbers in (0, 1], got {a!r}",
         )
+    need(
+        cfg.history_rounding in ("none", "bmfr"),
+        f"history_rounding must be 'none' or 'bmfr', got {cfg.history_rounding!r}",
+    )
     need(
         cfg.threshold_scale is None or (math.isfinite(cfg.threshold_scale) and cfg.threshold_scale > 0),
         f"threshold_scale must be a positive number, got {cfg.threshold_scale!r}",
