@@ -761,13 +761,18 @@ def groups_of(label: str, groups: dict) -> list[str]:
 
 def _markdown(results: dict) -> str:
     s = results["settings"]
+    records = [r for seeds in results["training"].values() for r in seeds.values()]
+    train = sum(r["train_seconds"] for r in records)
+    loaded = sum(1 for r in records if r.get("loaded_from_checkpoint"))
     head = (
         f"# Recurrent denoiser study\n\nTrained on {', '.join(s['train_scenes'])} frames "
         f"{s['train_frames'][0]}-{s['train_frames'][1] - 1}; scored on frames {s['test_frames'][0] + s['warmup']}-"
         f"{s['test_frames'][1] - 1} of those scenes (held-out frames) and of {', '.join(s['heldout_scenes'])} "
         f"(held-out scene), both eyes, {s['width']}x{s['height']}, 1 spp input, references "
         f"{s['test_reference_spp']} spp. Networks: mean ± std (min–max) over seeds {list(s['seeds'])}.\n\n"
-        f"Commit {results['commit']}, {results['machine']['cpu']}, {results['seconds']['total']:.0f} s.\n\n"
+        f"Commit {results['commit']}, {results['machine']['cpu']} ({results['machine']['cpu_count']} cores): "
+        f"{results['seconds']['total']:.0f} s for this run; the networks' training {train:.0f} s in all"
+        f"{f' ({loaded} of them loaded from checkpoints here)' if loaded else ''}.\n\n"
     )
     return head + results["table"]
 
