@@ -382,28 +382,75 @@ def _report_header(results: dict) -> list[str]:
 
 
 def _bias_section(results: dict) -> list[str]:
+    """The resampling bias without the reference's noise, each scheme's share of it, and where the error lives."""
     b = results["bias"]
+    schemes = [k for k in ("stereo", "temporal", "stereo_temporal") if k in b]
     lines = [
         "",
         "## Resampling bias",
         "",
-        "Each scheme fed with the noise-free references instead of 1-spp images: its RMSE is pure bias "
-        "(bilinear blur compounded over frames, edges), the part more samples cannot remove.",
+        "The part of each scheme's error that more samples cannot remove (bilinear blur compounded over frames, "
+        "edges): the scheme fed each of the reference's two independent halves (the mean of its first half of "
+        "chunks, and of the rest) and "
+        "scored against that half; the mean product of the two errors is the squared bias, without the "
+        "reference's noise (`stereorepro.measure.anatomy.split_bias`; ± its standard error over 8×8 tiles, an upper "
+        "bound). Shares: of the scheme's MSE as the tables score it, and of that MSE less the noise the "
+        f"{results['reference_spp']}-spp reference still carries (estimated from its halves' spread).",
         "",
-        "| scheme | noise-free RMSE (avg) | share of the scheme's MSE (avg) |",
-        "|---|---:|---:|",
     ]
-    for kk in ("stereo", "temporal", "stereo_temporal"):
-        if kk in b:
+    if not schemes or not b[schemes[0]].get("bias_mse", {}).get("n"):
+        lines += [
+            "Not measured: it needs the reference in two chunks or more (`--reference-chunk-spp` at most half of "
+            "`--reference-spp`).",
+        ]
+    else:
+        lines += [
+            "| scheme | bias MSE (avg ± se) | share of the scheme's MSE | reference noise MSE | "
+            "share without the reference's noise |",
+            "|---|---:|---:|---:|---:|",
+        ]
+        for kk in schemes:
+            v = b[kk]
             lines.append(
-                f"| {kk} | {_fmt(b[kk]['rmse_noise_free']['avg'], 4)} | "
-                f"{_fmt(100 * b[kk]['bias_share_of_mse']['avg'], 1)} % |"
+                f"| {kk} | {_fmt(v['bias_mse']['avg'], 6)} ± {_fmt(v['bias_mse_se']['avg'], 6)} | "
+                f"{_pct(v['bias_share']['avg'])} | {_fmt(v['reference_noise_mse']['avg'], 6)} | "
+                f"{_pct(v['bias_share_without_reference_noise']['avg'])} |"
             )
-    return lines + [
+    lines += [
         "",
         f"For scale: the left eye's {results['ladder_spp']}-spp RMSE averages {_fmt(b['ladder_top_rmse']['avg'], 4)}.",
-        "",
     ]
+    return lines + _anatomy_section(b, schemes) + [""]
+
+
+def _pct(x) -> str:
+    return "–" if x is None else f"{100 * x:.1f} %"
+
+
+def _anatomy_section(b: dict, schemes: list[str]) -> list[str]:
+    """Each scheme's pixels, squared error and bias by its reprojection's footprint in the evaluated eye."""
+    rows = [(k, g, v) for k in schemes for g, v in (b[k].get("anatomy") or {}).items() if v["pixels_pct"]["n"]]
+    if not rows:
+        return []
+    lines = [
+        "",
+        "### Where the error lives",
+        "",
+        "The evaluated eye's pixels by the scheme's reprojection into it (stereo: right → left; temporal: the "
+        "previous right frame → this one) and the 4×4 footprint around each reprojected position: *interior* "
+        "(kept, all 16 taps pass the position and normal tests), *edge* (kept, a footprint tap fails: near "
+        "silhouettes and creases, and at grazing angles where the outer taps lie beyond the position threshold), "
+        "*discarded* (rejected: fresh samples), *no surface*. Averages over frames of each region's share (%).",
+        "",
+        "| scheme | region | pixels | squared error | bias |",
+        "|---|---|---:|---:|---:|",
+    ]
+    for k, g, v in rows:
+        lines.append(
+            f"| {k} | {g} | {_fmt(v['pixels_pct']['avg'], 1)} | {_fmt(v['mse_share_pct']['avg'], 1)} | "
+            f"{_fmt(v['bias_share_pct']['avg'], 1)} |"
+        )
+    return lines
 
 
 #: The image metrics the report has a section for, if the run measured them: the section's title, the key of

@@ -14,7 +14,7 @@ import json
 import math
 import shutil
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +24,14 @@ from ..._extras import require, require_all
 from ..._version import __version__
 from ...accumulate import SpatiotemporalReprojection
 from ...camera import has_surface
+from ...measure.anatomy import (
+    block_standard_error,
+    footprint_failures,
+    footprint_regions,
+    reference_noise_mse,
+    split_bias,
+    squared_error,
+)
 from ...measure.metrics import effective_spp_many, flip, flip_available, rmse, ssim
 from ...measure.temporal import temporal_error
 from ...reproject import View
@@ -37,6 +45,7 @@ from .inputs import (
     cache_footprint,
     estimate_cache_bytes,
     reference,
+    reference_chunk_task,
     render_eye,
     spec_for,
 )
@@ -108,7 +117,9 @@ class ExperimentResults:
     table2_variants: dict  #: every other scheme -> effective spp
     timing_ms: dict  #: median ms per frame of each timed step
     cost: list  #: rows of :func:`_cost_table`
-    bias: dict  #: paper scheme -> noise-free RMSE and its share of the MSE; ``ladder_top_rmse``
+    #: paper scheme -> the resampling bias (:func:`_bias_table`): ``bias_mse`` and its shares without the
+    #: reference's noise (None for a reference in one chunk), the error anatomy by footprint; ``ladder_top_rmse``
+    bias: dict
     per_frame: list  #: one dict per frame (every scheme's scores, discards, ladders)
     flags: dict  #: scheme -> effective-spp flag -> frames
     cache: dict  #: hits, misses, recomputed_corrupt, dir and the cache's footprint
@@ -266,7 +277,12 @@ class _FrameData:
     ladder_spp: list  #: 1..ladder_spp
     prefixes: list  #: smaller references of the reference-spp study (chunked runs)
     prefix_refs: dict  #: eye -> prefix spp -> metric image of that reference
+    #: LEFT / RIGHT -> the reference's two independent halves (1, 3, H, W) (:func:`_reference_halves`); None for a
+    #: reference in one chunk
+    halves: dict | None = None
+    half_spp: tuple = ()  #: the halves' sample counts
     previous: dict | None = None  #: LEFT / RIGHT -> EyeData of the previous frame; None at the first frame
+    footprints: dict = field(default_factory=dict)  #: step -> footprint failures of this frame (shared by schemes)
 
     def ladder(self, eye: int, metric: str) -> tuple[torch.Tensor, torch.Tensor]:
         """The eye's ladder: spp (L,) and RMSE (L,) float64."""
@@ -298,6 +314,10 @@ def _frame_inputs(run: _Run, f: int, timing: dict) -> _FrameData:
         "ssim": {},
         "temporal_error": {},
         "reference_study": {},
+        "bias_mse": {},
+        "bias_mse_se": {},
+        "reference_noise_mse": {},
+        "anatomy": {},
     }
     if run.moving:
         row.update(
@@ -311,7 +331,29 @@ def _frame_inputs(run: _Run, f: int, timing: dict) -> _FrameData:
         side = str(e)
         row["ladder_rmse"][side] = d.ladder_rmse[cfg.metric]
         row["no_surface_pct"][side] = 100.0 * float((~surface[e]).float().mean())
-    return _FrameData(f, eyes, surface, row, list(range(1, cfg.ladder_spp + 1)), prefixes, prefix_refs)
+    halves, half_spp = _reference_halves(ctx, f)
+    return _FrameData(
+        f, eyes, surface, row, list(range(1, cfg.ladder_spp + 1)), prefixes, prefix_refs, halves, half_spp
+    )
+
+
+def _reference_halves(ctx: RenderContext, f: int) -> tuple[dict | None, tuple]:
+    """Each eye's reference split into two independent halves: the mean of its first ``chunks // 2`` chunks and
+    the mean of the rest (disjoint sample ranges), summed in float64; ``(None, ())`` for a reference in one
+    chunk. Returns ``({LEFT: (a, b), RIGHT: (a, b)}, (spp_a, spp_b))``."""
+    n, c = ctx.spec.chunks, ctx.spec.reference_chunk_spp
+    if n < 2:
+        return None, ()
+    k = n // 2
+    halves = {}
+    for e in (LEFT, RIGHT):
+        sums = [None, None]
+        for i in range(n):
+            x = torch.from_numpy(reference_chunk_task(ctx, f, e, i)[0]["radiance"]).double()
+            j = int(i >= k)
+            sums[j] = x if sums[j] is None else sums[j] + x
+        halves[e] = ((sums[0] / k).float(), (sums[1] / (n - k)).float())
+    return halves, (k * c, (n - k) * c)
 
 
 def _run_frames(run: _Run, schemes: list[_SchemeRun]) -> tuple[list[dict], dict, dict]:
@@ -359,14 +401,18 @@ def _view(eye: EyeData) -> View:
 @dataclass
 class _SchemeRun:
     """One scheme in a run: its driver on the 1-spp inputs and, for the paper's schemes, the same scheme fed with
-    the noise-free references (``clean``: its error is the resampling bias alone - bilinear blur compounded over
-    frames, edges - the part of the error that more samples cannot remove)."""
+    the references: ``clean`` the whole reference (scored against itself, its error is the resampling bias plus
+    a copy of the reference's noise) and ``halves`` each of its two independent halves (their errors' mean
+    product is the bias alone, :func:`~stereorepro.measure.anatomy.split_bias`): bilinear blur compounded over
+    frames, edges - the part of the error that more samples cannot remove."""
 
     scheme: Scheme
     driver: SpatiotemporalReprojection
     clean: SpatiotemporalReprojection | None
     #: the evaluated eye's output of the previous frame (the temporal error's previous image; one frame only)
     prev_image: torch.Tensor | None = None
+    #: the scheme fed each half of the reference (paper schemes, references in two chunks or more)
+    halves: tuple | None = None
 
     @classmethod
     def make(cls, s: Scheme, run: _Run) -> _SchemeRun:
@@ -380,14 +426,18 @@ class _SchemeRun:
             left_mode=s.left_mode,
             alternate=s.alternate,
         )
-        clean = (
-            SpatiotemporalReprojection(
+
+        def fed():
+            return SpatiotemporalReprojection(
                 run.pos_thr, run.nrm_thr, alpha=s.alpha, sampling=s.sampling, stereo=s.stereo, temporal=s.temporal
             )
-            if s.paper
-            else None
-        )
-        return cls(s, drv, clean)
+
+        clean = fed() if s.paper else None
+        halves = (fed(), fed()) if s.paper and run.spec.chunks >= 2 else None
+        for d in (drv, clean, *(halves or ())):  # the config's storage of history lengths, in every driver
+            if d is not None:
+                d.history_rounding = run.cfg.history_rounding
+        return cls(s, drv, clean, halves=halves)
 
     def reproject(self, fd: _FrameData) -> tuple[torch.Tensor, torch.Tensor, float]:
         """Run the scheme on the frame: (the evaluated eye's image, the reprojected eye's trace mask, ms of the
@@ -429,6 +479,7 @@ class _SchemeRun:
         self.prev_image = img
         if self.clean is not None:
             row["rmse_noise_free"][s.name] = self.noise_free_rmse(fd, cfg.metric)
+            self.bias(run, fd, img)
         row["effective_spp"][s.name] = float(spp[0])
         if s.paper and fd.prefixes:
             self.reference_study(fd, img, cfg.metric)
@@ -468,14 +519,64 @@ class _SchemeRun:
         value = float(err[0])
         return value if math.isfinite(value) else None
 
-    def noise_free_rmse(self, fd: _FrameData, metric: str) -> float:
-        s, c = self.scheme, self.clean
+    def fed(self, drv: SpatiotemporalReprojection, fd: _FrameData, right: torch.Tensor, left: torch.Tensor):
+        """The scheme's evaluated eye with ``drv`` fed ``right`` and ``left`` (instead of 1-spp images)."""
+        s = self.scheme
         L, R = fd.eyes[LEFT], fd.eyes[RIGHT]
-        c_right = c.right(R.reference, R.depth, R.normal, R.K, R.cam_from_world, *_motion(R, s))
-        c.left_trace_mask(L.depth, L.normal, L.K, L.cam_from_world, *_motion(L, s))
-        c_left = c.left(L.reference)
-        img = c_left if s.eye == LEFT else c_right
-        return float(rmse(metric_image(img, metric), metric_image(fd.eyes[s.eye].reference, metric))[0])
+        c_right = drv.right(right, R.depth, R.normal, R.K, R.cam_from_world, *_motion(R, s))
+        drv.left_trace_mask(L.depth, L.normal, L.K, L.cam_from_world, *_motion(L, s))
+        c_left = drv.left(left)
+        return c_left if s.eye == LEFT else c_right
+
+    def noise_free_rmse(self, fd: _FrameData, metric: str) -> float:
+        """The RMSE of the scheme fed the whole reference against that reference (bias plus reference noise)."""
+        img = self.fed(self.clean, fd, fd.eyes[RIGHT].reference, fd.eyes[LEFT].reference)
+        return float(rmse(metric_image(img, metric), metric_image(fd.eyes[self.scheme.eye].reference, metric))[0])
+
+    def bias(self, run: _Run, fd: _FrameData, img: torch.Tensor) -> None:
+        """The resampling bias without the reference's noise (with the reference's halves) and the error anatomy
+        by footprint, into the frame's row."""
+        s, metric, row = self.scheme, run.cfg.metric, fd.row
+        bias_map = None
+        if self.halves is not None:
+            eye = fd.halves[s.eye]
+            errors = []
+            for i, drv in enumerate(self.halves):
+                out = self.fed(drv, fd, fd.halves[RIGHT][i], fd.halves[LEFT][i])
+                errors.append(metric_image(out, metric) - metric_image(eye[i], metric))
+            bias_map = split_bias(*errors)
+            row["bias_mse"][s.name] = float(bias_map.mean())
+            row["bias_mse_se"][s.name] = block_standard_error(bias_map)
+            row["reference_noise_mse"][s.name] = reference_noise_mse(
+                metric_image(eye[0], metric), metric_image(eye[1], metric), *fd.half_spp
+            )
+        regions = self.footprint_regions(run, fd)
+        if regions is not None:
+            se = squared_error(metric_image(img, metric), metric_image(fd.eyes[s.eye].reference, metric))
+            row["anatomy"][s.name] = _anatomy_shares(regions, se, bias_map)
+
+    def footprint_regions(self, run: _Run, fd: _FrameData) -> dict | None:
+        """The evaluated eye's pixels by the outcome of the scheme's reprojection into it and its 4×4 footprint
+        (:func:`~stereorepro.measure.anatomy.footprint_regions`): the stereo step (right -> left) for the
+        stereo schemes, the temporal step (previous -> current right frame) for temporal; None without one
+        (temporal's first frame)."""
+        s, drv = self.scheme, self.driver
+        thr = (run.pos_thr, run.nrm_thr)
+        if s.stereo:
+            L, R = fd.eyes[LEFT], fd.eyes[RIGHT]
+            if "stereo" not in fd.footprints:
+                src = View(R.depth, R.normal, R.K, R.cam_from_world)
+                fd.footprints["stereo"] = footprint_failures(src, View(L.depth, L.normal, L.K, L.cam_from_world), thr)
+            return footprint_regions(fd.footprints["stereo"], drv.stereo_valid, fd.surface[LEFT])
+        if fd.previous is None or drv.right_valid is None:
+            return None
+        key = "temporal_motion" if s.motion else "temporal"
+        if key not in fd.footprints:
+            P, R = fd.previous[RIGHT], fd.eyes[RIGHT]
+            motion, motion_world = _motion(R, s)
+            dst = View(R.depth, R.normal, R.K, R.cam_from_world, motion, motion_world)
+            fd.footprints[key] = footprint_failures(View(P.depth, P.normal, P.K, P.cam_from_world), dst, thr)
+        return footprint_regions(fd.footprints[key], drv.right_valid, fd.surface[RIGHT])
 
     def reference_study(self, fd: _FrameData, img: torch.Tensor, metric: str) -> None:
         """The same image scored against each smaller reference, with the ladder scored on that reference."""
@@ -486,6 +587,21 @@ class _SchemeRun:
             e_p = rmse(metric_image(img, metric), fd.prefix_refs[s.eye][p])
             spp_p, _ = effective_spp_many(e_p, spp, lad[i : i + 1])
             fd.row["reference_study"].setdefault(str(p), {})[s.name] = float(spp_p[0])
+
+
+def _anatomy_shares(regions: dict, se: torch.Tensor, bias_map: torch.Tensor | None) -> dict:
+    """Per region: its share of the pixels, of the squared error and (with ``bias_map``) of the bias, in %."""
+    total_se, total_bias = float(se.sum()), None if bias_map is None else float(bias_map.sum())
+    out = {}
+    for name, m in regions.items():
+        out[name] = {
+            "pixels_pct": 100.0 * float(m.sum()) / m.numel(),
+            "mse_share_pct": 100.0 * float(se[m].sum()) / total_se if total_se > 0 else None,
+            "bias_share_pct": (
+                100.0 * float(bias_map[m].sum()) / total_bias if total_bias is not None and total_bias > 0 else None
+            ),
+        }
+    return out
 
 
 def _stereo_discards(sr: _SchemeRun, run: _Run, fd: _FrameData, mask, timing: dict, keep: dict) -> None:
@@ -606,16 +722,50 @@ def _moving_table(schemes: list[_SchemeRun], per_frame: list[dict]) -> dict:
     }
 
 
+#: The regions of the error anatomy (:func:`~stereorepro.measure.anatomy.footprint_regions`) and what each reports.
+ANATOMY_REGIONS = ("interior", "edge", "discarded", "no surface")
+ANATOMY_FIELDS = ("pixels_pct", "mse_share_pct", "bias_share_pct")
+
+
 def _bias_table(schemes: list[_SchemeRun], per_frame: list[dict]) -> dict:
-    bias = {
-        k: {
+    """Per paper scheme, statistics over frames of:
+
+    * ``bias_mse``: the squared resampling bias without the reference's noise, the mean product of the scheme's
+      errors on the reference's two independent halves (:func:`~stereorepro.measure.anatomy.split_bias`), and
+      ``bias_mse_se`` its standard error (8×8 tiles); ``bias_share``: ``bias_mse`` over the scheme's MSE (what
+      the tables score, against the run's reference); ``reference_noise_mse``: the noise the run's reference
+      still carries (from its halves' spread), and ``bias_share_without_reference_noise``: ``bias_mse`` over
+      the scheme's MSE less that noise. None (``n`` 0) for a reference in one chunk;
+    * ``anatomy``: region (``interior``, ``edge``, ``discarded``, ``no surface``) -> its share of the pixels, of
+      the scheme's squared error and of the bias (%), by the scheme's reprojection into the evaluated eye and its
+      4×4 footprint (:func:`~stereorepro.measure.anatomy.footprint_regions`);
+    * ``rmse_noise_free`` and ``bias_share_of_mse``: the scheme fed the whole reference and scored against it,
+      which counts a copy of the reference's noise as bias (the former estimate, kept for its readers).
+
+    ``ladder_top_rmse``: the left eye's top-rung RMSE, for scale."""
+
+    def ratio(r, k, noise: bool):
+        b, mse = r["bias_mse"].get(k), r["rmse"][k] ** 2
+        den = mse - r["reference_noise_mse"][k] if noise and b is not None else mse
+        return b / den if b is not None and den > 0 else None
+
+    bias = {}
+    for k in (s.scheme.name for s in schemes if s.clean is not None):
+        rows = [r for r in per_frame if k in r["anatomy"]]
+        bias[k] = {
             "rmse_noise_free": _stats([r["rmse_noise_free"][k] for r in per_frame]),
             "bias_share_of_mse": _stats(
                 [(r["rmse_noise_free"][k] / r["rmse"][k]) ** 2 for r in per_frame if r["rmse"][k] > 0]
             ),
+            "bias_mse": _stats([r["bias_mse"].get(k) for r in per_frame]),
+            "bias_mse_se": _stats([r["bias_mse_se"].get(k) for r in per_frame]),
+            "bias_share": _stats([ratio(r, k, False) for r in per_frame]),
+            "reference_noise_mse": _stats([r["reference_noise_mse"].get(k) for r in per_frame]),
+            "bias_share_without_reference_noise": _stats([ratio(r, k, True) for r in per_frame]),
+            "anatomy": {
+                g: {f: _stats([r["anatomy"][k][g][f] for r in rows]) for f in ANATOMY_FIELDS} for g in ANATOMY_REGIONS
+            },
         }
-        for k in (s.scheme.name for s in schemes if s.clean is not None)
-    }
     bias["ladder_top_rmse"] = _stats([r["ladder_rmse"]["left"][-1] for r in per_frame])
     return bias
 
