@@ -43,9 +43,7 @@ import dataclasses
 import hashlib
 import json
 import math
-import platform
 import statistics
-import subprocess
 import sys
 import time
 from dataclasses import dataclass
@@ -75,7 +73,7 @@ from stereorepro.io.atomic import atomic_path, atomic_write
 from stereorepro.measure.metrics import flip
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _example_common import cpu_training_threads  # noqa: E402
+from _example_common import cpu_training_threads, provenance  # noqa: E402
 
 REFERENCE_OFFSET = 1 << 24  # sample index of the references' stream: disjoint from the 1-spp inputs and ladders
 CACHE_VERSION = 1
@@ -511,27 +509,7 @@ def train_or_load(clips: list[dict], s: Settings, variant: str, seed: int, out: 
 
 
 def _provenance() -> dict:
-    root = Path(__file__).resolve().parent.parent
-
-    def git(*a: str) -> str:
-        try:
-            return subprocess.run(["git", *a], cwd=root, capture_output=True, text=True, check=True).stdout.strip()
-        except (OSError, subprocess.CalledProcessError):
-            return "unknown"
-
-    cpu = platform.processor() or "unknown"
-    try:
-        cpu = next(ln.split(":", 1)[1].strip() for ln in open("/proc/cpuinfo") if ln.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
-    dirty = git("status", "--porcelain", "--", "examples/recurrent_denoiser.py", "stereorepro")
-    return {
-        "commit": git("rev-parse", "HEAD"),
-        "uncommitted_changes_in_code": bool(dirty) if dirty != "unknown" else None,
-        "machine": {"platform": platform.platform(), "cpu": cpu, "cpu_count": __import__("os").cpu_count()},
-        "python": platform.python_version(),
-        "torch": torch.__version__,
-    }
+    return provenance("examples/recurrent_denoiser.py", "stereorepro")
 
 
 def _load_all(s: Settings, cache: Path) -> tuple[list[dict], dict[str, dict], dict[str, list[str]]]:
