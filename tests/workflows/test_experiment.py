@@ -360,6 +360,31 @@ class TestRenderTasks:
         lad, _ = ladder_task(ctx, 0, 1)
         assert lad["prefix_spp"].tolist() == [2, 4, 8] and lad["rmse_ldr"].shape == (3, 5)
 
+    def test_reference_halves(self, tmp_path):
+        """The resampling bias's two independent halves: the mean of the first half of the chunks, and of the rest."""
+        from stereorepro.workflows.experiment.inputs import reference, reference_chunk_task
+        from stereorepro.workflows.experiment.run import _reference_halves
+
+        ctx = self.ctx(tmp_path, reference_spp=8, reference_chunk_spp=2)
+        halves, spp = _reference_halves(ctx, 0)
+        assert spp == (4, 4) and len(halves) == 2  # both eyes
+        for eye, (a, b) in halves.items():
+            assert torch.equal(a, reference(ctx, 0, eye, 4)[0])  # the 4-spp prefix
+            c = [torch.from_numpy(reference_chunk_task(ctx, 0, eye, i)[0]["radiance"]).double() for i in (2, 3)]
+            assert torch.equal(b, ((c[0] + c[1]) / 2).float())
+        assert _reference_halves(self.ctx(tmp_path / "one"), 0) == (None, ())
+
+    def test_bias_needs_two_chunks(self, first_run):
+        out, res = first_run  # a reference in one chunk: no independent halves
+        for k in ("stereo", "temporal", "stereo_temporal"):
+            b = res["bias"][k]
+            assert b["bias_mse"]["n"] == 0 and b["bias_share"]["avg"] is None
+            assert b["anatomy"]["edge"]["pixels_pct"]["n"] > 0  # the footprint split needs no halves
+            assert b["anatomy"]["edge"]["bias_share_pct"]["n"] == 0
+        report = (out / "report.md").read_text()
+        assert "Not measured: it needs the reference in two chunks or more" in report
+        assert "### Where the error lives" in report
+
     def test_reference_study_and_footprint(self, tmp_path):
         res = run_experiment(ExperimentConfig(out=str(tmp_path), **dict(SMALL, reference_chunk_spp=4, frames=2)))
         study = res["reference_study"]
