@@ -20,6 +20,25 @@ def first_run(tmp_path_factory):
 
 
 class TestExperiment:
+    def test_history_rounding(self, tmp_path):
+        """``history_rounding="bmfr"`` reaches the drivers and results.json; the discards do not depend on it, the
+        temporal scheme's colours do from frame 3 on (rounded lengths first differ in what frame 3 reads)."""
+        common = dict(SMALL, frames=4, flip=False, ssim=False)
+        cache = str(tmp_path / "cache")
+        runs = {
+            mode: run_experiment(
+                ExperimentConfig(out=str(tmp_path / mode), cache_dir=cache, history_rounding=mode, **common),
+                log=lambda *a: None,
+            )
+            for mode in ("none", "bmfr")
+        }
+        none, bmfr = runs["none"], runs["bmfr"]
+        assert (none["history_rounding"], bmfr["history_rounding"]) == ("none", "bmfr")
+        assert bmfr["cache"]["misses"] == 0 and bmfr["table1"] == none["table1"]
+        assert bmfr["table2"]["stereo"] == none["table2"]["stereo"]
+        rmse = [(a["rmse"]["temporal"], b["rmse"]["temporal"]) for a, b in zip(none["per_frame"], bmfr["per_frame"])]
+        assert all(a == b for a, b in rmse[:3]) and rmse[3][0] != rmse[3][1], rmse
+
     def test_smoke(self, first_run):
         out, res = first_run
         for f in (

@@ -103,6 +103,7 @@ class ExperimentResults:
     seed: int
     metric: str  #: ``"ldr"`` or ``"hdr"``
     jitter: bool
+    history_rounding: str  #: how the drivers store history lengths: ``"none"`` (floats) or ``"bmfr"`` (integers)
     thresholds: dict  #: ``position``, ``normal``, ``position_scene``, ``scale``
     table1: dict  #: scheme -> discarded pixels (%): the paper's Table 1 (stereo, temporal)
     flip: dict | None  #: scheme -> mean LDR FLIP statistics; None when not measured
@@ -670,6 +671,7 @@ def _assemble(
         seed=cfg.seed,
         metric=cfg.metric,
         jitter=bool(cfg.jitter),
+        history_rounding=cfg.history_rounding,
         thresholds={
             "position": run.pos_thr,
             "normal": run.nrm_thr,
