@@ -52,7 +52,7 @@ __all__ = [
 FLOAT32_MAX = float(torch.finfo(torch.float32).max)
 
 #: Tap sampling of the reprojection: 2×2 bilinear taps (the paper's) or the one nearest tap.
-SAMPLINGS = ("bilinear", "nearest")
+SAMPLINGS = ("bilinear", "nearest", "catmull_rom")
 
 #: Argument names of the reprojection roles, as the stereo and the temporal functions call them.
 STEREO_NAMES = dict(

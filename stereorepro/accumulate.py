@@ -427,7 +427,8 @@ class SpatiotemporalReprojection:
         alpha: minimum EMA weight of a new frame (paper: 0.2).
         warmup: running mean until the weight reaches ``alpha`` (BMFR).
         max_history: cap of the sample count.
-        sampling: ``"bilinear"`` (paper) or ``"nearest"``.
+        sampling: ``"bilinear"`` (paper), ``"nearest"`` or ``"catmull_rom"`` (history and stereo reads; see
+            :func:`~stereorepro.reproject.backward_reproject`).
         stereo: reproject the right eye into the left (else the left eye is traced in full).
         temporal: accumulate over time (else every frame starts afresh).
         backend: ``"auto"`` | ``"torch"`` | ``"native"`` for the warps (see

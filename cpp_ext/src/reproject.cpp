@@ -220,6 +220,7 @@ struct Dest {  // one batch item of the destination view
 
 struct Tests {
     float pos_thr2, nrm_thr2;
+    bool cubic = false;  // sampling="catmull_rom" (on the bilinear pass): cubic_row after each row
 };
 
 inline bool finitef(float x) { return std::isfinite(x); }
@@ -297,6 +298,40 @@ struct RowOut {
     uint8_t *valid;
 };
 
+// The projection of destination pixel (x, y) into the source: KEPT with the source coordinates (u, v) (clamped),
+// the destination point q in the source frame and its sanitised normal nd, or the reason it reads no tap.
+template <class L>
+SR_INLINE uint8_t project_pixel(const Source &s, const Dest &d, const Camera &cam, int64_t x, int64_t y, float &qx,
+                                float &qy, float &qz, float &u, float &v, float &nd0, float &nd1, float &nd2) {
+    const int64_t p = y * d.W + x;
+    const float zr = load<L::depth>(d.depth, p);
+    if (!(finitef(zr) & (zr > 0.0f))) return NO_SURFACE_DST;
+    const float uc = (float)x + 0.5f, vc = (float)y + 0.5f;
+    const float *M = cam.M, *t = cam.t;
+    qx = ((M[0] * uc + M[1] * vc) + M[2]) * zr + t[0];
+    qy = ((M[3] * uc + M[4] * vc) + M[5]) * zr + t[1];
+    qz = ((M[6] * uc + M[7] * vc) + M[8]) * zr + t[2];
+    if (d.motion) {  // the source position from the motion vectors, the point moved with the world motion
+        if (!motion_source(d, cam, p, uc, vc, qx, qy, qz, u, v)) return BEHIND_CAMERA;
+    } else {
+        const float inv_z = 1.0f / zr;
+        const float *P = cam.P, *kt = cam.kt;
+        const float wx = ((P[0] * uc + P[1] * vc) + P[2]) + kt[0] * inv_z;
+        const float wy = ((P[3] * uc + P[4] * vc) + P[5]) + kt[1] * inv_z;
+        const float wz = ((P[6] * uc + P[7] * vc) + P[8]) + kt[2] * inv_z;
+        if (!(wz > 0.0f)) return BEHIND_CAMERA;
+        u = wx / wz, v = wy / wz;
+        if (!(finitef(u) & finitef(v))) return BEHIND_CAMERA;
+    }
+    u = std::min(std::max(u, -kCoordMargin), (float)s.Ws + kCoordMargin);
+    v = std::min(std::max(v, -kCoordMargin), (float)s.Hs + kCoordMargin);
+    nd0 = load<L::normals>(d.n0, p), nd1 = load<L::normals>(d.n1, p), nd2 = load<L::normals>(d.n2, p);
+    nd0 = finitef(nd0) ? nd0 : 0.0f;
+    nd1 = finitef(nd1) ? nd1 : 0.0f;
+    nd2 = finitef(nd2) ? nd2 : 0.0f;
+    return KEPT;
+}
+
 // Warp one destination pixel (x, y); writes its results at position x of the row outputs.
 template <int NC, bool BILINEAR, class L>
 inline void warp_pixel(const Source &s, const Dest &d, const Camera &cam, const Tests &th, int64_t x, int64_t y,
@@ -310,33 +345,9 @@ inline void warp_pixel(const Source &s, const Dest &d, const Camera &cam, const 
         o.reason[x] = reason;
         o.valid[x] = 0;
     };
-    const int64_t p = y * d.W + x;
-    const float zr = load<L::depth>(d.depth, p);
-    if (!(finitef(zr) & (zr > 0.0f))) return invalid(NO_SURFACE_DST, 0.0f);
-    const float uc = (float)x + 0.5f, vc = (float)y + 0.5f;
-    const float *M = cam.M, *t = cam.t;
-    float qx = ((M[0] * uc + M[1] * vc) + M[2]) * zr + t[0];
-    float qy = ((M[3] * uc + M[4] * vc) + M[5]) * zr + t[1];
-    float qz = ((M[6] * uc + M[7] * vc) + M[8]) * zr + t[2];
-    float u, v;
-    if (d.motion) {  // the source position from the motion vectors, the point moved with the world motion
-        if (!motion_source(d, cam, p, uc, vc, qx, qy, qz, u, v)) return invalid(BEHIND_CAMERA, 0.0f);
-    } else {
-        const float inv_z = 1.0f / zr;
-        const float *P = cam.P, *kt = cam.kt;
-        const float wx = ((P[0] * uc + P[1] * vc) + P[2]) + kt[0] * inv_z;
-        const float wy = ((P[3] * uc + P[4] * vc) + P[5]) + kt[1] * inv_z;
-        const float wz = ((P[6] * uc + P[7] * vc) + P[8]) + kt[2] * inv_z;
-        if (!(wz > 0.0f)) return invalid(BEHIND_CAMERA, 0.0f);
-        u = wx / wz, v = wy / wz;
-        if (!(finitef(u) & finitef(v))) return invalid(BEHIND_CAMERA, 0.0f);
-    }
-    u = std::min(std::max(u, -kCoordMargin), (float)s.Ws + kCoordMargin);
-    v = std::min(std::max(v, -kCoordMargin), (float)s.Hs + kCoordMargin);
-    float nd0 = load<L::normals>(d.n0, p), nd1 = load<L::normals>(d.n1, p), nd2 = load<L::normals>(d.n2, p);
-    nd0 = finitef(nd0) ? nd0 : 0.0f;
-    nd1 = finitef(nd1) ? nd1 : 0.0f;
-    nd2 = finitef(nd2) ? nd2 : 0.0f;
+    float qx, qy, qz, u, v, nd0, nd1, nd2;
+    const uint8_t projected = project_pixel<L>(s, d, cam, x, y, qx, qy, qz, u, v, nd0, nd1, nd2);
+    if (projected != KEPT) return invalid(projected, 0.0f);
 
     float den = 0.0f;
     uint8_t worst = KEPT;  // max code over taps of non-zero weight; zero-weight taps contribute nothing at all
@@ -360,6 +371,49 @@ inline void warp_pixel(const Source &s, const Dest &d, const Camera &cam, const 
     o.den[x] = den;
     o.reason[x] = KEPT;
     o.valid[x] = 1;
+}
+
+// Catmull-Rom weights (a = -0.5) of the taps at offsets -1, 0, 1, 2 from floor(x) for the fraction f, in the
+// operation order of stereorepro.reproject._general.catmull_rom_weights.
+SR_INLINE void catmull_rom_weights(float f, float w[4]) {
+    w[0] = ((-0.5f * f + 1.0f) * f - 0.5f) * f;
+    w[1] = (1.5f * f - 2.5f) * f * f + 1.0f;
+    w[2] = ((-1.5f * f + 2.0f) * f + 0.5f) * f;
+    w[3] = (0.5f * f - 0.5f) * f * f;
+}
+
+// sampling="catmull_rom": the valid pixels of a warped row whose 4x4 footprint (columns x0 - 1 .. x0 + 2 around the
+// bilinear taps, rows likewise) passes every tap test get the separable Catmull-Rom sum (each row's four columns in
+// order, then the rows in order), clamped at 0 per channel; the others keep the bilinear values. The arithmetic of
+// stereorepro.reproject._general.catmull_rom_pixels.
+template <int NC, class L>
+void cubic_row(const Source &s, const Dest &d, const Camera &cam, const Tests &th, int64_t y, const RowOut &o) {
+    const int64_t C = NC > 0 ? NC : s.C;
+    for (int64_t x = 0; x < d.W; ++x) {
+        if (!o.valid[x]) continue;
+        float qx, qy, qz, u, v, nd0, nd1, nd2;
+        if (project_pixel<L>(s, d, cam, x, y, qx, qy, qz, u, v, nd0, nd1, nd2) != KEPT) continue;
+        const float fxs = u - 0.5f, fys = v - 0.5f;
+        const float x0 = std::floor(fxs), y0 = std::floor(fys);
+        float wx[4], wy[4];
+        catmull_rom_weights(fxs - x0, wx);
+        catmull_rom_weights(fys - y0, wy);
+        float total[NC > 0 ? NC : kMaxStackChannels];
+        bool all = true;
+        for (int j = 0; j < 4 && all; ++j) {
+            float row[NC > 0 ? NC : kMaxStackChannels];
+            for (int64_t c = 0; c < C; ++c) row[c] = 0.0f;
+            const float yi = y0 + (float)(j - 1);
+            for (int i = 0; i < 4 && all; ++i) {
+                float den = 0.0f;
+                const float xi = x0 + (float)(i - 1);
+                all = tap<NC, L>(s, cam, th, xi, yi, wx[i], qx, qy, qz, nd0, nd1, nd2, den, row) == KEPT;
+            }
+            for (int64_t c = 0; c < C; ++c) total[c] = j == 0 ? wy[0] * row[c] : total[c] + wy[j] * row[c];
+        }
+        if (!all) continue;
+        for (int64_t c = 0; c < C; ++c) o.num[c].set(x, total[c] < 0.0f ? 0.0f : total[c]);
+    }
 }
 
 #ifdef SR_AVX2_PATH
@@ -897,6 +951,7 @@ void run_rows(const Batch &bt, const Tests &th, const Sink &sink) {
                              bt.t + 3 * b, bt.Ki + 9 * b, bt.has_world ? bt.R + 9 * b : nullptr};
             const RowOut o = sink.row(b, y, scratch.data());
             warp_row<NC, BILINEAR, L>(s, d, cam, th, y, o, vector);
+            if (BILINEAR && th.cubic) cubic_row<NC, L>(s, d, cam, th, y, o);
             sink.finish(b, y, o);
         }
     }
@@ -987,7 +1042,7 @@ void check_motion(Batch &bt, const std::optional<CA> &motion, const std::optiona
 void reproject(CA src_values, CA src_depth, CA src_normal, CF P, CF kt, CF M, CF t, CF Ks_inv, CA dst_depth,
                CA dst_normal, float pos_thr2, float nrm_thr2, bool bilinear, OA out_values, OB out_valid,
                OU8 out_reason, std::optional<OF> out_confidence, std::optional<CA> motion,
-               std::optional<CA> motion_world, std::optional<CF> R) {
+               std::optional<CA> motion_world, std::optional<CF> R, bool cubic) {
     if (src_values.ndim() != 4) throw std::invalid_argument("reproject: src_values must be 4-D (B, C, Hs, Ws)");
     Batch bt;
     bt.B = src_values.shape(0);
@@ -1008,14 +1063,14 @@ void reproject(CA src_values, CA src_depth, CA src_normal, CF P, CF kt, CF M, CF
     for (int64_t i = 0; i < bt.B * bt.C; ++i) bt.chan[i] = values + i * HWs;
     const StereoSink sink{plane_of(out_values, "out_values"), out_valid.data(), out_reason.data(),
                           out_confidence ? out_confidence->data() : nullptr, bt.C, bt.H, bt.W};
-    dispatch(bt, Tests{pos_thr2, nrm_thr2}, bilinear, sink);
+    dispatch(bt, Tests{pos_thr2, nrm_thr2, cubic}, bilinear || cubic, sink);
 }
 
 void temporal_reproject(CA current, CA history_color, CA history_len, CA prev_depth, CA prev_normal, CF P, CF kt,
                         CF M, CF t, CF Ks_inv, CA depth, CA normal, float pos_thr2, float nrm_thr2, bool bilinear,
                         float alpha, bool warmup, float max_history, OA out_color, OF out_len, OB out_valid,
                         std::optional<CA> motion, std::optional<CA> motion_world, std::optional<CF> R,
-                        bool round_history) {
+                        bool round_history, bool cubic) {
     if (history_color.ndim() != 4)
         throw std::invalid_argument("temporal_reproject: history_color must be 4-D (B, C, Hs, Ws)");
     Batch bt;
@@ -1046,7 +1101,7 @@ void temporal_reproject(CA current, CA history_color, CA history_len, CA prev_de
 #endif
     const TemporalSink sink{plane_of(current, "current"), plane_of(out_color, "out_color"), out_len.data(),
                             out_valid.data(), alpha, max_history, warmup, round_history, bt.C, bt.H, bt.W, vector};
-    dispatch(bt, Tests{pos_thr2, nrm_thr2}, bilinear, sink);
+    dispatch(bt, Tests{pos_thr2, nrm_thr2, cubic}, bilinear || cubic, sink);
 }
 
 }  // namespace
@@ -1076,6 +1131,7 @@ void bind_reproject(nb::module_ &m) {
           nb::arg("out_valid").noconvert(), nb::arg("out_reason").noconvert(),
           nb::arg("out_confidence").noconvert().none(), nb::arg("motion").noconvert().none() = nb::none(),
           nb::arg("motion_world").noconvert().none() = nb::none(), nb::arg("R").noconvert().none() = nb::none(),
+          nb::arg("cubic") = false,
           "Fused hard backward reprojection (NCHW, C-contiguous CPU arrays; no copies are made). Image arrays "
           "(values, depths, normals, out_values) are float32 or float16, each on its own; compute is float32.\n"
           "Camera arrays P, M, Ks_inv are (B, 9) row-major and kt, t are (B, 3), composed by "
@@ -1084,7 +1140,9 @@ void bind_reproject(nb::module_ &m) {
           "out_confidence (B, 1, H, W) in place; out_confidence may be None (not computed).\n"
           "motion (B, 2, H, W) and motion_world (B, 3, H, W) (float32 or float16, optional) are the destination's "
           "motion vectors: taps at pixel + motion, the position test against q + R * motion_world, R (B, 9) the "
-          "source camera's rotation (row-major); non-finite motion: OUT_OF_FRAME.");
+          "source camera's rotation (row-major); non-finite motion: OUT_OF_FRAME.\n"
+          "cubic: sampling=\"catmull_rom\" (the bilinear pass, then the 4x4 Catmull-Rom sum where all 16 footprint "
+          "taps pass, clamped at 0).");
     m.def("temporal_reproject", &temporal_reproject, nb::arg("current").noconvert(),
           nb::arg("history_color").noconvert(), nb::arg("history_len").noconvert(),
           nb::arg("prev_depth").noconvert(), nb::arg("prev_normal").noconvert(), nb::arg("P").noconvert(),
@@ -1094,11 +1152,11 @@ void bind_reproject(nb::module_ &m) {
           nb::arg("max_history"), nb::arg("out_color").noconvert(), nb::arg("out_len").noconvert(),
           nb::arg("out_valid").noconvert(), nb::arg("motion").noconvert().none() = nb::none(),
           nb::arg("motion_world").noconvert().none() = nb::none(), nb::arg("R").noconvert().none() = nb::none(),
-          nb::arg("round_history") = false,
+          nb::arg("round_history") = false, nb::arg("cubic") = false,
           "Fused temporal reprojection: warps [history_color, history_len] like `reproject` and blends with "
           "`current` in the same pass (a = max(1/(n+1), alpha) with warmup, else alpha). Where the history is "
           "kept out_len = min(n + 1, max_history), or with round_history min(round_half_even(n) + 1, "
           "max_history) (BMFR's integer count). Writes out_color "
           "(float32 or float16), out_len (float32) and out_valid in place; image inputs float32 or float16. "
-          "motion, motion_world, R: as in `reproject` (the motion of this frame to the previous one).");
+          "motion, motion_world, R, cubic: as in `reproject` (the motion of this frame to the previous one).");
 }

@@ -28,7 +28,7 @@ from torch import Tensor
 
 from ..camera import Warp, has_surface
 from ._constants import COORD_MARGIN, F32_EXACT_INT, OFF_FRAME, TABLE_PAD
-from ._general import DstPixels, SourceTaps, TapTests, pixel_centres, raw_reader, warp_pixels
+from ._general import DstPixels, SourceTaps, TapTests, catmull_rom_pixels, pixel_centres, raw_reader, warp_pixels
 from .reason import Reason
 
 #: Destination pixels per block in the fast path (its per-block working set is larger than the general path's).
@@ -384,6 +384,8 @@ def fast_reproject(
     B, C, Hs, Ws = src_values.shape
     H, W = dst_depth.shape[-2:]
     F, Wp = C + 6, Ws + 2 * TABLE_PAD
+    cubic = sampling == "catmull_rom"  # the bilinear pass, then the Catmull-Rom footprints of its valid pixels
+    sampling = "bilinear" if cubic else sampling
     bilinear = sampling == "bilinear"
     tab = fast_source_table(src_values, src_depth, src_normal, warp.K_src_inv, wdt)
     Np = tab.shape[-1]
@@ -485,4 +487,49 @@ def fast_reproject(
                     mv,
                 ),
             )
+    if cubic:
+        tests = TapTests(position_threshold, normal_threshold, "catmull_rom")
+        for b in range(B):
+            fast_catmull_rom(
+                src_values, src_depth, src_normal, dst_depth, dst_normal, warp, tests, b, values, valid, mv
+            )
     return values.to(src_values.dtype), valid, reason, den
+
+
+def fast_catmull_rom(
+    src_values: Tensor,
+    src_depth: Tensor,
+    src_normal: Tensor,
+    dst_depth: Tensor,
+    dst_normal: Tensor,
+    warp: Warp,
+    tests: TapTests,
+    b: int,
+    values: Tensor,
+    valid: Tensor,
+    motion: _Motion | None = None,
+) -> None:
+    """``"catmull_rom"`` on the fast path: batch item ``b``'s bilinear ``values`` (B, C, H, W) (compute dtype,
+    overwritten) are replaced by :func:`catmull_rom_pixels` on its valid pixels only (a pixel whose bilinear
+    result is invalid has a failing tap in its footprint and keeps its values)."""
+    C, Hs, Ws = src_values.shape[1:]
+    wdt = warp.K_src_inv.dtype
+    H, W = dst_depth.shape[-2:]
+    p = torch.nonzero(valid[b].view(H * W)).squeeze(1)
+    k = p.numel()
+    if not k:
+        return
+    yy, xx = p // W, p % W
+    rotation = None if motion is None or motion.rotation is None else motion.rotation[b : b + 1]
+    source = SourceTaps(raw_reader(src_values, src_depth, src_normal, b, wdt), C, Hs, Ws, rotation)
+    pixels = DstPixels(
+        _gather_pixels(dst_depth, b, p, yy, xx).to(wdt).view(1, 1, 1, k),
+        _gather_pixels(dst_normal, b, p, yy, xx).view(1, 3, 1, k),
+        (xx.to(wdt) + 0.5).view(1, 1, 1, k),
+        (yy.to(wdt) + 0.5).view(1, 1, 1, k),
+        *(motion.pixels(b, p, yy, xx) if motion is not None else ()),
+    )
+    flat = values[b].view(C, H * W)
+    bilinear = flat.index_select(1, p).view(1, C, 1, k)
+    cubic = catmull_rom_pixels(source, Warp(*(c[b : b + 1] for c in warp)), pixels, tests, bilinear)
+    flat.index_copy_(1, p, cubic.view(C, k))

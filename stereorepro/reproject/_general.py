@@ -157,7 +157,7 @@ class TapTests(NamedTuple):
 
     position_threshold: object  #: float or 0-d tensor
     normal_threshold: object
-    sampling: str  #: ``"bilinear"`` | ``"nearest"``
+    sampling: str  #: ``"bilinear"`` | ``"nearest"`` | ``"catmull_rom"``
     soft: bool = False
     temperature: float = 0.1
 
@@ -223,8 +223,8 @@ def _project(warp: Warp, pixels: DstPixels, source: SourceTaps) -> _Projection:
 
 def _taps(u: Tensor, v: Tensor, sampling: str, Hs: int, Ws: int) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """The taps (T = 4 or 1) of source pixel (u, v): xi, yi, bilinear weights, in_frame and the flat source index
-    (clamped into the frame), each BxTxHxW."""
-    if sampling == "bilinear":
+    (clamped into the frame), each BxTxHxW. ``"catmull_rom"`` starts from the bilinear taps (its fallback)."""
+    if sampling != "nearest":
         x = u - 0.5
         y = v - 0.5
         x0 = torch.floor(x)
@@ -342,9 +342,67 @@ def warp_pixels(
     # path renormalises by max(den, SOFT_DEN_FLOOR): a pixel that is all but rejected fades to 0 instead.
     den_safe = den.clamp_min(SOFT_DEN_FLOOR) if tests.soft else torch.where(has_w, den, one)
     values = torch.where(has_w, num / den_safe, zero)
+    if tests.sampling == "catmull_rom":
+        values = catmull_rom_pixels(source, warp, pixels, tests, values)
     valid = (wts * hard.to(wdt)).sum(1, keepdim=True) > 0
     reason = _reasons(terms, in_frame, wts, proj, valid)
     return values.to(out_dtype), valid, reason, den
+
+
+#: Offsets of the Catmull-Rom footprint's columns (rows) from the bilinear tap (0, 0), x0 = floor(u − 0.5).
+CUBIC_OFFSETS = (-1.0, 0.0, 1.0, 2.0)
+
+
+def catmull_rom_weights(f: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Catmull-Rom weights (Keys' cubic convolution with a = −0.5) of the taps at offsets −1, 0, 1, 2 from
+    ``floor(x)``, for the fraction ``f = x − floor(x)`` in [0, 1), evaluated in this operation order by every
+    implementation: ``((−0.5·f + 1)·f − 0.5)·f``, ``(1.5·f − 2.5)·f·f + 1``, ``((−1.5·f + 2)·f + 0.5)·f``,
+    ``(0.5·f − 0.5)·f·f``. They sum to 1 (to rounding); f = 0 gives (0, 1, 0, 0).
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro.reproject._general import catmull_rom_weights
+        >>> [round(float(w), 4) for w in catmull_rom_weights(torch.tensor(0.5))]
+        [-0.0625, 0.5625, 0.5625, -0.0625]
+    """
+    return (
+        ((-0.5 * f + 1.0) * f - 0.5) * f,
+        (1.5 * f - 2.5) * f * f + 1.0,
+        ((-1.5 * f + 2.0) * f + 0.5) * f,
+        (0.5 * f - 0.5) * f * f,
+    )
+
+
+def catmull_rom_pixels(source: SourceTaps, warp: Warp, pixels: DstPixels, tests: TapTests, values: Tensor) -> Tensor:
+    """The ``"catmull_rom"`` values of destination pixels whose bilinear result is ``values`` (B, C, *S).
+
+    The footprint is the 4×4 source pixels around the bilinear taps (columns x0 − 1 .. x0 + 2, rows likewise).
+    Where every one of the 16 lies in the frame with a surface, finite values and passes the position and normal
+    tests (hard decisions, also under soft tests), the result is the separable 16-tap Catmull-Rom sum (row sums
+    first, each over its four columns in order, then the rows in order) clamped at 0 per channel; elsewhere the
+    pixel keeps ``values``. Differentiable in the values and the source position.
+    """
+    B, C = warp.K_src_inv.shape[0], source.channels
+    S = pixels.depth.shape[2:]
+    proj = _project(warp, pixels, source)
+    x, y = proj.u - 0.5, proj.v - 0.5
+    x0, y0 = torch.floor(x), torch.floor(y)
+    wx, wy = catmull_rom_weights(x - x0), catmull_rom_weights(y - y0)
+    xi = torch.cat([x0 + dx for dy in CUBIC_OFFSETS for dx in CUBIC_OFFSETS], 1)  # (B, 16, *S), row-major
+    yi = torch.cat([y0 + dy for dy in CUBIC_OFFSETS for dx in CUBIC_OFFSETS], 1)
+    Hs, Ws = source.height, source.width
+    in_frame = (xi >= 0) & (xi <= Ws - 1) & (yi >= 0) & (yi <= Hs - 1)
+    index = yi.clamp(0, Hs - 1).to(torch.int64) * Ws + xi.clamp(0, Ws - 1).to(torch.int64)
+    g = source.read(index).reshape(B, C + 5, 16, *S)
+    terms = _tap_terms(g, C, xi, yi, warp.K_src_inv, proj.q, pixels.normal, tests)
+    tap_ok = in_frame & terms.src_ok & terms.finite & terms.pos_ok & terms.nrm_ok
+    ok = tap_ok.all(1, keepdim=True) & proj.dst_ok & proj.front
+    total = None
+    for j in range(4):
+        row = wx[0] * g[:, :C, 4 * j] + wx[1] * g[:, :C, 4 * j + 1] + wx[2] * g[:, :C, 4 * j + 2]
+        row = row + wx[3] * g[:, :C, 4 * j + 3]
+        total = wy[j] * row if total is None else total + wy[j] * row
+    return torch.where(ok, total.clamp_min(0.0), values.to(total.dtype))
 
 
 def _motion_source(

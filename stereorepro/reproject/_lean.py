@@ -26,7 +26,9 @@ dominates the graph's time). The general path (:mod:`._general`) traced as it is
   rejected tap multiplies by 0) only need to be finite: one ``ThresholdedRelu`` and a ``Clip``;
 * **rectified** (the caller declares a parallel rig at one instant, :func:`~stereorepro.camera.rectify_warp`):
   the vertical fraction of every tap is 0, so only the two taps of row y0 are read; the y0 + 1 taps have weight 0
-  and contribute nothing to any output.
+  and contribute nothing to any output;
+* **catmull_rom** sampling: the bilinear result above, then the 4×4 footprints of the general path
+  (:func:`._general.catmull_rom_pixels`, 16 ``GatherElements`` rows per pixel) replace it where all 16 taps pass.
 
 The per-element float arithmetic that decides a result (projection, tap coordinates, weights, squared distances,
 comparisons) is that of :func:`._general.warp_pixels`, in the same order, so ``valid`` and ``reason`` are
@@ -44,7 +46,17 @@ from torch import Tensor
 
 from ..camera import Warp, has_surface
 from ._constants import COORD_MARGIN, OFF_FRAME, TABLE_PAD, TAP_OK_CODE
-from ._general import as_scalar, compute_dtype, finite_or_zero
+from ._general import (
+    SourceTaps,
+    TapTests,
+    as_scalar,
+    catmull_rom_pixels,
+    compute_dtype,
+    dst_rows,
+    feature_reader,
+    finite_or_zero,
+    source_features,
+)
 from .reason import Reason
 
 
@@ -478,7 +490,9 @@ def lean_reproject(
     like = torch.empty((), dtype=wdt, device=dev)
     thr_p, thr_n = as_scalar(position_threshold, like), as_scalar(normal_threshold, like)
     thr_p2, thr_n2 = thr_p * thr_p, thr_n * thr_n
-    x0, y0, fx, fy, taps, corner = _tap_corners(u, v, sampling, rectified, size.Wp)
+    cubic = sampling == "catmull_rom"
+    cubic_tests = TapTests(position_threshold, normal_threshold, sampling)
+    x0, y0, fx, fy, taps, corner = _tap_corners(u, v, "bilinear" if cubic else sampling, rectified, size.Wp)
     ki = [warp.K_src_inv[:, i, j : j + 1] for i in range(3) for j in range(3)]  # (B, 1) each
     geo = _TapGeometry(x0, y0, fx, fy, ki, q, nd, thr_p2, thr_n2)
     num, den = _accumulate(tap_tables, C, corner, taps, geo, size.Wp, wdt)
@@ -494,6 +508,10 @@ def lean_reproject(
     # lower peak memory than with the values made first). Each channel is reshaped before the Concat that makes
     # the output (onnxruntime copies a Reshape whose result is a graph output).
     values = torch.cat([(x / den_safe).reshape(B, 1, H, W) for x in num], 1)
+    if cubic:  # the general path's Catmull-Rom footprints over the bilinear result (16 gathers per pixel)
+        source = SourceTaps(feature_reader(source_features(src_values, src_depth, src_normal, wdt)), C, Hs, Ws)
+        pixels = dst_rows(dst_depth, dst_normal, motion, motion_world, 0, H, wdt)
+        values = catmull_rom_pixels(source._replace(rotation=src_rotation), warp, pixels, cubic_tests, values)
     if values.dtype != src_values.dtype:  # (a same-dtype .to() is exported as a Cast: a copy of the image)
         values = values.to(src_values.dtype)
     return values, valid, reason, den

@@ -99,6 +99,7 @@ def reproject(
     motion: Tensor | None = None,
     motion_world: Tensor | None = None,
     src_rotation: Tensor | None = None,
+    cubic: bool = False,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
     """Backward reprojection with hard tests.
 
@@ -113,6 +114,8 @@ def reproject(
             ``pixel + motion``); motion_world: optional (B, 3, H, W) world motion of their points (the position
             test against ``P + motion_world``), with src_rotation (B, 3, 3) the source ``cam_from_world``'s
             rotation. float32 or float16.
+        cubic: ``sampling="catmull_rom"``: the bilinear pass, then the 4×4 Catmull-Rom sum (clamped at 0) where
+            all 16 footprint taps pass.
 
     Returns:
         values (B, C, H, W) of src_values' dtype, valid (B, 1, H, W) bool, reason (B, 1, H, W) uint8, confidence
@@ -145,6 +148,7 @@ def reproject(
         reason,
         confidence,
         *_motion_args(motion, motion_world, src_rotation),
+        **({"cubic": True} if cubic else {}),  # a core built before the option serves the other samplings
     )
     return values, valid, reason, confidence
 
@@ -167,6 +171,7 @@ def temporal_reproject(
     motion_world: Tensor | None = None,
     src_rotation: Tensor | None = None,
     round_history: bool = False,
+    cubic: bool = False,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Temporal reprojection in one fused pass: warp [history_color, history_len] and blend with the current frame.
 
@@ -183,6 +188,7 @@ def temporal_reproject(
         round_history: store ``min(round_half_even(n) + 1, max_history)`` instead of ``min(n + 1, max_history)``
             where the history is kept (``history_rounding="bmfr"``; the caller passes BMFR's cap, 1 where
             ``alpha >= 1``).
+        cubic: ``sampling="catmull_rom"`` for the history colour and length, as :func:`reproject`.
 
     Returns:
         color (B, 3, H, W) of current_color's dtype, history_len (B, 1, H, W) float32, valid (B, 1, H, W) bool.
@@ -220,5 +226,6 @@ def temporal_reproject(
         valid,
         *_motion_args(motion, motion_world, src_rotation),
         **({"round_history": True} if round_history else {}),  # a core built before the option serves "none"
+        **({"cubic": True} if cubic else {}),
     )
     return color, n_out, valid

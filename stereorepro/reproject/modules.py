@@ -70,7 +70,7 @@ class StereoReprojection(_ReprojectionBase):
     Args:
         position_threshold: max |P_src − P_dst| in scene units (the scene's limit; paper §4.1).
         normal_threshold: max |N_src − N_dst| between unit shading normals.
-        sampling: ``"bilinear"`` or ``"nearest"``.
+        sampling: ``"bilinear"``, ``"nearest"`` or ``"catmull_rom"`` (see :func:`~stereorepro.reproject.backward_reproject`).
         soft: smooth accept tests; the thresholds become learnable ``nn.Parameter``s.
         temperature: softness relative to the thresholds.
         backend: ``"auto"`` (native kernel when built, on CPU, float32, hard, without autograd), ``"torch"`` or

@@ -7,6 +7,10 @@ project it, take the 2×2 bilinear taps (or the nearest one) and run the accept 
 source surface, position, normal, finite values). The accepted weights are renormalised; an invalid pixel reports
 the largest code among its taps of non-zero weight.
 
+``sampling="catmull_rom"``: the bilinear result, replaced where all 16 pixels of the 4×4 footprint around the
+bilinear taps pass every test by the sum of their values weighted with Keys' cubic convolution kernel (a = −0.5, the
+Catmull-Rom spline) of the tap's distance to the sample point in x and in y, clamped at 0.
+
 Each pixel also gets a ``margin``: the smallest distance of any decision it took to that decision's boundary
 (point depth against 0, tap coordinate against a pixel edge, distance against a threshold; in scene units or
 pixels). Backends compute in float32: where the margin is below their rounding, the two may decide differently and
@@ -74,6 +78,31 @@ def _tap_code(src, b, x, y, q, n_dst, thr_p, thr_n, Ks_inv):
     return KEPT, margin
 
 
+def _keys(t: float, a: float = -0.5) -> float:
+    """Keys' cubic convolution kernel at distance t (a = −0.5: Catmull-Rom)."""
+    t = abs(t)
+    if t <= 1:
+        return (a + 2) * t**3 - (a + 3) * t**2 + 1
+    if t < 2:
+        return a * t**3 - 5 * a * t**2 + 8 * a * t - 4 * a
+    return 0.0
+
+
+def _cubic(src, b, u, v, q, n_dst, thr_p, thr_n, Ks_inv):
+    """The Catmull-Rom value at source point (u, v) (None unless all 16 footprint taps pass), and the margin of the
+    footprint's tests."""
+    x0, y0 = math.floor(u - 0.5), math.floor(v - 0.5)
+    total, margin, all_ok = 0.0, math.inf, True
+    for y in range(y0 - 1, y0 + 3):
+        for x in range(x0 - 1, x0 + 3):
+            code, m = _tap_code(src, b, x, y, q, n_dst, thr_p, thr_n, Ks_inv)
+            margin = min(margin, m)
+            all_ok = all_ok and code == KEPT
+            if all_ok:
+                total = total + _keys(x + 0.5 - u) * _keys(y + 0.5 - v) * src[0][b, :, y, x]
+    return (np.maximum(total, 0.0) if all_ok else None), margin
+
+
 def _pixel(src, b, xd, yd, dst, cams, thr_p, thr_n, sampling):
     """(values (C,), reason, accepted weight, margin) of destination pixel (xd, yd) of batch item b."""
     dst_depth, dst_normal = dst
@@ -100,6 +129,11 @@ def _pixel(src, b, xd, yd, dst, cams, thr_p, thr_n, sampling):
             worst = max(worst, code)
             if code == KEPT:
                 num, den = num + w * src[0][b, :, y, x], den + w
+    if den > 0 and sampling == "catmull_rom":
+        cubic, m = _cubic(src, b, u, v, q, n_dst, thr_p, thr_n, Ks_inv[b])
+        margin = min(margin, m)
+        if cubic is not None:
+            return cubic, KEPT, den, margin
     if den > 0:
         return num / den, KEPT, den, margin
     return np.zeros(C), worst, 0.0, margin

@@ -92,7 +92,7 @@ class TestLeanReproject(BaseTester):
         assert got[0].shape == (2, 3, 36, 48) and got[2].dtype == torch.uint8
         assert 0.5 < float(ref[1].float().mean()) < 1.0  # realistic: some discards, mostly kept
 
-    @pytest.mark.parametrize("sampling", ["bilinear", "nearest"])
+    @pytest.mark.parametrize("sampling", ["bilinear", "nearest", "catmull_rom"])
     @pytest.mark.parametrize("head_motion", [False, True])
     def test_equals_general(self, sampling, head_motion, dtype):
         assert_same(*both(stereo_case(head_motion=head_motion, dtype=dtype), sampling))
@@ -107,7 +107,7 @@ class TestLeanReproject(BaseTester):
         assert got[0].shape == (1, 4, 20, 30)
         assert_same(ref, got)
 
-    @pytest.mark.parametrize("sampling", ["bilinear", "nearest"])
+    @pytest.mark.parametrize("sampling", ["bilinear", "nearest", "catmull_rom"])
     @pytest.mark.parametrize("hostile", [False, True], ids=["scene", "hostile"])
     @pytest.mark.parametrize("world", [True, False], ids=["world", "screen"])
     def test_motion_equals_general(self, sampling, hostile, world, dtype):
@@ -283,6 +283,9 @@ MODULES = {
     "temporal_fixed_alpha": lambda: TemporalReprojection(*THR, warmup=False),
     "temporal_motion": lambda: TemporalReprojection(*THR, motion_vectors=True),
     "temporal_bmfr": lambda: TemporalReprojection(*THR, history_rounding="bmfr"),
+    # thresholds loose enough for whole 4x4 footprints to pass on the example scene (the cubic then applies)
+    "stereo_catmull_rom": lambda: StereoReprojection(0.3, 0.5, sampling="catmull_rom"),
+    "temporal_catmull_rom": lambda: TemporalReprojection(0.3, 0.5, sampling="catmull_rom"),
 }
 
 

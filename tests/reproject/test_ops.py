@@ -93,6 +93,10 @@ def _reference_cases() -> dict:
         "special_nearest": (special(), 0.3, 0.1, "nearest"),
         "turned": (turned(), 1.0, 1.0, "bilinear"),
         "batch_channels": (batch(), 0.6, 0.1, "bilinear"),
+        # loose thresholds: a tiny image's pixels are large, and all 16 taps must pass for the cubic to apply
+        "scene_catmull_rom": (scene(H=10, W=12, forward=0.05, yaw=0.5, baseline=0.1), 5.0, 2.0, "catmull_rom"),
+        "special_catmull_rom": (special(), 5.0, 2.0, "catmull_rom"),
+        "batch_catmull_rom": (batch(), 5.0, 2.0, "catmull_rom"),
     }
 
 

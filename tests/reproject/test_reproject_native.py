@@ -376,7 +376,7 @@ class TestNativeStereo(BaseTester):
         for a, b in zip(got, ref):
             assert torch.equal(a, b)
 
-    @pytest.mark.parametrize("sampling", ["bilinear", "nearest"])
+    @pytest.mark.parametrize("sampling", ["bilinear", "nearest", "catmull_rom"])
     @pytest.mark.parametrize("case", sorted(HARD_CASES))
     @AGAINST_TORCH
     def test_parity_hard_cases(self, case, sampling, backend):
@@ -392,7 +392,7 @@ class TestNativeStereo(BaseTester):
             assert (reason[..., :shift] == Reason.OUT_OF_FRAME).all() and valid[..., shift:].all()
 
     @pytest.mark.parametrize("hw", RESOLUTIONS)
-    @pytest.mark.parametrize("sampling", ["bilinear", "nearest"])
+    @pytest.mark.parametrize("sampling", ["bilinear", "nearest", "catmull_rom"])
     @AGAINST_TORCH
     def test_parity_random_scenes(self, hw, sampling, backend):
         for seed in range(3):
@@ -400,7 +400,7 @@ class TestNativeStereo(BaseTester):
             ref, got = both_stereo(inp, pos, nrm, sampling)
             assert_parity(ref, got, f"{hw} seed {seed}")
 
-    @pytest.mark.parametrize("sampling", ["bilinear", "nearest"])
+    @pytest.mark.parametrize("sampling", ["bilinear", "nearest", "catmull_rom"])
     @AGAINST_TORCH
     def test_parity_rectified_rig(self, sampling, backend):
         # A parallel rig's epipolar lines are rows: every tap row has fy = 0, so the kernel's vector path skips the
@@ -515,6 +515,7 @@ class TestNativeTemporal(BaseTester):
             dict(alpha=1e-9),
             dict(max_history=4.0),
             dict(sampling="nearest"),
+            dict(sampling="catmull_rom"),
             dict(history_rounding="bmfr"),
             dict(history_rounding="bmfr", alpha=1.0),
             dict(history_rounding="bmfr", max_history=4.0),
@@ -777,7 +778,7 @@ class TestNativeFloat16(BaseTester):
         )
 
     @pytest.mark.parametrize("layout", sorted(STEREO_HALF))
-    @pytest.mark.parametrize("sampling", ["bilinear", "nearest"])
+    @pytest.mark.parametrize("sampling", ["bilinear", "nearest", "catmull_rom"])
     @AGAINST_TORCH
     def test_parity_stereo(self, layout, sampling, backend):
         for hw in RESOLUTIONS:
@@ -807,7 +808,7 @@ class TestNativeFloat16(BaseTester):
     def test_parity_hard_cases(self, case, layout, backend):
         inp, pos, nrm = HARD_CASES[case]()
         inp = to_half(inp, STEREO_HALF[layout])
-        for sampling in ("bilinear", "nearest"):
+        for sampling in ("bilinear", "nearest", "catmull_rom"):
             assert_bytes_equal(*self._stereo_both(inp, pos, nrm, sampling, confidence=True), f"{case} {sampling}")
 
     @pytest.mark.parametrize("layout", sorted(TEMPORAL_HALF))
@@ -819,6 +820,7 @@ class TestNativeFloat16(BaseTester):
             dict(alpha=1.0),
             dict(max_history=4.0),
             dict(sampling="nearest"),
+            dict(sampling="catmull_rom"),
             dict(return_reason=True),
             dict(history_rounding="bmfr"),
             dict(history_rounding="bmfr", alpha=1.0),
@@ -911,7 +913,7 @@ class TestNativeFloat16(BaseTester):
             c[0, :, (i + 4) % H, (5 * i + 1) % W] = v
         inp = to_half(dict(inp, src_color=c), STEREO_HALF["colour+normals"])
         assert torch.isinf(inp["src_color"]).any() and (inp["src_color"].abs() == 65504).any()
-        for sampling in ("bilinear", "nearest"):
+        for sampling in ("bilinear", "nearest", "catmull_rom"):
             ref, got = self._stereo_both(inp, 0.1, 0.1, sampling, confidence=True)
             assert_bytes_equal(ref, got, f"stereo {sampling}")
             assert bool(torch.isfinite(got[0]).all())
