@@ -37,7 +37,7 @@ MIN_REFERENCE_SPP = 4
 #: Peak memory of a run per pixel (both eyes' renders and the previous frame's, every scheme's state and previous
 #: output, the scores and the figures), with a margin: the estimate of the resolution guard
 #: (:func:`stereorepro._checks.check_resolution`).
-EXPERIMENT_BYTES_PER_PIXEL = 2560
+EXPERIMENT_BYTES_PER_PIXEL = 3072
 
 #: The experiment's image metrics: ``"ldr"`` scores images clamped to [0, 1], ``"hdr"`` linear radiance.
 METRICS = ("ldr", "hdr")
