@@ -16,7 +16,7 @@ expected type)::
     name = "atrium"                 # default: the file name without .toml
     extends = "atrium.toml"         # optional base file (tables merged recursively, other values replaced)
     description = "..."
-    effects = ["glossy"]            # subset of {"glossy", "moving_light"}
+    effects = ["glossy"]            # subset of {"glossy", "moving_light", "moving_objects", "textures"}
     num_frames = 60
 
     [geometry]
@@ -29,6 +29,8 @@ expected type)::
 
     [materials.NAME]                # albedo (diffuse RGB), specular + exponent (glossy lobe), emission (RGB)
 
+    [textures.NAME]                 # procedural pattern of material NAME (effect "textures"): pattern
+                                    #   ("checker" | "stripes"), scale, contrast, axis (stereorepro.scenes.textures)
     [[lights]]                      # point lights: intensity (W/sr RGB) and position, or keyframes (moving)
     [camera]                        # vfov_deg, up, positions = [[x,y,z],...], targets = [[x,y,z],...]
     [rig]                           # eye_separation (scene units), convergence_distance (optional)
@@ -64,6 +66,7 @@ from .._extras import require
 from ..camera import PinholeCamera, StereoRig, intrinsics_from_fov, look_at
 from ..errors import SceneError
 from .animation import parse_animations
+from .textures import apply_textures, parse_textures
 
 __all__ = [
     "Scene",
@@ -79,7 +82,7 @@ __all__ = [
     "threshold_scale",
 ]
 
-KNOWN_EFFECTS = frozenset({"glossy", "moving_light", "moving_objects"})
+KNOWN_EFFECTS = frozenset({"glossy", "moving_light", "moving_objects", "textures"})
 BUILTIN_SCENES = (
     "atrium",
     "atrium_glossy",
@@ -90,7 +93,7 @@ BUILTIN_SCENES = (
     "classroom",
 )
 #: Built-in scenes beyond the paper's seven (effects the paper does not have).
-BEYOND_PAPER_SCENES = ("living_room_moving_objects",)
+BEYOND_PAPER_SCENES = ("living_room_moving_objects", "living_room_textured")
 EXTERNAL_SCENES = ("shared_sponza", "shared_living_room", "shared_classroom")
 SHARED_ENV = "STEREOREPRO_SHARED_SCENES"
 #: Image rows for which scene files set their position thresholds (2–3 pixel footprints at a typical depth).
@@ -194,6 +197,7 @@ _SCHEMA = {
         },
     ),
     "materials": ("tablemap", {"albedo": _VEC3, "specular": _VEC3, "exponent": "float", "emission": _VEC3}),
+    "textures": ("tablemap", {"pattern": "str", "scale": "float", "contrast": "float", "axis": "str"}),
     "lights": ("tablelist", {"type": "str", "intensity": _VEC3, "position": _VEC3, "keyframes": "vec3list"}),
     "camera": ("table", {"vfov_deg": "float", "up": _VEC3, "positions": "vec3list", "targets": "vec3list"}),
     "rig": ("table", {"eye_separation": "float", "convergence_distance": "float"}),
@@ -415,6 +419,7 @@ class Scene:
     _geometry: SceneGeometry | None = field(default=None, repr=False)
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
     _animations: list = field(default_factory=list, repr=False)
+    _textures: list = field(default_factory=list, repr=False)
     _pivots: np.ndarray | None = field(default=None, repr=False)
 
     @property
@@ -607,7 +612,10 @@ def _build_geometry(scene: Scene) -> SceneGeometry:
     scale = float(geo.get("scale", 1.0))
     if scale != 1.0:
         V = V * np.float32(scale)
-    return SceneGeometry(V, np.concatenate(faces).astype(np.int32), np.concatenate(mids).astype(np.int32))
+    F, M = np.concatenate(faces).astype(np.int32), np.concatenate(mids).astype(np.int32)
+    if scene._textures:  # the declared patterns, cut into the geometry (stereorepro.scenes.textures)
+        V, F, M = apply_textures(V, F, M, scene._textures, names)
+    return SceneGeometry(V, F, M)
 
 
 def _load_mesh(scene: Scene, geo: dict, file: str):
@@ -676,6 +684,8 @@ def load_scene(name_or_path: str | os.PathLike) -> Scene:
     ]
     if glossy and not any(max(m.specular) > 0 for m in materials):
         raise SceneError(f"{file}: key 'effects': declares 'glossy' but no material has a specular lobe")
+    textures, second_colours = parse_textures(data, file, effects, materials)
+    materials += second_colours
     lights = [_parse_light(li, f"{file}: lights[{i}]", effects) for i, li in enumerate(data.get("lights", []))]
     if "moving_light" in effects and not any(len(li.keyframes) > 1 for li in lights):
         raise SceneError(f"{file}: key 'effects': declares 'moving_light' but no light has keyframes")
@@ -702,6 +712,10 @@ def load_scene(name_or_path: str | os.PathLike) -> Scene:
     scene._mesh_material_count = mesh_count
     scene._mesh_dropped = mesh_dropped
     scene._animations = parse_animations(data, file, materials, num_frames)
+    scene._textures = textures
+    moving = {n for a in scene._animations for n in a.materials} & {t.material for t in textures}
+    if moving:
+        raise SceneError(f"{file}: textures: materials {sorted(moving)} also move (animations): not supported")
     _check_camera_path(scene, file)
     return scene
 

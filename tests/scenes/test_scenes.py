@@ -154,6 +154,103 @@ class TestLoadScene:
         assert g.material_table()["specular"].max() > 0 and base.material_table()["specular"].max() == 0
 
 
+class TestTextures:
+    """The ``textures`` effect: world-space patterns cut into the declared materials' faces only."""
+
+    BASE = """
+        effects = ["textures"]
+        num_frames = 2
+        [geometry]
+        quads = [{corner = [0.0, 0.0, 0.0], edge_u = [1.0, 0.0, 0.0], edge_v = [0.0, 0.0, 1.0], material = "m"},
+                 {corner = [0.0, 1.0, 0.0], edge_u = [1.0, 0.0, 0.0], edge_v = [0.0, 0.0, 1.0], material = "plain"}]
+        [materials.m]
+        albedo = [0.6, 0.4, 0.2]
+        [materials.plain]
+        albedo = [0.5, 0.5, 0.5]
+        [textures.m]
+        pattern = "checker"
+        scale = 0.25
+        contrast = 0.5
+        """
+
+    def test_checker_cells(self, tmp_path):
+        """A unit quad with a 0.25 checker: 16 cells, each a square of two triangles with the material of its
+        parity (the second colour = albedo × 0.5); the untextured quad keeps its two faces."""
+        s = load_scene(write_scene(tmp_path, self.BASE, name="checker"))
+        names = s.material_table()["names"]
+        assert names == ["m", "plain", "m~texture"]
+        np.testing.assert_allclose(s.material_table()["albedo"][2], [0.3, 0.2, 0.1], rtol=1e-6)
+        g = s.geometry()
+        plain = g.material_ids == 1
+        assert int(plain.sum()) == 2
+        tex = ~plain
+        assert int(tex.sum()) == 32  # 16 cells of two triangles
+        centroid = g.vertices[g.faces[tex]].mean(1)
+        parity = (np.floor(centroid[:, 0] / 0.25) + np.floor(centroid[:, 2] / 0.25)) % 2
+        assert np.array_equal(g.material_ids[tex], np.where(parity == 1, 2, 0))
+        area = 0.5 * np.linalg.norm(
+            np.cross(*(g.vertices[g.faces[tex]][:, 1:] - g.vertices[g.faces[tex]][:, :1]).transpose(1, 0, 2)), axis=1
+        )
+        assert math.isclose(float(area.sum()), 1.0, rel_tol=1e-6)
+
+    def test_exceptions(self, tmp_path):
+        cases = [
+            (self.BASE.replace('effects = ["textures"]', "effects = []"), "declare effects"),
+            (self.BASE.split("[textures.m]")[0], "no \\[textures.NAME\\] table"),
+            (self.BASE.replace("[textures.m]", "[textures.nope]"), "no material named 'nope'"),
+            (self.BASE.replace('"checker"', '"dots"'), "pattern"),
+            (self.BASE.replace("scale = 0.25", "scale = 0.0"), "scale"),
+            (self.BASE.replace("contrast = 0.5", "contrast = 1.5"), "contrast"),
+            (self.BASE.replace('pattern = "checker"', 'pattern = "stripes"\naxis = "w"'), "axis"),
+        ]
+        for i, (text, msg) in enumerate(cases):
+            with pytest.raises(SceneError, match=msg):
+                load_scene(write_scene(tmp_path, text, name=f"bad{i}")).geometry()
+
+    def test_living_room_textured(self):
+        """The built-in textured variant: the living room's geometry and materials, the declared materials cut
+        into patterns (more faces, the same surface), every other face as in the living room."""
+        base, tex = load_scene("living_room"), load_scene("living_room_textured")
+        assert tex.effects == frozenset({"textures"}) and "living_room_textured" in list_scenes(beyond_paper=True)
+        names = tex.material_table()["names"]
+        assert names[: len(base.material_table()["names"])] == base.material_table()["names"]
+        declared = {"floor", "wall", "rug", "fabric"}
+        assert set(names[len(base.material_table()["names"]) :]) == {n + "~texture" for n in declared}
+        gb, gt = base.geometry(), tex.geometry()
+        ids = [names.index(n) for n in names if n.split("~")[0] in declared]
+        untouched_b = ~np.isin(gb.material_ids, ids)
+        untouched_t = ~np.isin(gt.material_ids, ids)
+        assert np.array_equal(gb.vertices[gb.faces[untouched_b]], gt.vertices[gt.faces[untouched_t]])
+        assert np.array_equal(gb.material_ids[untouched_b], gt.material_ids[untouched_t])
+        assert len(gt.faces) > 10 * len(gb.faces)
+
+        def area(g, sel):
+            tri = g.vertices[g.faces[sel]].astype(np.float64)
+            return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum()
+
+        assert math.isclose(area(gt, ~untouched_t), area(gb, ~untouched_b), rel_tol=1e-5)
+
+    def test_albedo_changes_only_where_declared(self):
+        """G-buffer albedo of the textured living room against the plain one (same camera): different on a
+        large part of the textured materials' pixels, identical on every other pixel."""
+        from stereorepro.render import PathTracer
+
+        base, tex = load_scene("living_room"), load_scene("living_room_textured")
+        cam = base.camera(10, 96, 54)
+        a = PathTracer(base).render(cam, 10, 1)
+        b = PathTracer(tex).render(cam, 10, 1)
+        names = tex.material_table()["names"]
+        textured = torch.from_numpy(
+            np.isin(
+                b.material_id.numpy(),
+                [i for i, n in enumerate(names) if n.split("~")[0] in ("floor", "wall", "rug", "fabric")],
+            )
+        ).reshape(b.albedo.shape[0], 1, *b.albedo.shape[2:])
+        differs = (a.albedo != b.albedo).any(1, keepdim=True)
+        assert not bool(differs[~textured].any())
+        assert float(differs[textured].float().mean()) > 0.3
+
+
 _SHARED = shared_scenes_dir()
 
 
