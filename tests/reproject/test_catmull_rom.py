@@ -99,6 +99,33 @@ class TestCatmullRom(BaseTester):
         self.assert_identical(got, ref)
         self.assert_identical(t_got[:3], t_ref[:3])
 
+    def test_motion_vectors_identical(self, backend):
+        """With motion vectors (a moving patch; NaN / inf / huge motion in the hostile case) every backend gives the
+        general path's bytes."""
+        from test_export import moving
+
+        from stereorepro import TemporalReprojection
+        from stereorepro._testing import example_inputs
+
+        m = TemporalReprojection(1.0, 1.0, motion_vectors=True)
+        for hostile in (False, True):
+            inp = moving(example_inputs(m, batch=2, height=29, width=43), seed=1, hostile=hostile)
+            cur, dd, dn, dK, dT, hc, hl, sd, sn, sK, sT, mo, mw = inp
+            src, dst = View(sd, sn, sK, sT), View(dd, dn, dK, dT, motion=mo, motion_world=mw)
+            values, thr = torch.cat([hc, hl], 1), Thresholds(1.0, 1.0)
+            with torch.no_grad():
+                got = backward_reproject(
+                    values, src, dst, thr, sampling="catmull_rom", backend=self.backend_arg(backend)
+                )
+                bil = backward_reproject(values, src, dst, thr, backend="torch")
+                with pytest.MonkeyPatch.context() as mp:
+                    from stereorepro.reproject import functional
+
+                    mp.setattr(functional, "FAST_PATH", False)
+                    ref = backward_reproject(values, src, dst, thr, sampling="catmull_rom", backend="torch")
+            assert float((ref.values != bil.values).any(1).float().mean()) > 0.05
+            self.assert_identical(got, ref)
+
     def test_occluding_edge_is_bilinear(self, backend):
         """At an occluding edge (a nearer plane over the left half of the source), every pixel whose 4×4 footprint
         reaches across the edge keeps the bilinear value exactly; pixels away from it get the cubic."""
