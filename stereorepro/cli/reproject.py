@@ -8,7 +8,7 @@ import sys
 import torch
 
 from ..camera import DEFAULT_RESOLUTION
-from .._checks import check_thresholds
+from .._checks import SAMPLINGS, check_thresholds
 from ..errors import ParameterError, SceneError, SequenceError, UserError
 from ..io.frames import SOURCES
 from ..workflows.export import export_sequence
@@ -109,7 +109,7 @@ def register(subparsers) -> None:
         help="max |N_src - N_dst| of unit normals (default: cameras.json reprojection.normal_threshold)",
     )
     p.add_argument("--alpha", type=positive_float, default=0.2, help="minimum EMA weight of a new frame (paper: 0.2)")
-    p.add_argument("--sampling", choices=("bilinear", "nearest"), default="bilinear")
+    p.add_argument("--sampling", choices=SAMPLINGS, default="bilinear")
     p.add_argument(
         "--from",
         dest="source",

@@ -34,7 +34,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .._checks import FLOAT32_MAX
+from .._checks import FLOAT32_MAX, SAMPLINGS
 from ..accumulate import SpatiotemporalReprojection, temporal_step
 from ..errors import SequenceError
 from ..io.atomic import atomic_write, staged_outputs
@@ -164,8 +164,8 @@ def _check_options(mode: str, eye: str, sampling: str, alpha: float) -> None:
         raise SequenceError(f"mode must be one of {MODES}, got {mode!r}")
     if eye not in ("left", "right", "both"):
         raise SequenceError(f"eye must be left, right or both, got {eye!r}")
-    if sampling not in ("bilinear", "nearest"):
-        raise SequenceError(f"sampling must be bilinear or nearest, got {sampling!r}")
+    if sampling not in SAMPLINGS:
+        raise SequenceError(f"sampling must be one of {', '.join(SAMPLINGS)}, got {sampling!r}")
     if not (0.0 < float(alpha) <= 1.0):
         raise SequenceError(f"alpha must be in (0, 1], got {alpha}")
 
@@ -229,7 +229,7 @@ def reproject_sequence(
         eye: eyes accumulated in ``"temporal"`` mode: ``"right"`` | ``"left"`` | ``"both"``.
         position_threshold, normal_threshold: accept limits; ``None`` takes ``cameras.json``'s ``reprojection``.
         alpha: minimum EMA weight of a new frame (temporal and both).
-        sampling: ``"bilinear"`` | ``"nearest"``.
+        sampling: one of :data:`~stereorepro._checks.SAMPLINGS` (``"bilinear"``, ``"nearest"``, ``"catmull_rom"``).
         device: torch device for the reprojection (EXRs are read on the CPU).
         log: ``print``-like callable for progress, or ``None``.
         warn: callable receiving each warning's message (likely convention mistakes, invalid normals), or None.

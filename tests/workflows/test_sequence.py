@@ -84,6 +84,24 @@ class TestReprojectCli:
         np.testing.assert_array_equal(ch["reason"], reason[0, 0].float().numpy())
         assert 0.5 < valid.float().mean() < 1.0  # a real stereo pair: most pixels kept, some discarded
 
+    def test_catmull_rom_through_the_cli(self, seq_dir, tmp_path):
+        """``--sampling catmull_rom`` reaches the module: the same pixels kept as bilinear, other colours (a loose
+        position test: at 32x18 few 4x4 footprints pass the scene's own)."""
+        outs = {}
+        for sampling in ("bilinear", "catmull_rom"):
+            outs[sampling] = tmp_path / sampling
+            argv = ["reproject", "--input", str(seq_dir), "--out", str(outs[sampling]), "--mode", "stereo"]
+            assert main(argv + ["--position-threshold", "2", "--normal-threshold", "0.3", "--sampling", sampling]) == 0
+        seq = load_sequence(seq_dir)
+        L, R = read_frame(seq, 1, "left"), read_frame(seq, 1, "right")
+        color, _, _ = StereoReprojection(2.0, 0.3, "catmull_rom")(
+            R.color, R.depth, R.normal, R.K, R.cam_from_world, L.depth, L.normal, L.K, L.cam_from_world
+        )
+        cubic, linear = (read_exr(outs[s] / "0001_left_reprojected.exr") for s in ("catmull_rom", "bilinear"))
+        np.testing.assert_array_equal(np.stack([cubic["R"], cubic["G"], cubic["B"]]), color[0].numpy())
+        np.testing.assert_array_equal(cubic["valid"], linear["valid"])
+        assert not np.array_equal(cubic["R"], linear["R"])
+
     def test_both_matches_driver(self, seq_dir, tmp_path):
         out = tmp_path / "o"
         summary = reproject_sequence(seq_dir, out, "both")
