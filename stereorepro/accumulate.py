@@ -73,8 +73,8 @@ from ._tensors import as_scalar, compute_dtype
 from .camera import Eye
 from .errors import ParameterError, ParameterTypeError
 from .reproject import History, Reason, StereoReprojection, TemporalReprojection, Thresholds, View, temporal_reproject
-from .reproject.view import _check_history_rounding
-from .reproject.functional import temporal_blend, temporal_views, warp_values
+from .reproject.view import _check_footprint_weighting, _check_history_rounding
+from .reproject.functional import _footprint_weighted, temporal_blend, temporal_views, warp_values
 
 __all__ = [
     "EyeState",
@@ -218,14 +218,15 @@ def warp_history(
     its outputs with :func:`~stereorepro.reproject.temporal_blend` gives :func:`temporal_step`'s result bit for bit.
 
     Args:
-        module: the temporal settings (thresholds, sampling, soft, temperature, backend).
+        module: the temporal settings (thresholds, sampling, soft, temperature, backend, footprint_weighting).
         state: the eye's previous frame.
         depth: (B, 1, H, W); normal: (B, 3, H, W); K: (B, 3, 3); cam_from_world: (B, 4, 4) — this frame.
         motion, motion_world: optional (B, 2, H, W) / (B, 3, H, W) motion to the previous frame.
 
     Returns:
         color: (B, 3, H, W) warped history colour (0 where discarded).
-        history_len: (B, 1, H, W) its warped sample count (0 where discarded).
+        history_len: (B, 1, H, W) its warped sample count (0 where discarded), scaled by the footprint quality
+            when the module's ``footprint_weighting`` is on.
         valid: (B, 1, H, W) bool, where the history was kept.
         reason: (B, 1, H, W) uint8 :class:`~stereorepro.Reason`.
 
@@ -265,8 +266,9 @@ def warp_history(
     work = compute_dtype(state.color, state.history_len)
     values = torch.cat([state.color.to(work), state.history_len.to(work)], 1)  # the sample count rides along
     view = View.unchecked(depth, normal, K, cam_from_world, motion, motion_world)
-    warped, valid, reason, _ = warp_values(values, state.view, view, m.thresholds, m.sampling, m.soft, m.backend)
-    return warped[:, :3], warped[:, 3:4], valid, reason
+    warped, valid, reason, den = warp_values(values, state.view, view, m.thresholds, m.sampling, m.soft, m.backend)
+    length = _footprint_weighted(warped[:, 3:4], den) if m.footprint_weighting else warped[:, 3:4]
+    return warped[:, :3], length, valid, reason
 
 
 def _ema_weight(n: Tensor, a: Tensor, warmup: bool) -> Tensor:
@@ -524,6 +526,26 @@ class SpatiotemporalReprojection:
     def history_rounding(self, value: str) -> None:
         _check_history_rounding(value, "SpatiotemporalReprojection")
         self.temporal_module.history_rounding = value
+
+    @property
+    def footprint_weighting(self) -> bool:
+        """Whether every temporal step scales the warped history length by the footprint quality (NVIDIA NRD's
+        rule, see :func:`~stereorepro.reproject.temporal_reproject`; the blended scheme's own history too). The
+        temporal module's setting; set it before the first frame.
+
+        Examples:
+            >>> from stereorepro import SpatiotemporalReprojection
+            >>> st = SpatiotemporalReprojection(0.03, 0.2)
+            >>> st.footprint_weighting = True
+            >>> st.footprint_weighting, st.temporal_module.footprint_weighting
+            (True, True)
+        """
+        return self.temporal_module.footprint_weighting
+
+    @footprint_weighting.setter
+    def footprint_weighting(self, value: bool) -> None:
+        _check_footprint_weighting(value, "SpatiotemporalReprojection")
+        self.temporal_module.footprint_weighting = value
 
     def reset(self) -> None:
         """Forget all history (e.g. at a camera cut); the next frame is frame 0 (right eye in full)."""

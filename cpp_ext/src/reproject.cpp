@@ -846,6 +846,7 @@ struct TemporalSink {
     float alpha, max_history;
     bool warmup;
     bool round_history;  // store round_half_even(n) + 1 (BMFR's integer count) instead of n + 1
+    bool footprint;      // n *= 0.5 + 0.5·min(max(den, 0), 1) before the blend (footprint quality)
     int64_t C, H, W;
     bool vector;  // AVX2 blend
     bool needs_scratch() const { return true; }
@@ -862,7 +863,16 @@ struct TemporalSink {
         // alpha, out = (1 - a)·hist + a·cur where valid else cur, n_out = min(n + 1, max_history) where valid else 1
         // (round_history: min(nearbyint(n) + 1, max_history), nearbyint rounding half to even).
         const int64_t Cc = C - 1, row = (b * H + y) * W;
-        const float *n = o.num[Cc].f32();
+        float *n = o.num[Cc].f32();  // a scratch row
+        if (footprint) {
+            // the same operations as reproject.functional._footprint_weighted: q = clamp(den, 0, 1),
+            // n·(0.5 + 0.5·q), rounded after each operation (the scalar code is built for the baseline ISA: no FMA)
+            for (int64_t x = 0; x < W; ++x) {
+                const float dq = o.den[x] < 1.0f ? o.den[x] : 1.0f;
+                const float q = dq > 0.0f ? dq : 0.0f;
+                n[x] = n[x] * (0.5f + 0.5f * q);
+            }
+        }
         const uint8_t *v = o.valid;
         float *lo = len + row;
         const float *hist[kMaxStackChannels];
@@ -1070,7 +1080,7 @@ void temporal_reproject(CA current, CA history_color, CA history_len, CA prev_de
                         CF M, CF t, CF Ks_inv, CA depth, CA normal, float pos_thr2, float nrm_thr2, bool bilinear,
                         float alpha, bool warmup, float max_history, OA out_color, OF out_len, OB out_valid,
                         std::optional<CA> motion, std::optional<CA> motion_world, std::optional<CF> R,
-                        bool round_history, bool cubic) {
+                        bool round_history, bool cubic, bool footprint) {
     if (history_color.ndim() != 4)
         throw std::invalid_argument("temporal_reproject: history_color must be 4-D (B, C, Hs, Ws)");
     Batch bt;
@@ -1100,7 +1110,8 @@ void temporal_reproject(CA current, CA history_color, CA history_len, CA prev_de
     vector = use_avx2();
 #endif
     const TemporalSink sink{plane_of(current, "current"), plane_of(out_color, "out_color"), out_len.data(),
-                            out_valid.data(), alpha, max_history, warmup, round_history, bt.C, bt.H, bt.W, vector};
+                            out_valid.data(), alpha, max_history, warmup, round_history, footprint,
+                            bt.C, bt.H, bt.W, vector};
     dispatch(bt, Tests{pos_thr2, nrm_thr2, cubic}, bilinear || cubic, sink);
 }
 
@@ -1152,11 +1163,12 @@ void bind_reproject(nb::module_ &m) {
           nb::arg("max_history"), nb::arg("out_color").noconvert(), nb::arg("out_len").noconvert(),
           nb::arg("out_valid").noconvert(), nb::arg("motion").noconvert().none() = nb::none(),
           nb::arg("motion_world").noconvert().none() = nb::none(), nb::arg("R").noconvert().none() = nb::none(),
-          nb::arg("round_history") = false, nb::arg("cubic") = false,
+          nb::arg("round_history") = false, nb::arg("cubic") = false, nb::arg("footprint") = false,
           "Fused temporal reprojection: warps [history_color, history_len] like `reproject` and blends with "
           "`current` in the same pass (a = max(1/(n+1), alpha) with warmup, else alpha). Where the history is "
           "kept out_len = min(n + 1, max_history), or with round_history min(round_half_even(n) + 1, "
-          "max_history) (BMFR's integer count). Writes out_color "
+          "max_history) (BMFR's integer count); with footprint n is first multiplied by 0.5 + 0.5 * clamp(den, "
+          "0, 1), den the accepted bilinear weight (footprint quality). Writes out_color "
           "(float32 or float16), out_len (float32) and out_valid in place; image inputs float32 or float16. "
           "motion, motion_world, R, cubic: as in `reproject` (the motion of this frame to the previous one).");
 }

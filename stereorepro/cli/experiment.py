@@ -61,6 +61,11 @@ def add_arguments(p: argparse.ArgumentParser, defaults: dict | None = None) -> N
         default="none",
         help="how the temporal steps store history lengths: floats (none, default) or BMFR's integer counts (bmfr)",
     )
+    p.add_argument(
+        "--footprint-weighting",
+        action="store_true",
+        help="scale the warped history length by the footprint quality (NVIDIA NRD's rule)",
+    )
     p.add_argument("--no-flip", action="store_true", help="skip the FLIP scores (seconds per image at 720p)")
     p.add_argument("--no-ssim", action="store_true", help="skip the SSIM scores (seconds per image at 720p)")
     p.add_argument(
@@ -108,6 +113,7 @@ def config_from_args(args) -> ExperimentConfig:
         scheduler=args.scheduler,
         jitter=args.jitter,
         history_rounding=args.history_rounding,
+        footprint_weighting=args.footprint_weighting,
     )
 
 

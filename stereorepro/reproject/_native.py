@@ -172,6 +172,7 @@ def temporal_reproject(
     src_rotation: Tensor | None = None,
     round_history: bool = False,
     cubic: bool = False,
+    footprint: bool = False,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Temporal reprojection in one fused pass: warp [history_color, history_len] and blend with the current frame.
 
@@ -189,6 +190,8 @@ def temporal_reproject(
             where the history is kept (``history_rounding="bmfr"``; the caller passes BMFR's cap, 1 where
             ``alpha >= 1``).
         cubic: ``sampling="catmull_rom"`` for the history colour and length, as :func:`reproject`.
+        footprint: scale the warped n by ``0.5 + 0.5·min(den, 1)`` before the blend, ``den`` the accepted
+            bilinear weight (``Blend.footprint_weighting``).
 
     Returns:
         color (B, 3, H, W) of current_color's dtype, history_len (B, 1, H, W) float32, valid (B, 1, H, W) bool.
@@ -227,5 +230,6 @@ def temporal_reproject(
         *_motion_args(motion, motion_world, src_rotation),
         **({"round_history": True} if round_history else {}),  # a core built before the option serves "none"
         **({"cubic": True} if cubic else {}),
+        **({"footprint": True} if footprint else {}),
     )
     return color, n_out, valid

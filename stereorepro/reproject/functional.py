@@ -70,7 +70,16 @@ from . import _fast, _general, _lean, _native
 from ._flat import given_keywords, reject_extra_arguments, stereo_views, temporal_views, warn_flat_form
 from ._constants import NATIVE_MAX_CHANNELS
 from ._general import as_scalar, compute_dtype, inference_only, squared_thresholds
-from .view import Blend, History, ReprojectionResult, TemporalResult, Thresholds, View, _check_history_rounding
+from .view import (
+    Blend,
+    History,
+    ReprojectionResult,
+    TemporalResult,
+    Thresholds,
+    View,
+    _check_footprint_weighting,
+    _check_history_rounding,
+)
 
 __all__ = [
     "BACKENDS",
@@ -514,6 +523,7 @@ def _native_temporal(
         prev_view.cam_from_world[:, :3, :3],
         rounding == "bmfr",
         sampling == "catmull_rom",
+        bool(blend.footprint_weighting),
     )
 
 
@@ -722,6 +732,13 @@ def _length_cap(max_history, a_min: Tensor, history_rounding: str) -> Tensor:
     return torch.where(a_min >= 1.0, torch.ones((), dtype=cap.dtype, device=cap.device), cap)
 
 
+def _footprint_weighted(n: Tensor, den: Tensor) -> Tensor:
+    """The warped length ``n`` scaled by the footprint quality: ``n·(0.5 + 0.5·q)``, ``q = clamp(den, 0, 1)`` the
+    accepted bilinear weight before renormalisation (the native kernel computes the same float operations)."""
+    q = den.to(n.dtype).clamp(0.0, 1.0)
+    return n * (0.5 + 0.5 * q)
+
+
 def temporal_reproject(
     current_color: Tensor,
     view: View,
@@ -751,7 +768,15 @@ def temporal_reproject(
         thresholds, sampling, soft, backend: see :func:`backward_reproject`.
         blend: :class:`Blend` ``(alpha, warmup, max_history, history_rounding)``: see :func:`temporal_blend`
             (``history_rounding="bmfr"``: the stored length is BMFR's integer count, on every backend and in the
-            exported graph).
+            exported graph). ``footprint_weighting=True`` (NVIDIA NRD's footprint quality, every backend and the
+            exported graph): the warped length ``n`` is multiplied by ``(1 + q)/2`` before the blend, ``q`` being
+            the bilinear weight of the accepted taps of the history's 2×2 footprint *before* renormalisation
+            (clamped to [0, 1]; with ``sampling="catmull_rom"`` the same bilinear weight, with ``"nearest"`` 1
+            where kept, with ``soft`` the soft weight sum). A pixel whose four taps pass keeps ``n``; one whose
+            only accepted tap carries weight ``w`` gets ``n·(1 + w)/2``, at least half. Everything of
+            :func:`temporal_blend` then uses the scaled ``n``: the warm-up weight ``max(1/(n + 1), alpha)``, the
+            stored ``min(n + 1, max_history)`` (the cap after the scaling) and with ``"bmfr"`` the rounding
+            (of the scaled ``n``). Differentiable in the colour as the default (``q`` is a tap weight).
         return_reason: also return the discard reasons of the history (the native backend then warps and blends
             in two passes, with the same results).
 
@@ -814,6 +839,7 @@ def temporal_reproject(
     )
     check_floating(history.length, "history.length")
     _check_history_rounding(blend.history_rounding, "temporal_reproject: blend")
+    _check_footprint_weighting(blend.footprint_weighting, "temporal_reproject: blend")
     if not tracing():
         check_blend(blend.alpha, blend.max_history)
     return reproject_history(
@@ -867,15 +893,17 @@ def reproject_history(
         return TemporalResult(*_native_temporal(current_color, view, history, prev_view, thr, blend, sampling))
     work = compute_dtype(*history)
     values = torch.cat([history.color.to(work), history.length.to(work)], 1)  # colour and n ride together
+    footprint = bool(blend.footprint_weighting)
     if native:
-        warped, valid, reason, _ = _native_backward(values, prev_view, view, thr, sampling, want_confidence=False)
+        warped, valid, reason, den = _native_backward(values, prev_view, view, thr, sampling, footprint)
         confidence = valid
     else:
         warped, valid, reason, den = _torch_backward(values, prev_view, view, thr, sampling, soft)
         confidence = den if soft else valid
+    n_warped = _footprint_weighted(warped[:, 3:4], den) if footprint else warped[:, 3:4]
     # exporting the reprojection's export formulation: its blend too (the history it warps is finite)
     blend_fn = _lean.lean_blend if not native and _exporting_lean(soft) else _blend_checked
-    color, n = blend_fn(current_color, warped[:, :3], warped[:, 3:4], confidence, *blend)
+    color, n = blend_fn(current_color, warped[:, :3], n_warped, confidence, *blend[:4])
     return TemporalResult(color, n, valid, reason if return_reason else None)
 
 
@@ -982,6 +1010,7 @@ def _flat_temporal(
     motion=None,
     motion_world=None,
     history_rounding="none",
+    footprint_weighting=False,
 ) -> tuple[Tensor, ...]:
     """The flat form of :func:`~stereorepro.reproject.temporal_reproject` (deprecated)."""
     history = History(history_color, history_len)
@@ -994,6 +1023,7 @@ def _flat_temporal(
     )
     check_sampling(sampling)
     _check_history_rounding(history_rounding, "temporal_reproject")
+    _check_footprint_weighting(footprint_weighting, "temporal_reproject")
     if not tracing():
         check_thresholds(position_threshold, normal_threshold)
         check_blend(alpha, max_history)
@@ -1003,7 +1033,7 @@ def _flat_temporal(
         history,
         prev_view,
         Thresholds(position_threshold, normal_threshold, temperature),
-        Blend(alpha, warmup, max_history, history_rounding),
+        Blend(alpha, warmup, max_history, history_rounding, footprint_weighting),
         sampling,
         soft,
         backend,

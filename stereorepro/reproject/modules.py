@@ -12,7 +12,7 @@ from .._checks import check_blend, check_sampling, check_scalar, check_threshold
 from ..errors import ParameterTypeError
 from . import _flat
 from .functional import BACKENDS, stereo_reproject, temporal_reproject
-from .view import Blend, Field, History, Thresholds, _check_history_rounding, view_fields
+from .view import Blend, Field, History, Thresholds, _check_footprint_weighting, _check_history_rounding, view_fields
 
 __all__ = ["StereoReprojection", "TemporalReprojection"]
 
@@ -164,6 +164,11 @@ class TemporalReprojection(_ReprojectionBase):
             then part of ``input_names`` and of the exported ONNX graph. Without it they may still be passed by
             keyword.
 
+    Attributes:
+        footprint_weighting: ``False`` (default) or ``True``: scale the warped history length by the footprint
+            quality before the blend (:class:`~stereorepro.reproject.Blend`, :func:`temporal_reproject`); set
+            after construction (checked when set).
+
     Forward:
         ``forward(current_color, depth, normal, K, cam_from_world, history_color, history_len, prev_depth,
         prev_normal, prev_K, prev_cam_from_world[, motion, motion_world]) -> (color, history_len, valid)`` with
@@ -210,6 +215,7 @@ class TemporalReprojection(_ReprojectionBase):
     ):
         super().__init__(position_threshold, normal_threshold, sampling, soft, temperature, backend)
         self.history_rounding = history_rounding
+        self.footprint_weighting = False
         self.motion_vectors = bool(motion_vectors)
         if self.motion_vectors:
             self.input_fields = type(self).input_fields + view_fields(motion=True)[-2:]
@@ -228,8 +234,19 @@ class TemporalReprojection(_ReprojectionBase):
             super().extra_repr() + f", alpha={float(self.alpha):g}, warmup={self.warmup}, "
             f"max_history={self.max_history:g}"
             + (f", history_rounding={self.history_rounding!r}" if self.history_rounding != "none" else "")
+            + (", footprint_weighting=True" if self.footprint_weighting else "")
             + (", motion_vectors=True" if self.motion_vectors else "")
         )
+
+    @property
+    def footprint_weighting(self) -> bool:
+        """Whether the warped history length is scaled by the footprint quality (see :func:`temporal_reproject`)."""
+        return self._footprint_weighting
+
+    @footprint_weighting.setter
+    def footprint_weighting(self, value: bool) -> None:
+        _check_footprint_weighting(value, "TemporalReprojection")
+        self._footprint_weighting = value
 
     @property
     def history_rounding(self) -> str:
@@ -286,4 +303,4 @@ class TemporalReprojection(_ReprojectionBase):
     @property
     def blend(self) -> Blend:
         """The accumulation settings as the functions take them."""
-        return Blend(self.alpha, self.warmup, self.max_history, self.history_rounding)
+        return Blend(self.alpha, self.warmup, self.max_history, self.history_rounding, self.footprint_weighting)

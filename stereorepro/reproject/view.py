@@ -257,26 +257,38 @@ def _check_history_rounding(history_rounding, where: str) -> None:
         raise ParameterError(f"{where}: history_rounding must be one of {HISTORY_ROUNDINGS}, got {history_rounding!r}")
 
 
+def _check_footprint_weighting(footprint_weighting, where: str) -> None:
+    """ParameterError naming ``where`` unless ``footprint_weighting`` is a bool."""
+    if not isinstance(footprint_weighting, bool):
+        raise ParameterError(f"{where}: footprint_weighting must be True or False, got {footprint_weighting!r}")
+
+
 class Blend(NamedTuple):
     """Temporal accumulation: ``a = max(1/(n+1), alpha)`` with ``warmup`` (BMFR's running mean until the weight
     reaches ``alpha``), else ``a = alpha``; ``out = (1 − a)·history + a·current``; n capped at ``max_history``.
     ``alpha`` may be a learnable one-element tensor. ``history_rounding``: how the new length is stored,
     ``"none"`` (the float ``min(n + 1, max_history)``) or ``"bmfr"`` (BMFR's integer
     ``min(round_half_even(n) + 1, max_history)``; see :func:`~stereorepro.reproject.temporal_blend`). A
-    ``(alpha, warmup, max_history)`` triple still works where a Blend is taken.
+    ``(alpha, warmup, max_history)`` triple still works where a Blend is taken. ``footprint_weighting``: scale
+    the warped history length by the footprint quality before the blend, ``n ← n·(1 + q)/2`` with ``q`` the
+    accepted bilinear weight of the history's taps (NVIDIA NRD's rule; see
+    :func:`~stereorepro.reproject.temporal_reproject`); ``False`` (default) leaves ``n`` as warped.
 
     Examples:
         >>> from stereorepro import Blend
         >>> Blend(), Blend(alpha=0.1, warmup=False).alpha
-        (Blend(alpha=0.2, warmup=True, max_history=255.0, history_rounding='none'), 0.1)
+        (Blend(alpha=0.2, warmup=True, max_history=255.0, history_rounding='none', footprint_weighting=False), 0.1)
         >>> Blend(history_rounding="bmfr").history_rounding
         'bmfr'
+        >>> Blend(footprint_weighting=True).footprint_weighting
+        True
     """
 
     alpha: float | Tensor = 0.2
     warmup: bool = True
     max_history: float = 255.0
     history_rounding: str = "none"
+    footprint_weighting: bool = False
 
 
 class History(NamedTuple):

@@ -275,6 +275,11 @@ def _compare(module, outputs, inputs, atol=1e-5):
             np.testing.assert_array_equal(g, r.numpy(), err_msg=name)
 
 
+def _with_footprint(m: TemporalReprojection) -> TemporalReprojection:
+    m.footprint_weighting = True
+    return m
+
+
 MODULES = {
     "stereo": lambda: StereoReprojection(*THR),
     "stereo_nearest": lambda: StereoReprojection(*THR, sampling="nearest"),
@@ -283,6 +288,7 @@ MODULES = {
     "temporal_fixed_alpha": lambda: TemporalReprojection(*THR, warmup=False),
     "temporal_motion": lambda: TemporalReprojection(*THR, motion_vectors=True),
     "temporal_bmfr": lambda: TemporalReprojection(*THR, history_rounding="bmfr"),
+    "temporal_footprint": lambda: _with_footprint(TemporalReprojection(*THR)),
     # thresholds loose enough for whole 4x4 footprints to pass on the example scene (the cubic then applies)
     "stereo_catmull_rom": lambda: StereoReprojection(0.3, 0.5, sampling="catmull_rom"),
     "temporal_catmull_rom": lambda: TemporalReprojection(0.3, 0.5, sampling="catmull_rom"),
@@ -291,7 +297,7 @@ MODULES = {
 
 def _inputs(name, module, seed=0, **kw):
     inp = example_inputs(module, head_motion=name != "stereo_rectified", seed=seed, **kw)
-    if name == "temporal_bmfr":  # integer counts that differ between taps: interpolated counts to round
+    if name in ("temporal_bmfr", "temporal_footprint"):  # counts that differ between taps
         k = module.input_names.index("history_len")
         g = torch.Generator().manual_seed(seed)
         inp = (*inp[:k], torch.randint(1, 30, inp[k].shape, generator=g).to(inp[k].dtype), *inp[k + 1 :])

@@ -520,6 +520,11 @@ class TestNativeTemporal(BaseTester):
             dict(history_rounding="bmfr", alpha=1.0),
             dict(history_rounding="bmfr", max_history=4.0),
             dict(history_rounding="bmfr", alpha=0.5, warmup=False),
+            dict(footprint_weighting=True),
+            dict(footprint_weighting=True, sampling="nearest"),
+            dict(footprint_weighting=True, sampling="catmull_rom"),
+            dict(footprint_weighting=True, history_rounding="bmfr", max_history=4.0),
+            dict(footprint_weighting=True, alpha=0.5, warmup=False),
         ],
         ids=str,
     )
@@ -824,6 +829,9 @@ class TestNativeFloat16(BaseTester):
             dict(return_reason=True),
             dict(history_rounding="bmfr"),
             dict(history_rounding="bmfr", alpha=1.0),
+            dict(footprint_weighting=True),
+            dict(footprint_weighting=True, return_reason=True),
+            dict(footprint_weighting=True, sampling="catmull_rom", history_rounding="bmfr"),
         ],
         ids=str,
     )

@@ -158,6 +158,9 @@ class ExperimentConfig:
     #: How every scheme's temporal steps store history lengths: ``"none"`` (floats) or ``"bmfr"`` (BMFR's integer
     #: counts, :attr:`stereorepro.SpatiotemporalReprojection.history_rounding`).
     history_rounding: str = "none"
+    #: Every scheme's temporal steps scale the warped history length by the footprint quality (NVIDIA NRD's rule,
+    #: :attr:`stereorepro.SpatiotemporalReprojection.footprint_weighting`).
+    footprint_weighting: bool = False
 
 
 #: Variants of scenes with moving objects: the temporal steps read the history through the motion vectors.
@@ -254,6 +257,10 @@ def validate_config(cfg: ExperimentConfig) -> None:
     need(
         cfg.history_rounding in ("none", "bmfr"),
         f"history_rounding must be 'none' or 'bmfr', got {cfg.history_rounding!r}",
+    )
+    need(
+        isinstance(cfg.footprint_weighting, bool),
+        f"footprint_weighting must be True or False, got {cfg.footprint_weighting!r}",
     )
     need(
         cfg.threshold_scale is None or (math.isfinite(cfg.threshold_scale) and cfg.threshold_scale > 0),

@@ -438,6 +438,7 @@ class _SchemeRun:
         for d in (drv, clean, *(halves or ())):  # the config's storage of history lengths, in every driver
             if d is not None:
                 d.history_rounding = run.cfg.history_rounding
+                d.footprint_weighting = run.cfg.footprint_weighting
         return cls(s, drv, clean, halves=halves)
 
     def reproject(self, fd: _FrameData) -> tuple[torch.Tensor, torch.Tensor, float]:
