@@ -34,6 +34,7 @@ class TestExperiment:
         }
         none, bmfr = runs["none"], runs["bmfr"]
         assert (none["history_rounding"], bmfr["history_rounding"]) == ("none", "bmfr")
+        assert none["footprint_weighting"] is False
         assert bmfr["cache"]["misses"] == 0 and bmfr["table1"] == none["table1"]
         assert bmfr["table2"]["stereo"] == none["table2"]["stereo"]
         rmse = [(a["rmse"]["temporal"], b["rmse"]["temporal"]) for a, b in zip(none["per_frame"], bmfr["per_frame"])]

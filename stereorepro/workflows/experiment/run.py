@@ -104,6 +104,7 @@ class ExperimentResults:
     metric: str  #: ``"ldr"`` or ``"hdr"``
     jitter: bool
     history_rounding: str  #: how the drivers store history lengths: ``"none"`` (floats) or ``"bmfr"`` (integers)
+    footprint_weighting: bool  #: the drivers scale warped history lengths by the footprint quality
     thresholds: dict  #: ``position``, ``normal``, ``position_scene``, ``scale``
     table1: dict  #: scheme -> discarded pixels (%): the paper's Table 1 (stereo, temporal)
     flip: dict | None  #: scheme -> mean LDR FLIP statistics; None when not measured
@@ -673,6 +674,7 @@ def _assemble(
         metric=cfg.metric,
         jitter=bool(cfg.jitter),
         history_rounding=cfg.history_rounding,
+        footprint_weighting=bool(cfg.footprint_weighting),
         thresholds={
             "position": run.pos_thr,
             "normal": run.nrm_thr,
