@@ -359,9 +359,12 @@ def reference_chunk_task(ctx: RenderContext, frame: int, eye: int, i: int):
     return ctx.cache.get_or_make(_chunk_key(ctx, frame, eye, i), make)
 
 
-def reference(ctx: RenderContext, frame: int, eye: int, spp: int | None = None) -> tuple[torch.Tensor, float]:
+def reference(
+    ctx: RenderContext, frame: int, eye: int, spp: int | None = None, first_chunk: int = 0
+) -> tuple[torch.Tensor, float]:
     """The (1, 3, H, W) reference of (frame, eye) at ``spp`` (a multiple of the chunk size; default the run's) and
-    its render time in ms: the mean of its chunk means, summed in chunk order in float64.
+    its render time in ms: the mean of its chunk means, summed in chunk order in float64. ``first_chunk`` starts
+    it at a later chunk (an independent part of the run's reference: samples disjoint from the chunks before it).
 
     Examples:
         >>> import tempfile
@@ -376,11 +379,14 @@ def reference(ctx: RenderContext, frame: int, eye: int, spp: int | None = None) 
         >>> ref, ms = reference(ctx, 0, 0)  # the mean of the two 2-spp chunks
         >>> tuple(ref.shape), ref.dtype, tuple(reference(ctx, 0, 0, spp=2)[0].shape)
         ((1, 3, 6, 8), torch.float32, (1, 3, 6, 8))
+        >>> halves = reference(ctx, 0, 0, spp=2)[0], reference(ctx, 0, 0, spp=2, first_chunk=1)[0]
+        >>> bool(torch.allclose((halves[0] + halves[1]) / 2, ref))
+        True
         >>> tmp.cleanup()
     """
     n = (spp or ctx.spec.reference_spp) // ctx.spec.reference_chunk_spp
     total, ms = None, 0.0
-    for i in range(n):
+    for i in range(first_chunk, first_chunk + n):
         d, meta = reference_chunk_task(ctx, frame, eye, i)
         x = torch.from_numpy(d["radiance"])
         if n == 1:  # the renderer's own reference, as it is

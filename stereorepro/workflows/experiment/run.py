@@ -45,7 +45,6 @@ from .inputs import (
     cache_footprint,
     estimate_cache_bytes,
     reference,
-    reference_chunk_task,
     render_eye,
     spec_for,
 )
@@ -347,14 +346,9 @@ def _reference_halves(ctx: RenderContext, f: int) -> tuple[dict | None, tuple]:
     if n < 2:
         return None, ()
     k = n // 2
-    halves = {}
-    for e in (LEFT, RIGHT):
-        sums = [None, None]
-        for i in range(n):
-            x = torch.from_numpy(reference_chunk_task(ctx, f, e, i)[0]["radiance"]).double()
-            j = int(i >= k)
-            sums[j] = x if sums[j] is None else sums[j] + x
-        halves[e] = ((sums[0] / k).float(), (sums[1] / (n - k)).float())
+    halves = {
+        e: (reference(ctx, f, e, k * c)[0], reference(ctx, f, e, (n - k) * c, first_chunk=k)[0]) for e in (LEFT, RIGHT)
+    }
     return halves, (k * c, (n - k) * c)
 
 
