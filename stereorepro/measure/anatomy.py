@@ -298,7 +298,7 @@ def footprint_failures(src: View, dst: View, thresholds, size: int = 4) -> Tenso
     u_c = torch.arange(W, device=u.device, dtype=torch.float64).view(1, 1, 1, W) + 0.5
     v_c = torch.arange(H, device=u.device, dtype=torch.float64).view(1, 1, H, 1) + 0.5
     values = torch.zeros_like(dst.depth)
-    fails = {int(r) for r in FOOTPRINT_FAILS}
+    fails = torch.tensor([int(r) for r in FOOTPRINT_FAILS], device=dst.depth.device)
     count = torch.zeros(dst.depth.shape, dtype=torch.int64, device=dst.depth.device)
     offsets = range(-(size // 2) + 1, size // 2 + 1)  # 2: 0, 1; 4: -1 .. 2 around floor(u - 0.5)
     for ky in offsets:
@@ -307,10 +307,7 @@ def footprint_failures(src: View, dst: View, thresholds, size: int = 4) -> Tenso
             motion = torch.cat([u - u_c + (kx - 0.5), v - v_c + (ky - 0.5)], 1).to(dst.depth.dtype)
             at = View(dst.depth, dst.normal, dst.K, dst.cam_from_world, motion, dst.motion_world)
             reason = backward_reproject(values, src, at, thresholds, sampling="nearest").reason
-            failed = torch.zeros_like(count, dtype=torch.bool)
-            for r in fails:
-                failed |= reason == r
-            count += failed.to(torch.int64)
+            count += torch.isin(reason, fails.to(reason.dtype)).to(torch.int64)
     return count
 
 
