@@ -66,6 +66,12 @@ def add_arguments(p: argparse.ArgumentParser, defaults: dict | None = None) -> N
         action="store_true",
         help="scale the warped history length by the footprint quality (NVIDIA NRD's rule)",
     )
+    p.add_argument(
+        "--option-variants",
+        action="store_true",
+        help="also run the paper's temporal and stereo+temporal schemes with each history option alone "
+        "(footprint weighting, BMFR rounding, Catmull-Rom, ...), their bias measured too",
+    )
     p.add_argument("--no-flip", action="store_true", help="skip the FLIP scores (seconds per image at 720p)")
     p.add_argument("--no-ssim", action="store_true", help="skip the SSIM scores (seconds per image at 720p)")
     p.add_argument(
@@ -114,6 +120,7 @@ def config_from_args(args) -> ExperimentConfig:
         jitter=args.jitter,
         history_rounding=args.history_rounding,
         footprint_weighting=args.footprint_weighting,
+        option_variants=args.option_variants,
     )
 
 

@@ -40,6 +40,34 @@ class TestExperiment:
         rmse = [(a["rmse"]["temporal"], b["rmse"]["temporal"]) for a, b in zip(none["per_frame"], bmfr["per_frame"])]
         assert all(a == b for a, b in rmse[:3]) and rmse[3][0] != rmse[3][1], rmse
 
+    def test_option_variants(self, tmp_path):
+        """``option_variants=True`` adds the paper's temporal schemes with each history option alone: the options reach
+        their drivers (their colours differ from the plain scheme's), every variant's bias is measured without
+        reference noise, and the other schemes are those of a run without them, number for number."""
+        from stereorepro.workflows.experiment.config import OPTION_VARIANTS
+
+        # loose position tests: whole 4x4 footprints pass at this size, so Catmull-Rom acts
+        common = dict(SMALL, frames=4, flip=False, ssim=False, reference_chunk_spp=8, alphas=(), threshold_scale=10.0)
+        cache = str(tmp_path / "cache")
+        plain = run_experiment(
+            ExperimentConfig(out=str(tmp_path / "a"), cache_dir=cache, **common), log=lambda *a: None
+        )
+        res = run_experiment(
+            ExperimentConfig(out=str(tmp_path / "b"), cache_dir=cache, option_variants=True, **common),
+            log=lambda *a: None,
+        )
+        assert res["option_variants"] and not plain["option_variants"] and res["cache"]["misses"] == 0
+        names = [f"{s}_{o}" for o in OPTION_VARIANTS for s in ("temporal", "stereo_temporal")]
+        assert set(names) <= set(res["table2_variants"]) and not set(names) & set(plain["table2_variants"])
+        assert res["table2"] == plain["table2"] and res["table1"] == plain["table1"]
+        for name in names:
+            assert res["bias"][name]["bias_mse"]["n"] == 4, name
+            assert res["bias"][name]["rmse_noise_free"]["n"] == 0, name
+            base = "temporal" if name.startswith("temporal_") else "stereo_temporal"
+            rm = [(r["rmse"][base], r["rmse"][name]) for r in res["per_frame"]]
+            assert any(a != b for a, b in rm), (name, rm)
+        (tmp_path / "b" / "report.md").read_text().index("stereo_temporal_footprint")
+
     def test_smoke(self, first_run):
         out, res = first_run
         for f in (

@@ -19,6 +19,7 @@ __all__ = [
     "Scheme",
     "SCHEMES",
     "MOTION_SCHEMES",
+    "OPTION_VARIANTS",
     "ExperimentConfig",
     "schemes",
     "validate_config",
@@ -90,6 +91,11 @@ class Scheme:
     discards: str | None = None
     #: The scheme of Figure 4 (its evaluated eye at the last frame beside 1 spp, the reference and the top rung).
     figure4: bool = False
+    #: Driver settings of this scheme over the run's (``(attribute, value)`` pairs set on its
+    #: :class:`~stereorepro.SpatiotemporalReprojection` drivers): the option variants of :data:`OPTION_VARIANTS`.
+    options: tuple[tuple[str, object], ...] = ()
+    #: Also measure the resampling bias without reference noise (the paper's schemes always do).
+    bias: bool = False
 
 
 SCHEMES = (
@@ -161,6 +167,19 @@ class ExperimentConfig:
     #: Every scheme's temporal steps scale the warped history length by the footprint quality (NVIDIA NRD's rule,
     #: :attr:`stereorepro.SpatiotemporalReprojection.footprint_weighting`).
     footprint_weighting: bool = False
+    #: Add Table 2's option variants (:data:`OPTION_VARIANTS`): the paper's temporal and stereo+temporal schemes
+    #: with each option of the history alone, their bias measured like the paper's schemes'.
+    option_variants: bool = False
+
+
+#: Table 2's option variants (``stereorepro experiment --option-variants``): the paper's temporal and
+#: stereo+temporal schemes, each with one option of the history on, named ``<scheme>_<suffix>``: suffix ->
+#: (sampling, driver settings). Each measures its resampling bias too.
+OPTION_VARIANTS: dict[str, tuple[str, tuple[tuple[str, object], ...]]] = {
+    "footprint": ("bilinear", (("footprint_weighting", True),)),
+    "bmfr": ("bilinear", (("history_rounding", "bmfr"),)),
+    "catmull_rom": ("catmull_rom", ()),
+}
 
 
 #: Variants of scenes with moving objects: the temporal steps read the history through the motion vectors.
@@ -182,6 +201,8 @@ def schemes(cfg: ExperimentConfig, moving_objects: bool = False) -> list[Scheme]
         (12, ['stereo', 'temporal', 'stereo_temporal'], True)
         >>> "temporal_mv" in [s.name for s in schemes(cfg, moving_objects=True)]
         True
+        >>> [s.name for s in schemes(ExperimentConfig(scene="cornell", out="runs/a", option_variants=True))][-2:]
+        ['temporal_catmull_rom', 'stereo_temporal_catmull_rom']
     """
     out = list(SCHEMES) + (list(MOTION_SCHEMES) if moving_objects else [])
     for a in cfg.alphas:
@@ -189,6 +210,10 @@ def schemes(cfg: ExperimentConfig, moving_objects: bool = False) -> list[Scheme]
             out.append(Scheme(f"temporal_alpha{a:g}", False, True, RIGHT, alpha=a))
             out.append(Scheme(f"stereo_temporal_alpha{a:g}", True, True, LEFT, alpha=a))
             out.append(Scheme(f"stereo_temporal_blend_alpha{a:g}", True, True, LEFT, alpha=a, left_mode="blend"))
+    if cfg.option_variants:
+        for suffix, (sampling, options) in OPTION_VARIANTS.items():
+            out.append(Scheme(f"temporal_{suffix}", False, True, RIGHT, sampling, options=options, bias=True))
+            out.append(Scheme(f"stereo_temporal_{suffix}", True, True, LEFT, sampling, options=options, bias=True))
     return out
 
 
@@ -261,6 +286,10 @@ def validate_config(cfg: ExperimentConfig) -> None:
     need(
         isinstance(cfg.footprint_weighting, bool),
         f"footprint_weighting must be True or False, got {cfg.footprint_weighting!r}",
+    )
+    need(
+        isinstance(cfg.option_variants, bool),
+        f"option_variants must be True or False, got {cfg.option_variants!r}",
     )
     need(
         cfg.threshold_scale is None or (math.isfinite(cfg.threshold_scale) and cfg.threshold_scale > 0),

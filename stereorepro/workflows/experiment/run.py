@@ -104,6 +104,7 @@ class ExperimentResults:
     jitter: bool
     history_rounding: str  #: how the drivers store history lengths: ``"none"`` (floats) or ``"bmfr"`` (integers)
     footprint_weighting: bool  #: the drivers scale warped history lengths by the footprint quality
+    option_variants: bool  #: Table 2 holds the option variants (``<scheme>_<option>``, see ``OPTION_VARIANTS``)
     thresholds: dict  #: ``position``, ``normal``, ``position_scene``, ``scale``
     table1: dict  #: scheme -> discarded pixels (%): the paper's Table 1 (stereo, temporal)
     flip: dict | None  #: scheme -> mean LDR FLIP statistics; None when not measured
@@ -429,11 +430,13 @@ class _SchemeRun:
             )
 
         clean = fed() if s.paper else None
-        halves = (fed(), fed()) if s.paper and run.spec.chunks >= 2 else None
-        for d in (drv, clean, *(halves or ())):  # the config's storage of history lengths, in every driver
+        halves = (fed(), fed()) if (s.paper or s.bias) and run.spec.chunks >= 2 else None
+        for d in (drv, clean, *(halves or ())):  # the config's history options, then the scheme's own
             if d is not None:
                 d.history_rounding = run.cfg.history_rounding
                 d.footprint_weighting = run.cfg.footprint_weighting
+                for name, value in s.options:
+                    setattr(d, name, value)
         return cls(s, drv, clean, halves=halves)
 
     def reproject(self, fd: _FrameData) -> tuple[torch.Tensor, torch.Tensor, float]:
@@ -476,6 +479,7 @@ class _SchemeRun:
         self.prev_image = img
         if self.clean is not None:
             row["rmse_noise_free"][s.name] = self.noise_free_rmse(fd, cfg.metric)
+        if self.clean is not None or self.halves is not None:
             self.bias(run, fd, img)
         row["effective_spp"][s.name] = float(spp[0])
         if s.paper and fd.prefixes:
@@ -669,6 +673,7 @@ def _assemble(
         jitter=bool(cfg.jitter),
         history_rounding=cfg.history_rounding,
         footprint_weighting=bool(cfg.footprint_weighting),
+        option_variants=bool(cfg.option_variants),
         thresholds={
             "position": run.pos_thr,
             "normal": run.nrm_thr,
@@ -727,7 +732,7 @@ ANATOMY_FIELDS = ("pixels_pct", "mse_share_pct", "bias_share_pct")
 
 
 def _bias_table(schemes: list[_SchemeRun], per_frame: list[dict]) -> dict:
-    """Per paper scheme, statistics over frames of:
+    """Per paper scheme (and option variant: :attr:`~.config.Scheme.bias`), statistics over frames of:
 
     * ``bias_mse``: the squared resampling bias without the reference's noise, the mean product of the scheme's
       errors on the reference's two independent halves (:func:`~stereorepro.measure.anatomy.split_bias`), and
@@ -739,7 +744,8 @@ def _bias_table(schemes: list[_SchemeRun], per_frame: list[dict]) -> dict:
       the scheme's squared error and of the bias (%), by the scheme's reprojection into the evaluated eye and its
       4×4 footprint (:func:`~stereorepro.measure.anatomy.footprint_regions`);
     * ``rmse_noise_free`` and ``bias_share_of_mse``: the scheme fed the whole reference and scored against it,
-      which counts a copy of the reference's noise as bias (the former estimate, kept for its readers).
+      which counts a copy of the reference's noise as bias (the former estimate, kept for its readers; the paper's
+      schemes only, ``n`` 0 for the others).
 
     ``ladder_top_rmse``: the left eye's top-rung RMSE, for scale."""
 
@@ -749,12 +755,14 @@ def _bias_table(schemes: list[_SchemeRun], per_frame: list[dict]) -> dict:
         return b / den if b is not None and den > 0 else None
 
     bias = {}
-    for k in (s.scheme.name for s in schemes if s.clean is not None):
+    for k in (s.scheme.name for s in schemes if s.clean is not None or s.halves is not None):
         rows = [r for r in per_frame if k in r["anatomy"]]
         bias[k] = {
-            "rmse_noise_free": _stats([r["rmse_noise_free"][k] for r in per_frame]),
+            "rmse_noise_free": _stats([r["rmse_noise_free"].get(k) for r in per_frame]),
             "bias_share_of_mse": _stats(
                 [(r["rmse_noise_free"][k] / r["rmse"][k]) ** 2 for r in per_frame if r["rmse"][k] > 0]
+                if k in per_frame[0]["rmse_noise_free"]
+                else []
             ),
             "bias_mse": _stats([r["bias_mse"].get(k) for r in per_frame]),
             "bias_mse_se": _stats([r["bias_mse_se"].get(k) for r in per_frame]),
