@@ -70,6 +70,9 @@ from .measure.metrics import (
 from .measure.temporal import temporal_error
 from .reproject import (
     Blend,
+    FastClamp,
+    FastHistoryClamp,
+    fast_history_clamp,
     History,
     ReprojectionResult,
     TemporalResult,
@@ -117,6 +120,7 @@ __all__ = [
     "View",
     "Thresholds",
     "Blend",
+    "FastClamp",
     "History",
     "ReprojectionResult",
     "TemporalResult",
@@ -129,6 +133,8 @@ __all__ = [
     "stereo_reproject",
     "temporal_blend",
     "temporal_reproject",
+    "fast_history_clamp",
+    "FastHistoryClamp",
     "export_onnx",
     # accumulation over a sequence
     "SpatiotemporalReprojection",

@@ -74,7 +74,11 @@ from .camera import Eye
 from .errors import ParameterError, ParameterTypeError
 from .reproject import History, Reason, StereoReprojection, TemporalReprojection, Thresholds, View, temporal_reproject
 from .reproject.view import _check_footprint_weighting, _check_history_rounding
+from .reproject.view import _check_position_test
 from .reproject.functional import _footprint_weighted, temporal_blend, temporal_views, warp_values
+from .reproject.clamp import _clamp_checked
+from .reproject.functional import _blend_checked
+from .reproject.view import FastClamp, _check_fast_clamp
 
 __all__ = [
     "EyeState",
@@ -104,6 +108,8 @@ class EyeState:
         color: (B, 3, H, W) accumulated colour.
         history_len: (B, 1, H, W) float sample count.
         depth: (B, 1, H, W); normal: (B, 3, H, W); K: (B, 3, 3); cam_from_world: (B, 4, 4).
+        fast_color: optional (B, 3, H, W) fast history (:class:`~stereorepro.reproject.FastClamp`; its length is
+            ``history_len``); None without one (a step with the clamp on then starts it from ``color``).
 
     Examples:
         >>> import torch
@@ -121,6 +127,7 @@ class EyeState:
     normal: Tensor
     K: Tensor
     cam_from_world: Tensor
+    fast_color: Tensor | None = None
 
     @property
     def view(self) -> View:
@@ -174,11 +181,20 @@ def temporal_step(
         >>> bool(valid.all()), float(state.history_len.max()), round(float(state.color.mean()), 4)
         (True, 2.0, 0.5)
     """
+    return _temporal_step(module, state, color, depth, normal, K, cam_from_world, motion, motion_world, True)
+
+
+def _temporal_step(
+    module, state, color, depth, normal, K, cam_from_world, motion, motion_world, clamp: bool
+) -> tuple[EyeState, Tensor, Tensor]:
+    """:func:`temporal_step`; with the module's ``fast_clamp`` and ``clamp`` False the slow colour is returned
+    unclamped (the driver's fill clamps it to the fast history it assembles with the stereo reprojection)."""
     if state is None:
         n = torch.ones_like(depth, dtype=torch.float32)
         valid = torch.zeros_like(depth, dtype=torch.bool)
         reason = torch.full_like(depth, int(Reason.NO_HISTORY), dtype=torch.uint8)
-        return EyeState(color, n, depth, normal, K, cam_from_world), valid, reason
+        fast = color if module.fast_clamp is not None else None
+        return EyeState(color, n, depth, normal, K, cam_from_world, fast), valid, reason
     m = module
     view, prev_view = temporal_views(
         color,
@@ -187,6 +203,9 @@ def temporal_step(
         (state.depth, state.normal, state.K, state.cam_from_world),
         (motion, motion_world),
     )
+    if m.fast_clamp is not None:
+        out, n, fast, valid, reason = _fast_clamped_step(m, state, color, view, prev_view, clamp)
+        return EyeState(out, n, depth, normal, K, cam_from_world, fast), valid, reason
     out, n, valid, reason = temporal_reproject(
         color,
         view,
@@ -202,6 +221,38 @@ def temporal_step(
     return EyeState(out, n, depth, normal, K, cam_from_world), valid, reason
 
 
+def _warp_state(m: TemporalReprojection, state: EyeState, view: View, fast: bool):
+    """One warp of ``state``'s colour and length (and with ``fast`` its fast colour, or its colour where it has
+    none) into ``view``: (color, length (footprint-weighted when the module says so), fast color or None, valid,
+    reason, den)."""
+    C = state.color.shape[1]
+    parts = [state.color, state.history_len]
+    if fast and state.fast_color is not None and not tracing():
+        check_shape(state.fast_color, ["B", "C", "H", "W"], "EyeState.fast_color", dict(zip("BCHW", state.color.shape)))
+        check_floating(state.fast_color, "EyeState.fast_color")
+    if fast:
+        parts.append(state.color if state.fast_color is None else state.fast_color)
+    work = compute_dtype(*parts)
+    values = torch.cat([t.to(work) for t in parts], 1)  # the sample count (and the fast colour) ride along
+    warped, valid, reason, den = warp_values(values, state.view, view, m.thresholds, m.sampling, m.soft, m.backend)
+    length = _footprint_weighted(warped[:, C : C + 1], den) if m.footprint_weighting else warped[:, C : C + 1]
+    return warped[:, :C], length, warped[:, C + 1 :] if fast else None, valid, reason, den
+
+
+def _fast_clamped_step(m: TemporalReprojection, state: EyeState, color: Tensor, view: View, prev_view: View, clamp):
+    """The temporal step with a fast history (``m.fast_clamp``): both histories in one warp, each blended with its
+    own alpha on the shared length (restarted together), the slow one clamped where kept when ``clamp``.
+    (color, length, fast color, valid, reason)."""
+    slow_w, n_w, fast_w, valid, reason, den = _warp_state(m, state, view, True)
+    confidence = den if m.soft else valid
+    blend, fc = m.blend, m.fast_clamp
+    slow, n = _blend_checked(color, slow_w, n_w, confidence, *blend[:4])
+    fast, _ = _blend_checked(color, fast_w, n_w, confidence, fc.alpha, blend.warmup, blend.max_history)
+    if clamp:
+        slow = torch.where(valid, _clamp_checked(slow, fast, fc.sigma, fc.radius), slow)
+    return slow, n, fast, valid, reason
+
+
 def warp_history(
     module: TemporalReprojection,
     state: EyeState,
@@ -211,7 +262,9 @@ def warp_history(
     cam_from_world: Tensor,
     motion: Tensor | None = None,
     motion_world: Tensor | None = None,
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    *,
+    return_fast: bool = False,
+) -> tuple[Tensor, ...]:
     """The warp of :func:`temporal_step` without its blend: an eye's history moved into this frame.
 
     The same warp (taps, tests, backend rule) as :func:`~stereorepro.reproject.temporal_reproject`, so blending
@@ -222,6 +275,8 @@ def warp_history(
         state: the eye's previous frame.
         depth: (B, 1, H, W); normal: (B, 3, H, W); K: (B, 3, 3); cam_from_world: (B, 4, 4) — this frame.
         motion, motion_world: optional (B, 2, H, W) / (B, 3, H, W) motion to the previous frame.
+        return_fast: also warp the fast history (``state.fast_color``, or ``state.color`` where the state has
+            none) in the same warp, and return it fifth.
 
     Returns:
         color: (B, 3, H, W) warped history colour (0 where discarded).
@@ -229,6 +284,7 @@ def warp_history(
             when the module's ``footprint_weighting`` is on.
         valid: (B, 1, H, W) bool, where the history was kept.
         reason: (B, 1, H, W) uint8 :class:`~stereorepro.Reason`.
+        fast_color: (B, 3, H, W) the warped fast history, only with ``return_fast``.
 
     Examples:
         >>> import torch
@@ -262,13 +318,9 @@ def warp_history(
         )
         check_floating(state.history_len, "history_len")
         check_motion(motion, motion_world, depth, "motion", "motion_world")
-    m = module
-    work = compute_dtype(state.color, state.history_len)
-    values = torch.cat([state.color.to(work), state.history_len.to(work)], 1)  # the sample count rides along
     view = View.unchecked(depth, normal, K, cam_from_world, motion, motion_world)
-    warped, valid, reason, den = warp_values(values, state.view, view, m.thresholds, m.sampling, m.soft, m.backend)
-    length = _footprint_weighted(warped[:, 3:4], den) if m.footprint_weighting else warped[:, 3:4]
-    return warped[:, :3], length, valid, reason
+    color, length, fast, valid, reason, _ = _warp_state(module, state, view, return_fast)
+    return (color, length, valid, reason, fast) if return_fast else (color, length, valid, reason)
 
 
 def _ema_weight(n: Tensor, a: Tensor, warmup: bool) -> Tensor:
@@ -547,6 +599,59 @@ class SpatiotemporalReprojection:
         _check_footprint_weighting(value, "SpatiotemporalReprojection")
         self.temporal_module.footprint_weighting = value
 
+    @property
+    def position_test(self) -> str:
+        """What the position threshold bounds in every warp (the stereo step and the temporal steps):
+        ``"distance"`` (default; scene units) or ``"plane"`` (the distance to the destination's tangent plane
+        relative to view depth, slope-scaled; see :class:`~stereorepro.reproject.Thresholds`), the threshold then
+        a fraction of view depth. The stereo and temporal modules' setting; set it before the first frame.
+
+        Examples:
+            >>> from stereorepro import SpatiotemporalReprojection
+            >>> st = SpatiotemporalReprojection(0.01, 0.2)
+            >>> st.position_test = "plane"
+            >>> st.position_test, st.stereo_module.position_test, st.temporal_module.position_test
+            ('plane', 'plane', 'plane')
+        """
+        return self.temporal_module.position_test
+
+    @position_test.setter
+    def position_test(self, value: str) -> None:
+        _check_position_test(value, "SpatiotemporalReprojection")
+        self.stereo_module.position_test = value
+        self.temporal_module.position_test = value
+
+    @property
+    def fast_clamp(self) -> FastClamp | None:
+        """``None`` (default) or a :class:`~stereorepro.reproject.FastClamp`: every eye keeps a fast history
+        beside its slow one, and the slow one is clamped to the fast one's colour box (NRD RELAX) where it was
+        kept. Where: the fully traced eye's temporal step (whole frame); the reprojected eye in ``"fill"`` at its
+        traced pixels that kept their own history, against the box of its whole fast frame (the stereo
+        reprojection of the fully traced eye's fast history where the stereo step keeps, its own fast step
+        elsewhere); the reprojected pixels show the fully traced eye's history, clamped in that eye. In
+        ``"blend"`` the fast histories are blended like the slow ones (:func:`blend_histories` with the fast
+        ``alpha``) and the blended slow history is clamped to the blended fast one's box wherever a history (the
+        stereo one or its own) was kept. Without ``temporal`` nothing is accumulated and nothing clamped. The
+        temporal module's setting; set it before the first frame.
+
+        Examples:
+            >>> from stereorepro import FastClamp, SpatiotemporalReprojection
+            >>> st = SpatiotemporalReprojection(0.03, 0.2)
+            >>> st.fast_clamp = FastClamp(alpha=0.5)
+            >>> st.fast_clamp == st.temporal_module.fast_clamp
+            True
+        """
+        return self.temporal_module.fast_clamp
+
+    @fast_clamp.setter
+    def fast_clamp(self, value: FastClamp | None) -> None:
+        _check_fast_clamp(value, "SpatiotemporalReprojection")
+        self.temporal_module.fast_clamp = value
+
+    def _fast_on(self) -> bool:
+        """Whether the eyes keep fast histories (a fast clamp set and temporal accumulation on)."""
+        return self.temporal and self.temporal_module.fast_clamp is not None
+
     def reset(self) -> None:
         """Forget all history (e.g. at a camera cut); the next frame is frame 0 (right eye in full)."""
         self.right_state: EyeState | None = None
@@ -556,6 +661,7 @@ class SpatiotemporalReprojection:
         self._frame_eye: Eye | None = None  # the eye full() accumulated last
         self._left_gbuffer: tuple | None = None
         self._stereo_out: tuple[Tensor, Tensor] | None = None
+        self._stereo_fast: Tensor | None = None
         #: (B, 1, H, W) bool: where the fully traced eye kept its history this frame (None on its first frame).
         self.full_valid: Tensor | None = None
         #: (B, 1, H, W) uint8 :class:`~stereorepro.Reason` of the fully traced eye's temporal discards.
@@ -579,15 +685,26 @@ class SpatiotemporalReprojection:
         return Eye.LEFT if self.alternate and self.frame_index % 2 == 1 else Eye.RIGHT
 
     def _accumulate(
-        self, state: EyeState | None, color, depth, normal, K, cam_from_world, motion=None, motion_world=None
+        self,
+        state: EyeState | None,
+        color,
+        depth,
+        normal,
+        K,
+        cam_from_world,
+        motion=None,
+        motion_world=None,
+        clamp: bool = True,
     ):
-        """Temporal step of one eye: (color, history_len, valid, reason); valid/reason None without history."""
+        """Temporal step of one eye: (color, history_len, valid, reason, fast color); valid/reason None without
+        history, the fast colour None without a fast clamp (the slow colour unclamped unless ``clamp``)."""
         if not self.temporal or state is None:
-            return color, torch.ones_like(depth, dtype=torch.float32), None, None
-        new, valid, reason = temporal_step(
-            self.temporal_module, state, color, depth, normal, K, cam_from_world, motion, motion_world
+            fast = color if self._fast_on() else None
+            return color, torch.ones_like(depth, dtype=torch.float32), None, None, fast
+        new, valid, reason = _temporal_step(
+            self.temporal_module, state, color, depth, normal, K, cam_from_world, motion, motion_world, clamp
         )
-        return new.color, new.history_len, valid, reason
+        return new.color, new.history_len, valid, reason, new.fast_color
 
     def _expect(self, call: str, full_eye: str) -> None:
         if self.fully_traced_eye() != full_eye:
@@ -625,15 +742,16 @@ class SpatiotemporalReprojection:
         eye = self.fully_traced_eye()
         check_camera(K, cam_from_world, eye, {"B": bind.get("B")} if "B" in bind else None)
         check_motion(motion, motion_world, depth)  # on every frame: the first one does not read it
-        out, n, valid, reason = self._accumulate(
+        out, n, valid, reason, fast = self._accumulate(
             getattr(self, f"{eye}_state"), color, depth, normal, K, cam_from_world, motion, motion_world
         )
         self.full_valid, self.full_reason = valid, reason
         self.right_valid, self.right_reason = (valid, reason) if eye == "right" else (None, None)
-        setattr(self, f"{eye}_state", EyeState(out, n, depth, normal, K, cam_from_world))
+        setattr(self, f"{eye}_state", EyeState(out, n, depth, normal, K, cam_from_world, fast))
         self._frame_eye = eye
         # a new frame: the other eye must run other_trace_mask() again before other()
         self._stereo_out = None
+        self._stereo_fast = None
         self._left_gbuffer = None
         self.stereo_valid = self.stereo_reason = None
         return out
@@ -701,6 +819,9 @@ class SpatiotemporalReprojection:
         r, m = getattr(self, f"{src_eye}_state"), self.stereo_module
         work = compute_dtype(r.color, r.history_len)
         values = torch.cat([r.color.to(work), r.history_len.to(work)], 1)  # the sample count rides along
+        fast = r.fast_color if self._fast_on() and r.fast_color is not None else None
+        if fast is not None:  # the fast history rides along too
+            values = torch.cat([values, fast.to(work)], 1)
         check_reprojection_inputs(
             values,
             r.depth,
@@ -714,11 +835,12 @@ class SpatiotemporalReprojection:
             dict(STEREO_NAMES, src_values=f"{src_eye} history"),
         )
         dst = View.unchecked(depth, normal, K, cam_from_world)
-        hard = Thresholds(m.position_threshold, m.normal_threshold)  # the stereo step's tests are hard
+        hard = Thresholds(m.position_threshold, m.normal_threshold, position_test=m.position_test)  # hard tests
         warped, valid, reason, _ = warp_values(
             values, r.view, dst, hard, m.sampling, backend=m.backend, confidence=False
         )
         self._stereo_out = (warped[:, :3], warped[:, 3:4])
+        self._stereo_fast = warped[:, 4:] if fast is not None else None  # the fast history reprojected with it
         self.stereo_valid, self.stereo_reason = valid, reason
         return ~valid
 
@@ -768,12 +890,23 @@ class SpatiotemporalReprojection:
         )
         eye = self._frame_eye.other
         state = getattr(self, f"{eye}_state")
+        fast = None
         if self.left_mode == "blend" and self._stereo_out is not None:
-            s_color, s_len = self._stereo_out
+            (s_color, s_len), s_fast = self._stereo_out, self._stereo_fast
+            hist_fast = torch.zeros_like(s_color)
             if self.temporal and state is not None:
-                hist, hist_len, valid, _ = warp_history(
-                    self.temporal_module, state, depth, normal, K, cam_from_world, motion, motion_world
+                hist, hist_len, valid, _, *own_fast = warp_history(
+                    self.temporal_module,
+                    state,
+                    depth,
+                    normal,
+                    K,
+                    cam_from_world,
+                    motion,
+                    motion_world,
+                    return_fast=self._fast_on(),
                 )
+                hist_fast = own_fast[0] if own_fast else hist_fast
             else:
                 hist, hist_len = torch.zeros_like(s_color), torch.zeros_like(s_len)
                 valid = None
@@ -793,24 +926,57 @@ class SpatiotemporalReprojection:
                 m.history_rounding,
             )
             self.other_valid = valid
+            if self._fast_on():
+                own_valid = torch.zeros_like(self.stereo_valid) if valid is None else valid
+                out, fast = self._blend_fast(
+                    out, traced_color, (s_color, s_len, s_fast), hist_fast, hist_len, own_valid
+                )
         else:
             trace = ~self.stereo_valid
             traced = torch.where(trace, traced_color, torch.zeros((), dtype=traced_color.dtype))
-            filled, n, valid, _ = self._accumulate(
-                state, traced, depth, normal, K, cam_from_world, motion, motion_world
+            filled, n, valid, _, fast = self._accumulate(
+                state, traced, depth, normal, K, cam_from_world, motion, motion_world, clamp=False
             )
             self.other_valid = None if valid is None else valid & trace
             if self._stereo_out is not None:
-                s_color, s_len = self._stereo_out
+                (s_color, s_len), s_fast = self._stereo_out, self._stereo_fast
                 out = torch.where(self.stereo_valid, s_color.to(filled.dtype), filled)
                 n = torch.where(self.stereo_valid, _stored_count(s_len, self.history_rounding), n)
+                if fast is not None:  # the whole fast frame: the stereo one where kept, its own step elsewhere
+                    s_fast = s_color if s_fast is None else s_fast
+                    fast = torch.where(self.stereo_valid, s_fast.to(fast.dtype), fast)
             else:
                 out = filled
+            if fast is not None and valid is not None:  # the clamp at the traced pixels that kept a history
+                fc = self.temporal_module.fast_clamp
+                out = torch.where(valid & trace, _clamp_checked(out, fast, fc.sigma, fc.radius), out)
         self.left_valid = self.other_valid if eye == "left" else None
-        setattr(self, f"{eye}_state", EyeState(out, n, depth, normal, K, cam_from_world))
+        setattr(self, f"{eye}_state", EyeState(out, n, depth, normal, K, cam_from_world, fast))
         self._left_gbuffer = None
         self.frame_index += 1
         return out
+
+    def _blend_fast(self, out, traced_color, stereo, hist_fast, hist_len, own_valid):
+        """The blended scheme's fast history (:func:`blend_histories` of the fast colours with the fast alpha, on
+        the slow histories' counts and masks) and the blended slow colour ``out`` clamped to its box wherever a
+        history was kept: (clamped colour, fast colour)."""
+        s_color, s_len, s_fast = stereo
+        m, fc = self.temporal_module, self.temporal_module.fast_clamp
+        fast, _ = blend_histories(
+            traced_color,
+            s_color if s_fast is None else s_fast,
+            s_len,
+            self.stereo_valid,
+            hist_fast,
+            hist_len,
+            own_valid,
+            fc.alpha,
+            m.warmup,
+            m.max_history,
+            self.stereo_weight,
+        )
+        kept = self.stereo_valid | own_valid
+        return torch.where(kept, _clamp_checked(out, fast, fc.sigma, fc.radius), out), fast
 
     def left(self, traced_color: Tensor) -> Tensor:
         """Complete the left eye from the traced discarded pixels (:meth:`other` when the left eye is the

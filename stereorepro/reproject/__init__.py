@@ -17,13 +17,16 @@ from .functional import (
 )
 from ._general import SOFT_DEN_FLOOR
 from .modules import StereoReprojection, TemporalReprojection
+from .clamp import fast_history_clamp
+from .modules import FastHistoryClamp
 from .reason import REASON_COLORS, Reason, reason_to_rgb
-from .view import Blend, History, ReprojectionResult, TemporalResult, Thresholds, View
+from .view import Blend, FastClamp, History, ReprojectionResult, TemporalResult, Thresholds, View
 
 __all__ = [
     "View",
     "Thresholds",
     "Blend",
+    "FastClamp",
     "History",
     "ReprojectionResult",
     "TemporalResult",
@@ -40,4 +43,6 @@ __all__ = [
     "native_unsupported",
     "StereoReprojection",
     "TemporalReprojection",
+    "fast_history_clamp",
+    "FastHistoryClamp",
 ]

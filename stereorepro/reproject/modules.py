@@ -13,8 +13,11 @@ from ..errors import ParameterTypeError
 from . import _flat
 from .functional import BACKENDS, stereo_reproject, temporal_reproject
 from .view import Blend, Field, History, Thresholds, _check_footprint_weighting, _check_history_rounding, view_fields
+from ..errors import ParameterError
+from .clamp import _check_radius, fast_history_clamp
+from .view import FastClamp, _check_fast_clamp
 
-__all__ = ["StereoReprojection", "TemporalReprojection"]
+__all__ = ["StereoReprojection", "TemporalReprojection", "FastHistoryClamp"]
 
 
 def _threshold_param(value, learnable: bool) -> Tensor:
@@ -216,6 +219,7 @@ class TemporalReprojection(_ReprojectionBase):
         super().__init__(position_threshold, normal_threshold, sampling, soft, temperature, backend)
         self.history_rounding = history_rounding
         self.footprint_weighting = False
+        self.fast_clamp = None
         self.motion_vectors = bool(motion_vectors)
         if self.motion_vectors:
             self.input_fields = type(self).input_fields + view_fields(motion=True)[-2:]
@@ -235,6 +239,7 @@ class TemporalReprojection(_ReprojectionBase):
             f"max_history={self.max_history:g}"
             + (f", history_rounding={self.history_rounding!r}" if self.history_rounding != "none" else "")
             + (", footprint_weighting=True" if self.footprint_weighting else "")
+            + (f", fast_clamp={self.fast_clamp!r}" if self.fast_clamp is not None else "")
             + (", motion_vectors=True" if self.motion_vectors else "")
         )
 
@@ -247,6 +252,19 @@ class TemporalReprojection(_ReprojectionBase):
     def footprint_weighting(self, value: bool) -> None:
         _check_footprint_weighting(value, "TemporalReprojection")
         self._footprint_weighting = value
+
+    @property
+    def fast_clamp(self) -> FastClamp | None:
+        """``None`` (default) or a :class:`~stereorepro.reproject.FastClamp`: the temporal step of
+        :func:`stereorepro.accumulate.temporal_step` (and the stereo driver) then keeps a fast history beside the
+        slow one and clamps the slow one to the fast one's colour box (NRD RELAX). The forward, one history in
+        and out, cannot: it raises ParameterError while this is set. Checked when set."""
+        return self._fast_clamp
+
+    @fast_clamp.setter
+    def fast_clamp(self, value: FastClamp | None) -> None:
+        _check_fast_clamp(value, "TemporalReprojection")
+        self._fast_clamp = value
 
     @property
     def history_rounding(self) -> str:
@@ -275,6 +293,11 @@ class TemporalReprojection(_ReprojectionBase):
         motion: Tensor | None = None,
         motion_world: Tensor | None = None,
     ) -> tuple[Tensor, Tensor, Tensor]:
+        if self.fast_clamp is not None:
+            raise ParameterError(
+                "TemporalReprojection.forward: fast_clamp needs a fast history the forward does not carry; "
+                "use stereorepro.accumulate.temporal_step (or set fast_clamp = None)"
+            )
         if self.motion_vectors and motion is None and not torch.jit.is_tracing():
             raise ParameterTypeError(
                 "TemporalReprojection(motion_vectors=True).forward needs `motion` (and motion_world)"
@@ -304,3 +327,44 @@ class TemporalReprojection(_ReprojectionBase):
     def blend(self) -> Blend:
         """The accumulation settings as the functions take them."""
         return Blend(self.alpha, self.warmup, self.max_history, self.history_rounding, self.footprint_weighting)
+
+
+class FastHistoryClamp(nn.Module):
+    """Fast-history clamping as a module: :func:`~stereorepro.reproject.fast_history_clamp` with its settings
+    stored (exports to ONNX: AveragePool, Sqrt, Min/Max).
+
+    Args:
+        sigma: the box's half width in standard deviations (finite, >= 0; RELAX: 2).
+        radius: the window's radius in pixels (an int >= 0; 1: 3×3).
+
+    Forward:
+        ``forward(color, fast_color) -> color`` with shapes (B,C,H,W), (B,C,H,W) → (B,C,H,W).
+
+    Raises:
+        ParameterError: ``sigma`` negative or not finite, ``radius`` negative.
+        ParameterTypeError: ``radius`` not an int.
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro import FastHistoryClamp
+        >>> fast = torch.tensor([[[[0.0, 1.0], [0.0, 1.0]]]])  # mean 0.5, std 0.5 over the whole 2x2 frame
+        >>> FastHistoryClamp(sigma=1.0)(torch.full((1, 1, 2, 2), 3.0), fast)[0, 0].tolist()
+        [[1.0, 1.0], [1.0, 1.0]]
+    """
+
+    input_fields = (Field("color", ("B", "C", "H", "W")), Field("fast_color", ("B", "C", "H", "W")))
+    input_names = [f.name for f in input_fields]
+    output_names = ["clamped"]
+
+    def __init__(self, sigma: float = 2.0, radius: int = 1):
+        super().__init__()
+        check_scalar(sigma, "FastHistoryClamp: sigma", 0.0, tracing=False)
+        _check_radius(radius, "FastHistoryClamp")
+        self.sigma = float(sigma)
+        self.radius = radius
+
+    def extra_repr(self) -> str:
+        return f"sigma={self.sigma:g}, radius={self.radius}"
+
+    def forward(self, color: Tensor, fast_color: Tensor) -> Tensor:
+        return fast_history_clamp(color, fast_color, self.sigma, self.radius)

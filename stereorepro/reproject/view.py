@@ -23,6 +23,7 @@ __all__ = [
     "View",
     "Thresholds",
     "Blend",
+    "FastClamp",
     "History",
     "ReprojectionResult",
     "TemporalResult",
@@ -289,6 +290,46 @@ class Blend(NamedTuple):
     max_history: float = 255.0
     history_rounding: str = "none"
     footprint_weighting: bool = False
+
+
+class FastClamp(NamedTuple):
+    """Fast-history clamping of a temporal step (NVIDIA NRD's RELAX): beside the slow history the step keeps a
+    fast one, blended with ``a_fast = max(1/(n + 1), alpha)`` (``alpha`` alone without warm-up) on the same warp
+    and history length n as the slow one (restarted where the slow one is), and clamps the slow result where the
+    history was kept to ``[μ − sigma·σ, μ + sigma·σ]``, the per-channel mean and standard deviation of the fast
+    history over the ``(2·radius + 1)²`` window (:func:`~stereorepro.reproject.fast_history_clamp`). Set as
+    :attr:`TemporalReprojection.fast_clamp <stereorepro.TemporalReprojection.fast_clamp>`.
+
+    Attributes:
+        alpha: the fast history's minimum EMA weight, in (0, 1]; larger than the slow ``alpha`` (0.5 by
+            default: a history of about two frames).
+        sigma: the box's half width in standard deviations, finite, >= 0 (RELAX: 2).
+        radius: the window's radius in pixels, an int >= 0 (1: 3×3).
+
+    Examples:
+        >>> from stereorepro import FastClamp
+        >>> FastClamp(), FastClamp(alpha=0.25, radius=2).radius
+        (FastClamp(alpha=0.5, sigma=2.0, radius=1), 2)
+    """
+
+    alpha: float = 0.5
+    sigma: float = 2.0
+    radius: int = 1
+
+
+def _check_fast_clamp(fast_clamp, where: str) -> None:
+    """ParameterError naming ``where`` and the field unless ``fast_clamp`` is None or a valid :class:`FastClamp`
+    (ParameterTypeError for a field of the wrong kind: a string for a number, a float radius)."""
+    if fast_clamp is None:
+        return
+    if not isinstance(fast_clamp, FastClamp):
+        raise ParameterError(f"{where}: fast_clamp must be None or a FastClamp, got {fast_clamp!r}")
+    from .._checks import check_scalar
+    from .clamp import _check_radius
+
+    check_scalar(fast_clamp.alpha, f"{where}: fast_clamp.alpha", 0.0, 1.0, lo_open=True, tracing=False)
+    check_scalar(fast_clamp.sigma, f"{where}: fast_clamp.sigma", 0.0, tracing=False)
+    _check_radius(fast_clamp.radius, f"{where}: fast_clamp")
 
 
 class History(NamedTuple):

@@ -1,0 +1,126 @@
+"""Fast-history clamping (NVIDIA NRD's RELAX): a slow, low-noise history clamped to the colour box of a fast,
+responsive one, so that it cannot lag far behind a change of lighting or an edge the slow EMA smears.
+
+:func:`fast_history_clamp` is the pure tensor op; :class:`~stereorepro.reproject.FastHistoryClamp` its module
+(exportable); the settings a temporal step takes are :class:`~stereorepro.reproject.FastClamp`
+(:attr:`TemporalReprojection.fast_clamp <stereorepro.TemporalReprojection.fast_clamp>`), applied by
+:func:`stereorepro.accumulate.temporal_step` and the stereo driver.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from .._checks import check_floating, check_scalar, check_shape, tracing
+from .._tensors import as_scalar, compute_dtype
+from ..errors import ParameterError, ParameterTypeError
+
+__all__ = ["fast_history_clamp"]
+
+
+def _check_radius(radius, where: str) -> None:
+    """ParameterTypeError unless ``radius`` is an int (not a bool), ParameterError unless it is >= 0."""
+    if isinstance(radius, bool) or not isinstance(radius, int):
+        raise ParameterTypeError(f"{where}: radius must be an int >= 0 (1: a 3x3 window), got {radius!r}")
+    if radius < 0:
+        raise ParameterError(f"{where}: radius must be >= 0 (1: a 3x3 window), got {radius}")
+
+
+def fast_history_clamp(color: Tensor, fast_color: Tensor, sigma=2.0, radius: int = 1) -> Tensor:
+    """Clamp a (slow) history to the colour box of a fast history's neighbourhood, per channel (NRD RELAX).
+
+    At each pixel and channel the box is ``[μ − sigma·σ, μ + sigma·σ]``, μ and σ the mean and standard deviation
+    of ``fast_color`` over the ``(2·radius + 1)²`` window around the pixel: ``σ = sqrt(max(E[x²] − μ², 0))``
+    (the population deviation). At the image borders only the in-frame pixels of the window count (a 3×3
+    window has 4 pixels at a corner, 6 on an edge). Non-finite ``fast_color`` values are left out of the moments
+    like pixels outside the frame; where a window holds no finite value ``color`` is returned as it is. A NaN in
+    ``color`` stays NaN, ``±inf`` is clamped to the box.
+
+    With a slow history of EMA weight α (e.g. 0.1) and a fast one of a larger weight (e.g. 0.5) that share the
+    same warp and restarts, the clamp bounds how far the slow one lags behind a change (a light switched on, a
+    moving light's shadow) by the spread of the fast history's neighbourhood, while leaving it alone where the
+    two agree within their noise. The temporal step does this itself when its module's
+    :attr:`~stereorepro.TemporalReprojection.fast_clamp` is set (:func:`stereorepro.accumulate.temporal_step`,
+    one warp of both histories); with your own loop, compose two :func:`~stereorepro.reproject.temporal_reproject`
+    calls that share the history length and clamp where the history was kept (the example below).
+
+    Args:
+        color: (B, C, H, W) the colour to clamp (the slow history after its blend).
+        fast_color: (B, C, H, W) the fast history (after its blend) whose neighbourhood gives the box.
+        sigma: the box's half width in standard deviations, a finite number >= 0 or a one-element tensor
+            (RELAX's default 2).
+        radius: the window's radius in pixels, an int >= 0 (1: 3×3; 2: 5×5).
+
+    Returns:
+        (B, C, H, W) the clamped colour, dtype of ``color`` (float16 / bfloat16 computed in float32).
+        Differentiable in ``color``, ``fast_color`` and a tensor ``sigma`` (σ = 0, a constant window, has a
+        zero gradient in the variance).
+
+    Raises:
+        ShapeError: ``color`` is not 4-d or ``fast_color`` has another shape.
+        ParameterTypeError: ``radius`` is not an int, or a tensor is not floating point.
+        ParameterError: ``sigma`` is negative or not finite, or ``radius`` is negative.
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro import fast_history_clamp
+        >>> fast = torch.tensor([[[[0.9, 1.0, 1.1], [1.0, 1.0, 1.0], [1.1, 1.0, 0.9]]]])  # mean 1, std ~0.067
+        >>> slow = torch.full((1, 1, 3, 3), 0.2)  # lagging behind a light switched on
+        >>> round(float(fast_history_clamp(slow, fast)[0, 0, 1, 1]), 4)  # clamped to 1 - 2 * 0.0667
+        0.8667
+        >>> bool(torch.equal(fast_history_clamp(fast, fast, radius=1), fast))  # inside its own box: unchanged
+        True
+
+        With your own loop (one history length, two colours; ``clamp`` only where the history was kept):
+
+        >>> from stereorepro import Blend, History, View, intrinsics_from_fov, temporal_reproject
+        >>> depth = torch.full((1, 1, 6, 8), 2.0); normal = torch.zeros(1, 3, 6, 8); normal[:, 2] = -1
+        >>> view = View(depth, normal, intrinsics_from_fov(60.0, 8, 6), torch.eye(4)[None])
+        >>> plain = slow = fast = History.empty(view)
+        >>> for frame in range(12):
+        ...     current = torch.full((1, 3, 6, 8), 0.0 if frame < 8 else 1.0)  # the light goes on at frame 8
+        ...     plain = temporal_reproject(current, view, plain, view, (0.01, 0.1), blend=Blend(alpha=0.1)).history
+        ...     s = temporal_reproject(current, view, slow, view, (0.01, 0.1), blend=Blend(alpha=0.1))
+        ...     f = temporal_reproject(current, view, History(fast.color, slow.length), view, (0.01, 0.1),
+        ...                            blend=Blend(alpha=0.5))
+        ...     slow = History(torch.where(s.valid, fast_history_clamp(s.color, f.color), s.color), s.history_len)
+        ...     fast = f.history
+        >>> round(float(plain.color.mean()), 4), round(float(slow.color.mean()), 4)  # lagging; clamped to the fast
+        (0.352, 0.9375)
+    """
+    if not tracing():
+        bind = check_shape(color, ["B", "C", "H", "W"], "fast_history_clamp: color")
+        check_shape(fast_color, ["B", "C", "H", "W"], "fast_history_clamp: fast_color", bind)
+        check_floating(color, "fast_history_clamp: color")
+        check_floating(fast_color, "fast_history_clamp: fast_color")
+        check_scalar(sigma, "fast_history_clamp: sigma", 0.0)
+    _check_radius(radius, "fast_history_clamp")
+    return _clamp_checked(color, fast_color, sigma, radius)
+
+
+def _clamp_checked(color: Tensor, fast_color: Tensor, sigma, radius: int) -> Tensor:
+    """:func:`fast_history_clamp` of arguments the caller has checked."""
+    wdt = compute_dtype(color, fast_color)
+    x = fast_color.to(wdt)
+    zero = torch.zeros((), dtype=wdt, device=x.device)
+    one = torch.ones((), dtype=wdt, device=x.device)
+    finite = torch.isfinite(x)
+    x0 = torch.where(finite, x, zero)
+    k = 2 * radius + 1
+
+    def box(t: Tensor) -> Tensor:  # the window's sum / k² (zero padding: outside the frame adds nothing)
+        return F.avg_pool2d(t, k, stride=1, padding=radius, count_include_pad=True)
+
+    count = box(finite.to(wdt))  # the share of the window that is in frame and finite
+    has = count > 0
+    safe = torch.where(has, count, one)
+    mean = box(x0) / safe
+    var = box(x0 * x0) / safe - mean * mean
+    pos = var > 0
+    std = torch.where(pos, torch.sqrt(torch.where(pos, var, one)), zero)  # no infinite gradient at var = 0
+    half = as_scalar(sigma, mean) * std
+    c = color.to(wdt)
+    clamped = torch.minimum(torch.maximum(c, mean - half), mean + half)
+    return torch.where(has, clamped, c).to(color.dtype)
