@@ -21,6 +21,14 @@
 // q + R_src * motion_world (R_src the source camera's rotation); non-finite motion reads no tap (OUT_OF_FRAME), and
 // BEHIND_CAMERA means the moved point's z <= 0 (the torch reference's _motion_source, same arithmetic order).
 //
+// Plane test (plane = true, Thresholds(position_test="plane")): per destination pixel the normal in the source
+// camera's axes nc_i = (R[i,0]*n0 + R[i,1]*n1) + R[i,2]*n2 (n the raw normal, 0 where |n|² < 0.25 or not finite:
+// "unusable"), the view ray r_i = (M[i,0]*u + M[i,1]*v) + M[i,2] and
+//   scale = z / (0.05 + 0.95 * (|(nc0*r0 + nc1*r1) + nc2*r2| / sqrt((r0² + r1²) + r2²))),
+//   thr2 = pos_thr2 * (scale*scale)   (-1 where unusable: no tap passes);
+// a tap passes the position test iff dist² <= thr2, dist = (nc0*dx + nc1*dy) + nc2*dz (the torch reference's
+// _general.plane_terms and _tap_terms, same order).
+//
 // Image dtypes: every image plane (colour / values, depths, normals, history length, current colour) is float32
 // or float16, each on its own (mixed inputs need no conversion); float16 planes are widened exactly on load
 // (F16C vcvtph2ps in the vector path, half_to_float in the scalar one) and all arithmetic stays the float32 above,
@@ -41,6 +49,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <limits>
 #include <optional>
 #include <stdexcept>
 #include <string>
@@ -87,6 +96,12 @@ constexpr int kMaxStackChannels = 16;
 constexpr float kCoordMargin = 4.0f;
 // Integers up to this are exact in float32; larger images leave the vector path (F32_EXACT_INT).
 constexpr int64_t kF32ExactInt = int64_t(1) << 24;
+// The plane test's slope scaling 1 / (kPlaneBase + kPlaneSlope * |n.v|) and its smallest usable |n|²
+// (PLANE_BASE, PLANE_SLOPE, PLANE_MIN_NORMAL2).
+constexpr float kPlaneBase = 0.05f;
+constexpr float kPlaneSlope = 0.95f;
+constexpr float kPlaneMinNormal2 = 0.25f;
+constexpr float kInf = std::numeric_limits<float>::infinity();
 
 // ---- shape checks (the Python layer checks first; these guard direct calls) ---------------------------------
 template <class A>
@@ -201,7 +216,7 @@ SR_INLINE float load(const Plane &p, int64_t i) {
 // ---- per-batch-item inputs ---------------------------------------------------------------------------------
 struct Camera {  // row-major 3x3 matrices, composed in Python
     const float *P, *kt, *M, *t, *Ki;
-    const float *R;  // rotation of the source camera (its cam_from_world), for the world motion; else nullptr
+    const float *R;  // rotation of the source camera (its cam_from_world): world motion, plane test; else nullptr
 };
 
 struct Source {  // one batch item of the source view
@@ -221,16 +236,42 @@ struct Dest {  // one batch item of the destination view
 struct Tests {
     float pos_thr2, nrm_thr2;
     bool cubic = false;  // sampling="catmull_rom" (on the bilinear pass): cubic_row after each row
+    bool plane = false;  // position_test="plane": the plane test instead of the distance test
 };
 
 inline bool finitef(float x) { return std::isfinite(x); }
+
+// The plane test's terms of one destination pixel (see the notes at the top).
+struct PlaneTerms {
+    float nc0 = 0.0f, nc1 = 0.0f, nc2 = 0.0f, thr2 = -1.0f;
+};
+
+SR_INLINE void plane_terms(const Camera &cam, const Tests &th, float uc, float vc, float z, float n0, float n1,
+                           float n2, PlaneTerms &pl) {
+    const float nn = (n0 * n0 + n1 * n1) + n2 * n2;
+    const bool usable = (nn >= kPlaneMinNormal2) & (nn < kInf);
+    if (!usable) n0 = n1 = n2 = 0.0f;
+    const float *R = cam.R, *M = cam.M;
+    pl.nc0 = (R[0] * n0 + R[1] * n1) + R[2] * n2;
+    pl.nc1 = (R[3] * n0 + R[4] * n1) + R[5] * n2;
+    pl.nc2 = (R[6] * n0 + R[7] * n1) + R[8] * n2;
+    const float r0 = (M[0] * uc + M[1] * vc) + M[2];
+    const float r1 = (M[3] * uc + M[4] * vc) + M[5];
+    const float r2 = (M[6] * uc + M[7] * vc) + M[8];
+    const float nv = (pl.nc0 * r0 + pl.nc1 * r1) + pl.nc2 * r2;
+    const float rr = (r0 * r0 + r1 * r1) + r2 * r2;
+    const float cosine = std::fabs(nv) / std::sqrt(rr);
+    const float scale = z / (kPlaneBase + kPlaneSlope * cosine);
+    pl.thr2 = usable ? th.pos_thr2 * (scale * scale) : -1.0f;
+}
 
 // One tap at integer source pixel (xi, yi) with bilinear weight w > 0. Returns its reason code; accumulates the
 // weighted values into num / den when it passes every test. q: destination point in the source frame; nd: the
 // destination normal (sanitised).
 template <int NC, class L>
 SR_INLINE uint8_t tap(const Source &s, const Camera &cam, const Tests &th, float xi, float yi, float w, float qx,
-                      float qy, float qz, float nd0, float nd1, float nd2, float &den, float *num) {
+                      float qy, float qz, float nd0, float nd1, float nd2, const PlaneTerms &pl, float &den,
+                      float *num) {
     const bool in_frame = (xi >= 0.0f) & (xi <= (float)(s.Ws - 1)) & (yi >= 0.0f) & (yi <= (float)(s.Hs - 1));
     if (!in_frame) return OUT_OF_FRAME;
     const int64_t idx = (int64_t)yi * s.Ws + (int64_t)xi;
@@ -257,7 +298,13 @@ SR_INLINE uint8_t tap(const Source &s, const Camera &cam, const Tests &th, float
     const float dp2 = (dx * dx + dy * dy) + dz * dz;
     const float e0 = m0 - nd0, e1 = m1 - nd1, e2 = m2 - nd2;
     const float dn2 = (e0 * e0 + e1 * e1) + e2 * e2;
-    const bool pos_ok = dp2 <= th.pos_thr2;
+    bool pos_ok;
+    if (th.plane) {
+        const float dist = (pl.nc0 * dx + pl.nc1 * dy) + pl.nc2 * dz;
+        pos_ok = dist * dist <= pl.thr2;
+    } else {
+        pos_ok = dp2 <= th.pos_thr2;
+    }
     const bool nrm_ok = dn2 <= th.nrm_thr2;
     // first failing test, in the order of the torch code's overrides
     const uint8_t code = !src_ok ? NO_SURFACE_SRC : !pos_ok ? POSITION : !nrm_ok ? NORMAL : !finite ? NONFINITE : KEPT;
@@ -299,10 +346,12 @@ struct RowOut {
 };
 
 // The projection of destination pixel (x, y) into the source: KEPT with the source coordinates (u, v) (clamped),
-// the destination point q in the source frame and its sanitised normal nd, or the reason it reads no tap.
+// the destination point q in the source frame, its sanitised normal nd and (plane test) its plane terms, or the
+// reason it reads no tap.
 template <class L>
-SR_INLINE uint8_t project_pixel(const Source &s, const Dest &d, const Camera &cam, int64_t x, int64_t y, float &qx,
-                                float &qy, float &qz, float &u, float &v, float &nd0, float &nd1, float &nd2) {
+SR_INLINE uint8_t project_pixel(const Source &s, const Dest &d, const Camera &cam, const Tests &th, int64_t x,
+                                int64_t y, float &qx, float &qy, float &qz, float &u, float &v, float &nd0,
+                                float &nd1, float &nd2, PlaneTerms &pl) {
     const int64_t p = y * d.W + x;
     const float zr = load<L::depth>(d.depth, p);
     if (!(finitef(zr) & (zr > 0.0f))) return NO_SURFACE_DST;
@@ -326,6 +375,7 @@ SR_INLINE uint8_t project_pixel(const Source &s, const Dest &d, const Camera &ca
     u = std::min(std::max(u, -kCoordMargin), (float)s.Ws + kCoordMargin);
     v = std::min(std::max(v, -kCoordMargin), (float)s.Hs + kCoordMargin);
     nd0 = load<L::normals>(d.n0, p), nd1 = load<L::normals>(d.n1, p), nd2 = load<L::normals>(d.n2, p);
+    if (th.plane) plane_terms(cam, th, uc, vc, zr, nd0, nd1, nd2, pl);
     nd0 = finitef(nd0) ? nd0 : 0.0f;
     nd1 = finitef(nd1) ? nd1 : 0.0f;
     nd2 = finitef(nd2) ? nd2 : 0.0f;
@@ -346,7 +396,8 @@ inline void warp_pixel(const Source &s, const Dest &d, const Camera &cam, const 
         o.valid[x] = 0;
     };
     float qx, qy, qz, u, v, nd0, nd1, nd2;
-    const uint8_t projected = project_pixel<L>(s, d, cam, x, y, qx, qy, qz, u, v, nd0, nd1, nd2);
+    PlaneTerms pl;
+    const uint8_t projected = project_pixel<L>(s, d, cam, th, x, y, qx, qy, qz, u, v, nd0, nd1, nd2, pl);
     if (projected != KEPT) return invalid(projected, 0.0f);
 
     float den = 0.0f;
@@ -360,11 +411,12 @@ inline void warp_pixel(const Source &s, const Dest &d, const Camera &cam, const 
         const float xs[4] = {x0, x1, x0, x1}, ys[4] = {y0, y0, y1, y1};
         for (int k = 0; k < 4; ++k) {
             if (!(w[k] > 0.0f)) continue;
-            const uint8_t code = tap<NC, L>(s, cam, th, xs[k], ys[k], w[k], qx, qy, qz, nd0, nd1, nd2, den, num);
+            const uint8_t code =
+                tap<NC, L>(s, cam, th, xs[k], ys[k], w[k], qx, qy, qz, nd0, nd1, nd2, pl, den, num);
             worst = std::max(worst, code);
         }
     } else {
-        worst = tap<NC, L>(s, cam, th, std::floor(u), std::floor(v), 1.0f, qx, qy, qz, nd0, nd1, nd2, den, num);
+        worst = tap<NC, L>(s, cam, th, std::floor(u), std::floor(v), 1.0f, qx, qy, qz, nd0, nd1, nd2, pl, den, num);
     }
     if (!(den > 0.0f)) return invalid(worst, den);
     for (int64_t c = 0; c < C; ++c) o.num[c].set(x, num[c] / den);
@@ -392,7 +444,8 @@ void cubic_row(const Source &s, const Dest &d, const Camera &cam, const Tests &t
     for (int64_t x = 0; x < d.W; ++x) {
         if (!o.valid[x]) continue;
         float qx, qy, qz, u, v, nd0, nd1, nd2;
-        if (project_pixel<L>(s, d, cam, x, y, qx, qy, qz, u, v, nd0, nd1, nd2) != KEPT) continue;
+        PlaneTerms pl;
+        if (project_pixel<L>(s, d, cam, th, x, y, qx, qy, qz, u, v, nd0, nd1, nd2, pl) != KEPT) continue;
         const float fxs = u - 0.5f, fys = v - 0.5f;
         const float x0 = std::floor(fxs), y0 = std::floor(fys);
         float wx[4], wy[4];
@@ -407,7 +460,7 @@ void cubic_row(const Source &s, const Dest &d, const Camera &cam, const Tests &t
             for (int i = 0; i < 4 && all; ++i) {
                 float den = 0.0f;
                 const float xi = x0 + (float)(i - 1);
-                all = tap<NC, L>(s, cam, th, xi, yi, wx[i], qx, qy, qz, nd0, nd1, nd2, den, row) == KEPT;
+                all = tap<NC, L>(s, cam, th, xi, yi, wx[i], qx, qy, qz, nd0, nd1, nd2, pl, den, row) == KEPT;
             }
             for (int64_t c = 0; c < C; ++c) total[c] = j == 0 ? wy[0] * row[c] : total[c] + wy[j] * row[c];
         }
@@ -435,6 +488,8 @@ SR_AVX2 inline __m256 band(__m256 a, __m256 b) { return _mm256_and_ps(a, b); }
 SR_AVX2 inline __m256 gt(__m256 a, __m256 b) { return _mm256_cmp_ps(a, b, _CMP_GT_OQ); }
 SR_AVX2 inline __m256 ge(__m256 a, __m256 b) { return _mm256_cmp_ps(a, b, _CMP_GE_OQ); }
 SR_AVX2 inline __m256 le(__m256 a, __m256 b) { return _mm256_cmp_ps(a, b, _CMP_LE_OQ); }
+SR_AVX2 inline __m256 lt(__m256 a, __m256 b) { return _mm256_cmp_ps(a, b, _CMP_LT_OQ); }
+SR_AVX2 inline __m256 absv(__m256 x) { return _mm256_and_ps(x, _mm256_castsi256_ps(_mm256_set1_epi32(0x7fffffff))); }
 
 // 8 consecutive elements of a plane from element i, widened to float32 (exact).
 template <int K = ANY>
@@ -466,6 +521,16 @@ SR_AVX2 SR_INLINE __m256 gather16(const uint16_t *h, const int32_t *ix) {
 struct Consts {
     __m256 Ki0, Ki1, Ki2, Ki4, Ki5, wm1, wm2, hm1, thr_p, thr_n;
     __m256i Wsi;
+    bool plane;  // the plane test (per-pixel terms in Pixels8)
+};
+
+// 8 destination pixels projected into the source camera (the scalar warp_pixel's arithmetic).
+struct Pixels8 {
+    __m256 dst_ok, front, pixel_ok;  // masks: a surface; in front of the source camera with finite (u, v); both
+    __m256 u, v;                     // source coordinates, clamped (the lower clamp where not front)
+    __m256 qx, qy, qz;               // the destination point in the source camera frame
+    __m256 nd0, nd1, nd2;            // the destination normal, non-finite components 0
+    __m256 nc0, nc1, nc2, thr2;      // plane test: the normal in the source camera's axes, the squared threshold
 };
 
 // Source data at 8 taps: C value channels, depth and normal.
@@ -573,8 +638,9 @@ SR_AVX2 SR_INLINE void gather_pairs(const Source &s, const Consts &k, __m256 x0,
 // running max of the taps' reason codes (worst); warp_row() asks for them only where a pixel kept nothing.
 template <int NC, bool CODES>
 SR_AVX2 SR_INLINE void tap(const Source &s, const Consts &k, const Taps<NC> &g, __m256 xi, __m256 yi, __m256 w,
-                           __m256 pixel_ok, __m256 qx, __m256 qy, __m256 qz, __m256 nd0, __m256 nd1, __m256 nd2,
-                           __m256 &den, __m256 *num, __m256 &worst) {
+                           const Pixels8 &pix, __m256 &den, __m256 *num, __m256 &worst) {
+    const __m256 pixel_ok = pix.pixel_ok, qx = pix.qx, qy = pix.qy, qz = pix.qz, nd0 = pix.nd0, nd1 = pix.nd1,
+                 nd2 = pix.nd2;
     const int64_t C = NC > 0 ? NC : s.C;
     const __m256 zero = _mm256_setzero_ps(), one = set(1.0f);
     const __m256 in_frame = band(band(ge(xi, zero), le(xi, k.wm1)), band(ge(yi, zero), le(yi, k.hm1)));
@@ -591,7 +657,14 @@ SR_AVX2 SR_INLINE void tap(const Source &s, const Consts &k, const Taps<NC> &g, 
     const __m256 dp2 = add(add(mul(dx, dx), mul(dy, dy)), mul(dz, dz));
     const __m256 e0 = sub(m0, nd0), e1 = sub(m1, nd1), e2 = sub(m2, nd2);
     const __m256 dn2 = add(add(mul(e0, e0), mul(e1, e1)), mul(e2, e2));
-    const __m256 pos_ok = le(dp2, k.thr_p), nrm_ok = le(dn2, k.thr_n);
+    __m256 pos_ok;
+    if (k.plane) {
+        const __m256 dist = add(add(mul(pix.nc0, dx), mul(pix.nc1, dy)), mul(pix.nc2, dz));
+        pos_ok = le(mul(dist, dist), pix.thr2);
+    } else {
+        pos_ok = le(dp2, k.thr_p);
+    }
+    const __m256 nrm_ok = le(dn2, k.thr_n);
     if constexpr (CODES) {  // first failing test, as the scalar tap()
         __m256 code = sel(finite, zero, set(NONFINITE));
         code = sel(nrm_ok, code, set(NORMAL));
@@ -610,8 +683,10 @@ SR_AVX2 SR_INLINE void tap(const Source &s, const Consts &k, const Taps<NC> &g, 
 // The camera of a batch item broadcast to 8 lanes, and the per-row constants of the tap tests.
 struct Warp8 {
     __m256 P[9], M[9], kt[3], t[3];
-    __m256 R[9];  // rotation of the source camera (world motion only)
+    __m256 R[9];  // rotation of the source camera (world motion, plane test)
     __m256 umax, vmax;  // upper clamps of the source coordinates
+    __m256 thr_p2;  // the squared position threshold (plane test)
+    bool plane;
 };
 
 SR_AVX2 SR_INLINE void broadcast_camera(const Source &s, const Camera &cam, const Tests &th, Warp8 &w, Consts &k) {
@@ -625,15 +700,29 @@ SR_AVX2 SR_INLINE void broadcast_camera(const Source &s, const Camera &cam, cons
     k.wm1 = set((float)(s.Ws - 1)), k.wm2 = set((float)(s.Ws - 2)), k.hm1 = set((float)(s.Hs - 1));
     k.thr_p = set(th.pos_thr2), k.thr_n = set(th.nrm_thr2);
     k.Wsi = _mm256_set1_epi32((int32_t)s.Ws);
+    k.plane = w.plane = th.plane;
+    w.thr_p2 = set(th.pos_thr2);
 }
 
-// 8 destination pixels projected into the source camera (the scalar warp_pixel's arithmetic).
-struct Pixels8 {
-    __m256 dst_ok, front, pixel_ok;  // masks: a surface; in front of the source camera with finite (u, v); both
-    __m256 u, v;                     // source coordinates, clamped (the lower clamp where not front)
-    __m256 qx, qy, qz;               // the destination point in the source camera frame
-    __m256 nd0, nd1, nd2;            // the destination normal, non-finite components 0
-};
+// The plane terms of 8 pixels: the scalar plane_terms() lane by lane (z sanitised, raw normals n).
+SR_AVX2 SR_INLINE void plane8(const Warp8 &w, __m256 uc, __m256 vc, __m256 z, __m256 n0, __m256 n1, __m256 n2,
+                              Pixels8 &px) {
+    const __m256 nn = add(add(mul(n0, n0), mul(n1, n1)), mul(n2, n2));
+    const __m256 usable = band(ge(nn, set(kPlaneMinNormal2)), lt(nn, set(kInf)));
+    n0 = band(n0, usable), n1 = band(n1, usable), n2 = band(n2, usable);
+    const __m256 *R = w.R, *M = w.M;
+    px.nc0 = add(add(mul(R[0], n0), mul(R[1], n1)), mul(R[2], n2));
+    px.nc1 = add(add(mul(R[3], n0), mul(R[4], n1)), mul(R[5], n2));
+    px.nc2 = add(add(mul(R[6], n0), mul(R[7], n1)), mul(R[8], n2));
+    const __m256 r0 = add(add(mul(M[0], uc), mul(M[1], vc)), M[2]);
+    const __m256 r1 = add(add(mul(M[3], uc), mul(M[4], vc)), M[5]);
+    const __m256 r2 = add(add(mul(M[6], uc), mul(M[7], vc)), M[8]);
+    const __m256 nv = add(add(mul(px.nc0, r0), mul(px.nc1, r1)), mul(px.nc2, r2));
+    const __m256 rr = add(add(mul(r0, r0), mul(r1, r1)), mul(r2, r2));
+    const __m256 cosine = _mm256_div_ps(absv(nv), _mm256_sqrt_ps(rr));
+    const __m256 scale = _mm256_div_ps(z, add(set(kPlaneBase), mul(set(kPlaneSlope), cosine)));
+    px.thr2 = sel(usable, mul(w.thr_p2, mul(scale, scale)), set(-1.0f));
+}
 
 template <class L>
 SR_AVX2 SR_INLINE void project8(const Dest &d, const Warp8 &w, int64_t p, __m256 uc, __m256 vc, Pixels8 &px) {
@@ -674,9 +763,14 @@ SR_AVX2 SR_INLINE void project8(const Dest &d, const Warp8 &w, int64_t p, __m256
     px.front = front;
     px.u = _mm256_min_ps(_mm256_max_ps(sel(front, u, lo), lo), w.umax);
     px.v = _mm256_min_ps(_mm256_max_ps(sel(front, v, lo), lo), w.vmax);
-    px.nd0 = fin0(ld8<L::normals>(d.n0, p));
-    px.nd1 = fin0(ld8<L::normals>(d.n1, p));
-    px.nd2 = fin0(ld8<L::normals>(d.n2, p));
+    const __m256 n0 = ld8<L::normals>(d.n0, p), n1 = ld8<L::normals>(d.n1, p), n2 = ld8<L::normals>(d.n2, p);
+    if (w.plane)
+        plane8(w, uc, vc, z, n0, n1, n2, px);
+    else
+        px.nc0 = px.nc1 = px.nc2 = px.thr2 = zero;  // unread (the distance test)
+    px.nd0 = fin0(n0);
+    px.nd1 = fin0(n1);
+    px.nd2 = fin0(n2);
     px.pixel_ok = band(px.dst_ok, front);
 }
 
@@ -714,16 +808,13 @@ SR_AVX2 SR_INLINE void taps8(const Source &s, const Consts &k, const Pixels8 &px
                 gather_taps<NC, L>(s, k, x0, ys[r], ga);
                 gather_taps<NC, L>(s, k, x1, ys[r], gb);
             }
-            tap<NC, CODES>(s, k, ga, x0, ys[r], mul(gx, wy[r]), px.pixel_ok, px.qx, px.qy, px.qz, px.nd0, px.nd1,
-                           px.nd2, acc.den, acc.num, acc.worst);
-            tap<NC, CODES>(s, k, gb, x1, ys[r], mul(fx, wy[r]), px.pixel_ok, px.qx, px.qy, px.qz, px.nd0, px.nd1,
-                           px.nd2, acc.den, acc.num, acc.worst);
+            tap<NC, CODES>(s, k, ga, x0, ys[r], mul(gx, wy[r]), px, acc.den, acc.num, acc.worst);
+            tap<NC, CODES>(s, k, gb, x1, ys[r], mul(fx, wy[r]), px, acc.den, acc.num, acc.worst);
         }
     } else {
         const __m256 xi = _mm256_floor_ps(px.u), yi = _mm256_floor_ps(px.v);
         gather_taps<NC, L>(s, k, xi, yi, ga);
-        tap<NC, CODES>(s, k, ga, xi, yi, one, px.pixel_ok, px.qx, px.qy, px.qz, px.nd0, px.nd1, px.nd2, acc.den,
-                       acc.num, acc.worst);
+        tap<NC, CODES>(s, k, ga, xi, yi, one, px, acc.den, acc.num, acc.worst);
     }
 }
 
@@ -907,7 +998,7 @@ struct Batch {  // pointers and strides shared by all rows
     Plane motion, motion_world;  // (B, 2, H, W), (B, 3, H, W) when has_motion / has_world
     bool has_motion = false, has_world = false;
     const float *P, *kt, *M, *t, *Ki;
-    const float *R = nullptr;  // (B, 9) source rotations, when has_world
+    const float *R = nullptr;  // (B, 9) source rotations, with has_world or the plane test
     int64_t B, C, Hs, Ws, H, W;
 };
 
@@ -958,7 +1049,7 @@ void run_rows(const Batch &bt, const Tests &th, const Sink &sink) {
                 d.mw2 = bt.motion_world + (b * 3 + 2) * HW;
             }
             const Camera cam{bt.P + 9 * b, bt.kt + 3 * b, bt.M + 9 * b,
-                             bt.t + 3 * b, bt.Ki + 9 * b, bt.has_world ? bt.R + 9 * b : nullptr};
+                             bt.t + 3 * b, bt.Ki + 9 * b, bt.R ? bt.R + 9 * b : nullptr};
             const RowOut o = sink.row(b, y, scratch.data());
             warp_row<NC, BILINEAR, L>(s, d, cam, th, y, o, vector);
             if (BILINEAR && th.cubic) cubic_row<NC, L>(s, d, cam, th, y, o);
@@ -1049,10 +1140,18 @@ void check_motion(Batch &bt, const std::optional<CA> &motion, const std::optiona
     bt.has_world = true;
 }
 
+// The plane test needs the source rotations R (B, 9), with or without motion.
+void check_plane(Batch &bt, const std::optional<CF> &R, bool plane) {
+    if (!plane) return;
+    if (!R) throw std::invalid_argument("reproject: plane needs R (the source rotations)");
+    expect_shape(*R, "R", {bt.B, 9});
+    bt.R = R->data();
+}
+
 void reproject(CA src_values, CA src_depth, CA src_normal, CF P, CF kt, CF M, CF t, CF Ks_inv, CA dst_depth,
                CA dst_normal, float pos_thr2, float nrm_thr2, bool bilinear, OA out_values, OB out_valid,
                OU8 out_reason, std::optional<OF> out_confidence, std::optional<CA> motion,
-               std::optional<CA> motion_world, std::optional<CF> R, bool cubic) {
+               std::optional<CA> motion_world, std::optional<CF> R, bool cubic, bool plane) {
     if (src_values.ndim() != 4) throw std::invalid_argument("reproject: src_values must be 4-D (B, C, Hs, Ws)");
     Batch bt;
     bt.B = src_values.shape(0);
@@ -1067,20 +1166,21 @@ void reproject(CA src_values, CA src_depth, CA src_normal, CF P, CF kt, CF M, CF
     expect_shape(out_reason, "out_reason", {bt.B, 1, bt.H, bt.W});
     if (out_confidence) expect_shape(*out_confidence, "out_confidence", {bt.B, 1, bt.H, bt.W});
     check_motion(bt, motion, motion_world, R);
+    check_plane(bt, R, plane);
     const int64_t HWs = bt.Hs * bt.Ws;
     bt.chan.resize(bt.B * bt.C);
     const Plane values = plane_of(src_values, "src_values");
     for (int64_t i = 0; i < bt.B * bt.C; ++i) bt.chan[i] = values + i * HWs;
     const StereoSink sink{plane_of(out_values, "out_values"), out_valid.data(), out_reason.data(),
                           out_confidence ? out_confidence->data() : nullptr, bt.C, bt.H, bt.W};
-    dispatch(bt, Tests{pos_thr2, nrm_thr2, cubic}, bilinear || cubic, sink);
+    dispatch(bt, Tests{pos_thr2, nrm_thr2, cubic, plane}, bilinear || cubic, sink);
 }
 
 void temporal_reproject(CA current, CA history_color, CA history_len, CA prev_depth, CA prev_normal, CF P, CF kt,
                         CF M, CF t, CF Ks_inv, CA depth, CA normal, float pos_thr2, float nrm_thr2, bool bilinear,
                         float alpha, bool warmup, float max_history, OA out_color, OF out_len, OB out_valid,
                         std::optional<CA> motion, std::optional<CA> motion_world, std::optional<CF> R,
-                        bool round_history, bool cubic, bool footprint) {
+                        bool round_history, bool cubic, bool footprint, bool plane) {
     if (history_color.ndim() != 4)
         throw std::invalid_argument("temporal_reproject: history_color must be 4-D (B, C, Hs, Ws)");
     Batch bt;
@@ -1098,6 +1198,7 @@ void temporal_reproject(CA current, CA history_color, CA history_len, CA prev_de
     expect_shape(out_len, "out_len", {bt.B, 1, bt.H, bt.W});
     expect_shape(out_valid, "out_valid", {bt.B, 1, bt.H, bt.W});
     check_motion(bt, motion, motion_world, R);
+    check_plane(bt, R, plane);
     const int64_t HWs = bt.Hs * bt.Ws;
     bt.chan.resize(bt.B * bt.C);
     const Plane hc = plane_of(history_color, "history_color"), hl = plane_of(history_len, "history_len");
@@ -1112,7 +1213,7 @@ void temporal_reproject(CA current, CA history_color, CA history_len, CA prev_de
     const TemporalSink sink{plane_of(current, "current"), plane_of(out_color, "out_color"), out_len.data(),
                             out_valid.data(), alpha, max_history, warmup, round_history, footprint,
                             bt.C, bt.H, bt.W, vector};
-    dispatch(bt, Tests{pos_thr2, nrm_thr2, cubic}, bilinear || cubic, sink);
+    dispatch(bt, Tests{pos_thr2, nrm_thr2, cubic, plane}, bilinear || cubic, sink);
 }
 
 }  // namespace
@@ -1123,6 +1224,9 @@ void bind_reproject(nb::module_ &m) {
     constants["COORD_MARGIN"] = nb::cast(kCoordMargin);
     constants["F32_EXACT_INT"] = nb::cast(kF32ExactInt);
     constants["MAX_CHANNELS"] = nb::cast(kMaxStackChannels);
+    constants["PLANE_BASE"] = nb::cast(kPlaneBase);
+    constants["PLANE_SLOPE"] = nb::cast(kPlaneSlope);
+    constants["PLANE_MIN_NORMAL2"] = nb::cast(kPlaneMinNormal2);
     const std::pair<const char *, uint8_t> reasons[] = {
         {"REASON_KEPT", KEPT},
         {"REASON_NO_SURFACE_DST", NO_SURFACE_DST},
@@ -1142,7 +1246,7 @@ void bind_reproject(nb::module_ &m) {
           nb::arg("out_valid").noconvert(), nb::arg("out_reason").noconvert(),
           nb::arg("out_confidence").noconvert().none(), nb::arg("motion").noconvert().none() = nb::none(),
           nb::arg("motion_world").noconvert().none() = nb::none(), nb::arg("R").noconvert().none() = nb::none(),
-          nb::arg("cubic") = false,
+          nb::arg("cubic") = false, nb::arg("plane") = false,
           "Fused hard backward reprojection (NCHW, C-contiguous CPU arrays; no copies are made). Image arrays "
           "(values, depths, normals, out_values) are float32 or float16, each on its own; compute is float32.\n"
           "Camera arrays P, M, Ks_inv are (B, 9) row-major and kt, t are (B, 3), composed by "
@@ -1153,7 +1257,9 @@ void bind_reproject(nb::module_ &m) {
           "motion vectors: taps at pixel + motion, the position test against q + R * motion_world, R (B, 9) the "
           "source camera's rotation (row-major); non-finite motion: OUT_OF_FRAME.\n"
           "cubic: sampling=\"catmull_rom\" (the bilinear pass, then the 4x4 Catmull-Rom sum where all 16 footprint "
-          "taps pass, clamped at 0).");
+          "taps pass, clamped at 0).\n"
+          "plane: the plane test (position_test=\"plane\"): |n.(P_src - q)|^2 <= pos_thr2 * scale^2, scale = z / "
+          "(0.05 + 0.95 |n.v|), n the destination normal rotated by R (B, 9), needed then.");
     m.def("temporal_reproject", &temporal_reproject, nb::arg("current").noconvert(),
           nb::arg("history_color").noconvert(), nb::arg("history_len").noconvert(),
           nb::arg("prev_depth").noconvert(), nb::arg("prev_normal").noconvert(), nb::arg("P").noconvert(),
@@ -1164,11 +1270,12 @@ void bind_reproject(nb::module_ &m) {
           nb::arg("out_valid").noconvert(), nb::arg("motion").noconvert().none() = nb::none(),
           nb::arg("motion_world").noconvert().none() = nb::none(), nb::arg("R").noconvert().none() = nb::none(),
           nb::arg("round_history") = false, nb::arg("cubic") = false, nb::arg("footprint") = false,
+          nb::arg("plane") = false,
           "Fused temporal reprojection: warps [history_color, history_len] like `reproject` and blends with "
           "`current` in the same pass (a = max(1/(n+1), alpha) with warmup, else alpha). Where the history is "
           "kept out_len = min(n + 1, max_history), or with round_history min(round_half_even(n) + 1, "
           "max_history) (BMFR's integer count); with footprint n is first multiplied by 0.5 + 0.5 * clamp(den, "
           "0, 1), den the accepted bilinear weight (footprint quality). Writes out_color "
           "(float32 or float16), out_len (float32) and out_valid in place; image inputs float32 or float16. "
-          "motion, motion_world, R, cubic: as in `reproject` (the motion of this frame to the previous one).");
+          "motion, motion_world, R, cubic, plane: as in `reproject` (the motion of this frame to the previous one).");
 }

@@ -7,6 +7,8 @@ The C++ kernels mirror :data:`MIRRORED_IN_CORE` as compile-time constants and ex
 
 from __future__ import annotations
 
+import struct
+
 from .reason import Reason
 
 #: How far outside the source image (in pixels) a projected coordinate is clamped: ``u`` to
@@ -33,10 +35,28 @@ TAP_OK_CODE = float(Reason.NONFINITE) + 1.0
 #: inputs with more run on torch (``backend="auto"``).
 NATIVE_MAX_CHANNELS = 16
 
+#: The plane test (``Thresholds(position_test="plane")``) widens its threshold at grazing angles by
+#: ``1 / (PLANE_BASE + PLANE_SLOPE·|n·v|)`` (NVIDIA NRD's ``lerp(0.05, 1, NoV)``): 20× edge-on, 1× head-on.
+PLANE_BASE = 0.05
+PLANE_SLOPE = 0.95
+
+#: A destination normal defines a plane only where it is finite and ``|n|² >= PLANE_MIN_NORMAL2`` (elsewhere its
+#: taps fail the plane test).
+PLANE_MIN_NORMAL2 = 0.25
+
+
+def _f32(x: float) -> float:
+    """``x`` rounded to float32 (what a C++ ``float`` literal holds)."""
+    return struct.unpack("f", struct.pack("f", x))[0]
+
+
 #: What the native kernels hold as their own compile-time copies (``_core.reproject_constants`` must equal it).
 MIRRORED_IN_CORE = {
     "COORD_MARGIN": COORD_MARGIN,
     "F32_EXACT_INT": F32_EXACT_INT,
     "MAX_CHANNELS": NATIVE_MAX_CHANNELS,
+    "PLANE_BASE": _f32(PLANE_BASE),
+    "PLANE_SLOPE": _f32(PLANE_SLOPE),
+    "PLANE_MIN_NORMAL2": _f32(PLANE_MIN_NORMAL2),
     **{f"REASON_{r.name}": int(r) for r in Reason if r <= Reason.NONFINITE},
 }

@@ -28,7 +28,16 @@ from torch import Tensor
 
 from ..camera import Warp, has_surface
 from ._constants import COORD_MARGIN, F32_EXACT_INT, OFF_FRAME, TABLE_PAD
-from ._general import DstPixels, SourceTaps, TapTests, catmull_rom_pixels, pixel_centres, raw_reader, warp_pixels
+from ._general import (
+    DstPixels,
+    SourceTaps,
+    TapTests,
+    catmull_rom_pixels,
+    pixel_centres,
+    plane_terms,
+    raw_reader,
+    warp_pixels,
+)
 from .reason import Reason
 
 #: Destination pixels per block in the fast path (its per-block working set is larger than the general path's).
@@ -110,6 +119,8 @@ class _RowGeometry(NamedTuple):
     idx_dtype: torch.dtype  #: float dtype of the table-index arithmetic
     u_c: Tensor | None = None  #: (1, 1, 1, W) destination pixel centres u (with motion vectors)
     rotation: Tensor | None = None  #: (B, 3, 3, 1) the source camera's rotation (with world motion)
+    plane_rotation: Tensor | None = None  #: (B, 9, 1) the source camera's rotation, row-major (plane test)
+    thr_p2: Tensor | None = None  #: the squared position threshold (plane test)
 
 
 class _Motion(NamedTuple):
@@ -189,6 +200,8 @@ def fast_geometry(
         wts: (B, 2, 2, N) bilinear weights of the taps (y0 | y0 + 1, x0 | x0 + 1), None for nearest sampling.
         corner: (B, 1, N) y0·Wp + x0 for tap (x0, y0) (nearest: the tap), exact in its float dtype; the table
             index of a tap is this plus TABLE_PAD·Wp + TABLE_PAD plus its offset from (x0, y0).
+        plane: (B, 4, N) the plane test's normal in the source camera's axes and squared threshold (-1 where the
+            normal is unusable: :func:`._general.plane_terms`), or None for the distance test.
 
     Invalid pixels need no flag: no surface (z <= 0 -> 1/z = inf, NaN z) or behind the camera (wz <= 0 ->
     w / 0) make u, v non-finite, sanitised to the border, so every tap is rejected; z = +inf gives an infinite q.
@@ -228,6 +241,7 @@ def fast_geometry(
     point_normal = v["point_normal"]
     torch.mul(base[:, 3:], zc, out=point_normal[:, :3]).add_(t)  # (ray_src_from_pixel_dst @ [u, v, 1]) z + t
     torch.nan_to_num(n.to(wdt), 0.0, 0.0, 0.0, out=point_normal[:, 3:])
+    plane = None if geo.plane_rotation is None else fast_plane(geo, base[:, 3:], zc, n.to(wdt))
     if motion is None:
         torch.div(w[:, :2], torch.clamp_min(w[:, 2:3], 0.0, out=inv), out=uv_raw)  # wz <= 0: ±inf or NaN
     else:
@@ -247,7 +261,18 @@ def fast_geometry(
         wts = torch.mul(wa[:, 1, :, None], wa[:, 0, None, :], out=v["wts"])
     xy0 = xy0.to(idx_dtype)  # (float64 for tables of 2^24 pixels or more)
     corner = torch.mul(xy0[:, 1:2], Wp, out=v["corner"]).add_(xy0[:, 0:1])
-    return point_normal, wts, corner
+    return point_normal, wts, corner, plane
+
+
+def fast_plane(geo: _RowGeometry, ray: Tensor, z: Tensor, normal: Tensor) -> Tensor:
+    """(B, 4, N): the plane test's normal in the source camera's axes (3) and squared threshold of N pixels (view
+    ray (B, 3, N), depth (B, 1, N), raw normal (B, 3, N)), -1 where the normal is unusable; the general path's
+    operations (:func:`._general.plane_terms`)."""
+    nc, scale, usable = plane_terms(
+        [ray[:, i : i + 1] for i in range(3)], z, [normal[:, i : i + 1] for i in range(3)], geo.plane_rotation
+    )
+    thr2 = torch.where(usable, geo.thr_p2 * (scale * scale), -1.0)
+    return torch.cat([*nc, thr2], 1)
 
 
 def fast_accept(
@@ -260,6 +285,7 @@ def fast_accept(
     values: Tensor,
     valid: Tensor,
     den: Tensor,
+    plane: Tensor | None = None,
 ) -> None:
     """Accept tests and the renormalised sum over the taps of N destination pixels (the tail of warp_pixels).
 
@@ -268,6 +294,7 @@ def fast_accept(
         point_normal: (B, 6, N), wts: (B, Ty, Tx, N) or None (a single tap of weight 1), thr2: (1, 2, 1, 1, 1).
         values: (B, C, N), valid, den: (B, 1, N), written. Where nothing is accepted ``values`` is ±0 (the
             sign of a sum of zeros); the caller writes +0 there.
+        plane: the plane test's (B, 4, N) terms from :func:`fast_geometry` (None: the distance test).
     """
     B, F, Ty, Tx, N = taps.shape
     C, T, wdt = F - 6, Ty * Tx, taps.dtype
@@ -287,6 +314,11 @@ def fast_accept(
     d = torch.ops.aten.mse_loss.out(taps[:, C:], point_normal[:, :, None, None], 0, out=v["d"]).view(B, 2, 3, Ty, Tx, N)
     s = torch.add(d[:, :, 0], d[:, :, 1], out=v["s"]).add_(d[:, :, 2])  # d_pos2, d_n2 summed as warp_pixels
     a = torch.le(s, thr2, out=v["a"])  # 1.0 / 0.0, NaN -> 0.0
+    if plane is not None:  # the position test replaced: (P_src − q)·nc = −(the general path's distance), bit for bit
+        diff = taps[:, C : C + 3] - point_normal[:, :3, None, None]
+        nc = plane[:, :3, None, None]
+        dist = (diff[:, 0] * nc[:, 0] + diff[:, 1] * nc[:, 1]) + diff[:, 2] * nc[:, 2]
+        torch.le(dist * dist, plane[:, 3, None, None], out=a[:, 0])
     ws = torch.mul(a[:, 0], a[:, 1], out=v["ws"])
     if wts is not None:
         ws.mul_(wts)  # = wts · hard
@@ -319,8 +351,10 @@ def fast_reasons(
     p: Tensor,
     uv: Tensor,
     motion: _Motion | None = None,
+    src_rotation: Tensor | None = None,
 ) -> Tensor:
-    """Reason codes (K,) uint8 of the invalid destination pixels ``p`` (flat indices) of batch item ``b``.
+    """Reason codes (K,) uint8 of the invalid destination pixels ``p`` (flat indices) of batch item ``b``
+    (``src_rotation`` (B, 3, 3): with world motion and for the plane test).
 
     ``uv`` (2, K) is their unclamped source pixel from :func:`fast_geometry`. No surface, behind the camera and
     "every tap out of frame" (the image border: most invalid pixels) follow from it and the depth as in
@@ -348,7 +382,7 @@ def fast_reasons(
     rest = torch.nonzero(code == int(Reason.KEPT)).squeeze(1)
     if rest.numel():
         k, p, yy, xx = rest.numel(), p[rest], yy[rest], xx[rest]
-        rotation = None if motion is None or motion.rotation is None else motion.rotation[b : b + 1]
+        rotation = None if src_rotation is None else src_rotation[b : b + 1]
         source = SourceTaps(raw_reader(src_values, src_depth, src_normal, b, wdt), C, Hs, Ws, rotation)
         pixels = DstPixels(
             z[rest].view(1, 1, 1, k),
@@ -376,9 +410,11 @@ def fast_reproject(
     motion: Tensor | None = None,
     motion_world: Tensor | None = None,
     src_rotation: Tensor | None = None,
+    position_test: str = "distance",
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """:func:`backward_reproject` for hard tests without autograd or tracing (see the module notes); ``motion``
-    (B, 2, H, W), ``motion_world`` (B, 3, H, W) and ``src_rotation`` (B, 3, 3) as in :func:`general_reproject`."""
+    (B, 2, H, W), ``motion_world`` (B, 3, H, W), ``src_rotation`` (B, 3, 3) and ``position_test`` as in
+    :func:`general_reproject`."""
     hom = warp.pixel_src_from_pixel_dst
     wdt, dev = hom.dtype, dst_depth.device
     B, C, Hs, Ws = src_values.shape
@@ -398,6 +434,7 @@ def fast_reproject(
     u_c, v_c = pixel_centres(0, H, W, wdt, dev)
     mv = None if motion is None else _Motion(motion, motion_world, src_rotation)
     rotation = None if motion_world is None else src_rotation.to(wdt).reshape(B, 3, 3, 1)
+    plane = position_test == "plane"
     geo = _RowGeometry(
         pp,
         pp[:, :, 0, None, None] * u_c,
@@ -412,6 +449,8 @@ def fast_reproject(
         idx_dtype,
         u_c,
         rotation,
+        src_rotation.to(wdt).reshape(B, 9, 1) if plane else None,
+        thr2[0, 0, 0, 0, 0] if plane else None,
     )
     sc = _Scratch(dev)
 
@@ -432,7 +471,7 @@ def fast_reproject(
     for r0 in range(0, H, rows):
         r1 = min(H, r0 + rows)
         N = (r1 - r0) * W
-        point_normal, wts, corner = fast_geometry(
+        point_normal, wts, corner, plane_rows = fast_geometry(
             geo,
             dst_depth[:, :, r0:r1].reshape(B, 1, N),
             dst_normal[:, :, r0:r1].reshape(B, 3, N),
@@ -463,6 +502,7 @@ def fast_reproject(
             values[:, :, r0:r1].view(B, C, N),
             valid[:, :, r0:r1].view(B, 1, N),
             den[:, :, r0:r1].view(B, 1, N),
+            plane_rows,
         )
 
     reason = torch.zeros(B, 1, H, W, dtype=torch.uint8, device=dev)
@@ -480,18 +520,30 @@ def fast_reproject(
                     dst_depth,
                     dst_normal,
                     warp,
-                    TapTests(position_threshold, normal_threshold, sampling),
+                    TapTests(position_threshold, normal_threshold, sampling, position_test=position_test),
                     b,
                     p,
                     uv_raw[b].index_select(1, p),
                     mv,
+                    src_rotation,
                 ),
             )
     if cubic:
-        tests = TapTests(position_threshold, normal_threshold, "catmull_rom")
+        tests = TapTests(position_threshold, normal_threshold, "catmull_rom", position_test=position_test)
         for b in range(B):
             fast_catmull_rom(
-                src_values, src_depth, src_normal, dst_depth, dst_normal, warp, tests, b, values, valid, mv
+                src_values,
+                src_depth,
+                src_normal,
+                dst_depth,
+                dst_normal,
+                warp,
+                tests,
+                b,
+                values,
+                valid,
+                mv,
+                src_rotation,
             )
     return values.to(src_values.dtype), valid, reason, den
 
@@ -508,6 +560,7 @@ def fast_catmull_rom(
     values: Tensor,
     valid: Tensor,
     motion: _Motion | None = None,
+    src_rotation: Tensor | None = None,
 ) -> None:
     """``"catmull_rom"`` on the fast path: batch item ``b``'s bilinear ``values`` (B, C, H, W) (compute dtype,
     overwritten) are replaced by :func:`catmull_rom_pixels` on its valid pixels only (a pixel whose bilinear
@@ -520,7 +573,7 @@ def fast_catmull_rom(
     if not k:
         return
     yy, xx = p // W, p % W
-    rotation = None if motion is None or motion.rotation is None else motion.rotation[b : b + 1]
+    rotation = None if src_rotation is None else src_rotation[b : b + 1]
     source = SourceTaps(raw_reader(src_values, src_depth, src_normal, b, wdt), C, Hs, Ws, rotation)
     pixels = DstPixels(
         _gather_pixels(dst_depth, b, p, yy, xx).to(wdt).view(1, 1, 1, k),

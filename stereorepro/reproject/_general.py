@@ -7,6 +7,7 @@ same per-element float arithmetic and are parity-tested against it. The discard 
 
 from __future__ import annotations
 
+import math
 from typing import Callable, NamedTuple
 
 import torch
@@ -15,7 +16,7 @@ from torch import Tensor
 from .._checks import tracing
 from .._tensors import as_scalar, compute_dtype, finite_or_zero  # noqa: F401 (the torch paths' names)
 from ..camera import Warp, has_surface
-from ._constants import COORD_MARGIN, OFF_FRAME
+from ._constants import COORD_MARGIN, OFF_FRAME, PLANE_BASE, PLANE_MIN_NORMAL2, PLANE_SLOPE
 from .reason import Reason
 
 
@@ -138,7 +139,7 @@ class SourceTaps(NamedTuple):
     channels: int  #: C, the number of carried values
     height: int  #: Hs
     width: int  #: Ws
-    rotation: Tensor | None = None  #: (B, 3, 3) rotation of the source ``cam_from_world`` (for ``motion_world``)
+    rotation: Tensor | None = None  #: (B, 3, 3) the source ``cam_from_world``'s rotation (world motion, plane test)
 
 
 class DstPixels(NamedTuple):
@@ -160,6 +161,7 @@ class TapTests(NamedTuple):
     sampling: str  #: ``"bilinear"`` | ``"nearest"`` | ``"catmull_rom"``
     soft: bool = False
     temperature: float = 0.1
+    position_test: str = "distance"  #: ``"distance"`` | ``"plane"`` (see :class:`~stereorepro.Thresholds`)
 
 
 def dst_rows(
@@ -186,6 +188,8 @@ class _Projection(NamedTuple):
     q: Tensor  #: (B, 3, *S) the destination point in the source camera frame
     front: Tensor  #: (B, 1, *S) in front of the source camera with finite (u, v)
     dst_ok: Tensor  #: (B, 1, *S) the destination pixel has a surface
+    ray: Tensor  #: (B, 3, *S) ray_src_from_pixel_dst @ [u, v, 1]: the view ray, in the source camera's axes
+    z: Tensor  #: (B, 1, *S) the destination depth (1 where there is no surface)
 
 
 def _project(warp: Warp, pixels: DstPixels, source: SourceTaps) -> _Projection:
@@ -210,7 +214,8 @@ def _project(warp: Warp, pixels: DstPixels, source: SourceTaps) -> _Projection:
     wz = torch.where(front, wz, one)
     u = wx / wz
     v = wy / wz
-    q = (ray[:, :, 0] * u_c + ray[:, :, 1] * v_c + ray[:, :, 2]) * z_dst + t  # Bx3xHxW
+    view_ray = ray[:, :, 0] * u_c + ray[:, :, 1] * v_c + ray[:, :, 2]
+    q = view_ray * z_dst + t  # Bx3xHxW
     if pixels.motion is not None:  # the source position from the motion vectors, the source point moved with it
         u, v, q, front = _motion_source(pixels.motion, pixels.motion_world, source.rotation, u_c, v_c, q)
     front = front & torch.isfinite(u) & torch.isfinite(v)
@@ -218,7 +223,7 @@ def _project(warp: Warp, pixels: DstPixels, source: SourceTaps) -> _Projection:
     off = torch.full((), OFF_FRAME, dtype=wdt, device=dev)
     u = torch.where(front, u, off).clamp(-COORD_MARGIN, source.width + COORD_MARGIN)
     v = torch.where(front, v, off).clamp(-COORD_MARGIN, source.height + COORD_MARGIN)
-    return _Projection(u, v, q, front, dst_ok)
+    return _Projection(u, v, q, front, dst_ok, view_ray, z_dst)
 
 
 def _taps(u: Tensor, v: Tensor, sampling: str, Hs: int, Ws: int) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
@@ -244,6 +249,75 @@ def _taps(u: Tensor, v: Tensor, sampling: str, Hs: int, Ws: int) -> tuple[Tensor
     return xi, yi, wts, in_frame, index
 
 
+def plane_terms(
+    ray: list[Tensor], z: Tensor, normal: list[Tensor], rotation: Tensor
+) -> tuple[list[Tensor], Tensor, Tensor]:
+    """The per-pixel terms of the plane test (``Thresholds(position_test="plane")``), in the operation order
+    every implementation uses.
+
+    Args:
+        ray: the 3 components of the destination pixel's view ray in the source camera's axes
+            (``ray_src_from_pixel_dst @ [u, v, 1]``); z: its depth; normal: the 3 components of its world normal
+            as given (cast to the compute dtype); rotation: (B, 9, ...) the source ``cam_from_world`` rotation,
+            row-major, broadcastable against the components.
+
+    Returns:
+        nc: the normal in the source camera's axes, ``(R[i,0]·n0 + R[i,1]·n1) + R[i,2]·n2`` (0 where unusable);
+        scale: ``z / (PLANE_BASE + PLANE_SLOPE·|nc·ray| / sqrt(ray·ray))``; usable: ``|n|² >= PLANE_MIN_NORMAL2``
+        and finite. A tap passes iff ``plane² <= thr² · (scale·scale)``, ``plane = (nc0·d0 + nc1·d1) + nc2·d2``,
+        d = P_dst − P_src in the source camera frame.
+    """
+    nn = (normal[0] * normal[0] + normal[1] * normal[1]) + normal[2] * normal[2]
+    usable = (nn >= PLANE_MIN_NORMAL2) & (nn < math.inf)
+    zero = torch.zeros((), dtype=z.dtype, device=z.device)
+    n = [torch.where(usable, c, zero) for c in normal]
+    nc = [
+        (rotation[:, 3 * i : 3 * i + 1] * n[0] + rotation[:, 3 * i + 1 : 3 * i + 2] * n[1])
+        + rotation[:, 3 * i + 2 : 3 * i + 3] * n[2]
+        for i in range(3)
+    ]
+    nv = (nc[0] * ray[0] + nc[1] * ray[1]) + nc[2] * ray[2]
+    rr = (ray[0] * ray[0] + ray[1] * ray[1]) + ray[2] * ray[2]
+    cosine = nv.abs() / torch.sqrt(rr)
+    base = torch.full((), PLANE_BASE, dtype=z.dtype, device=z.device)
+    slope = torch.full((), PLANE_SLOPE, dtype=z.dtype, device=z.device)
+    return nc, z / (base + slope * cosine), usable
+
+
+class _PlaneTerms(NamedTuple):
+    nc: list[Tensor]  #: 3 × (B, 1, *S) the destination normal in the source camera's axes
+    thr2: Tensor  #: (B, 1, *S) the hard test's squared threshold (-1 where the normal is unusable)
+    soft_thr2: Tensor  #: (B, 1, *S) the soft test's (the scale clamped, so that gradients stay finite)
+    usable: Tensor  #: (B, 1, *S) bool
+
+
+def _plane_of(proj: _Projection, dst_normal: Tensor, rotation: Tensor | None, tests: TapTests) -> _PlaneTerms | None:
+    """The plane test's per-pixel terms (None for the distance test)."""
+    if tests.position_test != "plane":
+        return None
+    wdt = proj.q.dtype
+    B = proj.q.shape[0]
+    rot = rotation.to(wdt).reshape(B, 9, *([1] * (proj.q.dim() - 2)))
+    normal = dst_normal.to(wdt)
+    nc, scale, usable = plane_terms(
+        [proj.ray[:, i : i + 1] for i in range(3)], proj.z, [normal[:, i : i + 1] for i in range(3)], rot
+    )
+    thr_p = as_scalar(tests.position_threshold, scale)
+    thr_p2 = thr_p * thr_p
+    thr2 = torch.where(usable, thr_p2 * (scale * scale), torch.full((), -1.0, dtype=wdt, device=scale.device))
+    soft = scale.clamp_max(1e18 if wdt != torch.float64 else 1e150)
+    return _PlaneTerms(nc, thr2, thr_p2 * (soft * soft), usable)
+
+
+def _soft_plane2(diff: tuple[Tensor, Tensor, Tensor], nc: list[Tensor]) -> Tensor:
+    """The squared plane distance for the soft test: the components clamped as in :func:`_soft_distance2`, the
+    distance clamped to the same bound, so that it and its gradients stay finite."""
+    lim = 1e18 if diff[0].dtype != torch.float64 else 1e150
+    d = [torch.where(torch.isfinite(x), x, torch.full((), lim, dtype=x.dtype, device=x.device)) for x in diff]
+    d = [x.clamp(-lim, lim) for x in d]
+    return ((nc[0] * d[0] + nc[1] * d[1]) + nc[2] * d[2]).clamp(-lim, lim).square()
+
+
 class _TapTerms(NamedTuple):
     src_ok: Tensor  #: BxTxHxW the source tap has a surface
     finite: Tensor  #: BxTxHxW its values are finite
@@ -253,12 +327,22 @@ class _TapTerms(NamedTuple):
     nrm_ok: Tensor
     thr_p: Tensor  #: the thresholds as 0-d tensors of the compute dtype
     thr_n: Tensor
+    plane: _PlaneTerms | None = None  #: the plane test's terms (None: the distance test)
 
 
 def _tap_terms(
-    g: Tensor, C: int, xi: Tensor, yi: Tensor, K_src_inv: Tensor, q: Tensor, dst_normal: Tensor, tests: TapTests
+    g: Tensor,
+    C: int,
+    xi: Tensor,
+    yi: Tensor,
+    K_src_inv: Tensor,
+    q: Tensor,
+    dst_normal: Tensor,
+    tests: TapTests,
+    plane: _PlaneTerms | None = None,
 ) -> _TapTerms:
-    """The per-tap position and normal tests on the gathered source rows ``g`` (B, C+5, T, *S)."""
+    """The per-tap position and normal tests on the gathered source rows ``g`` (B, C+5, T, *S); ``plane``: the
+    plane test's terms (:func:`_plane_of`) instead of the distance test."""
     B = K_src_inv.shape[0]
     z_src = g[:, C]  # BxTxHxW, 1 where no surface
     n_src = g[:, C + 1 : C + 4]  # Bx3xTxHxW
@@ -276,7 +360,13 @@ def _tap_terms(
     d_n2 = (n_src - n_dst).square().sum(1)  # BxTxHxW
     thr_p = as_scalar(tests.position_threshold, d_pos2)
     thr_n = as_scalar(tests.normal_threshold, d_n2)
-    return _TapTerms(src_ok, finite, diff, d_n2, d_pos2 <= thr_p * thr_p, d_n2 <= thr_n * thr_n, thr_p, thr_n)
+    if plane is None:
+        pos_ok = d_pos2 <= thr_p * thr_p
+    else:
+        nc = plane.nc
+        distance = (nc[0] * diff[0] + nc[1] * diff[1]) + nc[2] * diff[2]
+        pos_ok = distance * distance <= plane.thr2
+    return _TapTerms(src_ok, finite, diff, d_n2, pos_ok, d_n2 <= thr_n * thr_n, thr_p, thr_n, plane)
 
 
 def _reasons(terms: _TapTerms, in_frame: Tensor, wts: Tensor, proj: _Projection, valid: Tensor) -> Tensor:
@@ -320,16 +410,20 @@ def warp_pixels(
     zero = torch.zeros((), dtype=wdt, device=dev)
     one = torch.ones((), dtype=wdt, device=dev)
     g = source.read(index).reshape(B, C + 5, T, H, W)
-    terms = _tap_terms(g, C, xi, yi, warp.K_src_inv, proj.q, pixels.normal, tests)
+    plane = _plane_of(proj, pixels.normal, source.rotation, tests)
+    terms = _tap_terms(g, C, xi, yi, warp.K_src_inv, proj.q, pixels.normal, tests, plane)
 
     pixel_ok = proj.dst_ok & proj.front  # Bx1xHxW
     base_ok = pixel_ok & in_frame & terms.src_ok & terms.finite  # BxTxHxW: the tests that stay hard
     hard = base_ok & terms.pos_ok & terms.nrm_ok
     if tests.soft:
         tau = float(tests.temperature)
-        a_soft = _soft_accept(_soft_distance2(terms.diff), terms.thr_p * terms.thr_p, tau) * _soft_accept(
-            terms.d_n2, terms.thr_n * terms.thr_n, tau
-        )
+        if plane is None:
+            a_pos = _soft_accept(_soft_distance2(terms.diff), terms.thr_p * terms.thr_p, tau)
+        else:
+            a_pos = _soft_accept(_soft_plane2(terms.diff, plane.nc), plane.soft_thr2, tau)
+            a_pos = torch.where(plane.usable, a_pos, zero)
+        a_soft = a_pos * _soft_accept(terms.d_n2, terms.thr_n * terms.thr_n, tau)
         accept_w = torch.where(base_ok, a_soft, zero)
     else:
         accept_w = hard.to(wdt)
@@ -394,7 +488,8 @@ def catmull_rom_pixels(source: SourceTaps, warp: Warp, pixels: DstPixels, tests:
     in_frame = (xi >= 0) & (xi <= Ws - 1) & (yi >= 0) & (yi <= Hs - 1)
     index = yi.clamp(0, Hs - 1).to(torch.int64) * Ws + xi.clamp(0, Ws - 1).to(torch.int64)
     g = source.read(index).reshape(B, C + 5, 16, *S)
-    terms = _tap_terms(g, C, xi, yi, warp.K_src_inv, proj.q, pixels.normal, tests)
+    plane = _plane_of(proj, pixels.normal, source.rotation, tests)
+    terms = _tap_terms(g, C, xi, yi, warp.K_src_inv, proj.q, pixels.normal, tests, plane)
     tap_ok = in_frame & terms.src_ok & terms.finite & terms.pos_ok & terms.nrm_ok
     ok = tap_ok.all(1, keepdim=True) & proj.dst_ok & proj.front
     total = None
@@ -443,8 +538,10 @@ def general_reproject(
     motion: Tensor | None = None,
     motion_world: Tensor | None = None,
     src_rotation: Tensor | None = None,
+    position_test: str = "distance",
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """:func:`~stereorepro.reproject.backward_reproject` on the general path, with the cameras composed.
+    """:func:`~stereorepro.reproject.backward_reproject` on the general path, with the cameras composed;
+    ``src_rotation`` (B, 3, 3) is needed with ``motion_world`` and with ``position_test="plane"``.
 
     In inference (``inference``: no autograd graph, nothing traces) on large images, destination rows are
     processed in blocks of :data:`BLOCK_PIXELS`, so that the per-tap intermediates stay in cache (the op is
@@ -456,7 +553,7 @@ def general_reproject(
     H, W = dst_depth.shape[-2:]
     feats = source_features(src_values, src_depth, src_normal, wdt)
     source = SourceTaps(feature_reader(feats), C, Hs, Ws, src_rotation)
-    tests = TapTests(position_threshold, normal_threshold, sampling, soft, temperature)
+    tests = TapTests(position_threshold, normal_threshold, sampling, soft, temperature, position_test)
     rows = max(1, BLOCK_PIXELS // max(1, B * W)) if inference else None
     if rows is None or rows >= H:
         return warp_pixels(

@@ -55,6 +55,7 @@ from ._general import (
     dst_rows,
     feature_reader,
     finite_or_zero,
+    plane_terms,
     source_features,
 )
 from .reason import Reason
@@ -178,12 +179,14 @@ class _TapGeometry:
     Args:
         x0, y0: the tap (0, 0) coordinates; fx, fy: bilinear fractions (None for nearest sampling).
         ki: the 9 entries of K_src^-1 (per batch (B, 1), or per pixel); q: the destination point in the source
-            camera (3); nd: the sanitised destination normal (3); thr_p2, thr_n2: squared thresholds.
+            camera (3); nd: the sanitised destination normal (3); thr_p2, thr_n2: squared thresholds; plane: the
+            plane test's normal in the source camera's axes (3) and squared threshold per pixel, or None (the
+            distance test).
     """
 
-    def __init__(self, x0, y0, fx, fy, ki, q, nd, thr_p2, thr_n2):
+    def __init__(self, x0, y0, fx, fy, ki, q, nd, thr_p2, thr_n2, plane=None):
         self.x0, self.y0, self.fx, self.fy, self.ki, self.q, self.nd = x0, y0, fx, fy, ki, q, nd
-        self.thr_p2, self.thr_n2 = thr_p2, thr_n2
+        self.thr_p2, self.thr_n2, self.plane = thr_p2, thr_n2, plane
         self._kx, self._ky, self._g = {}, {}, {}
 
     def position_ok(self, z: Tensor, dx, dy) -> Tensor:
@@ -207,6 +210,10 @@ class _TapGeometry:
         px = z * (kx + ky + ki[2])
         py = z * ky_p
         q = self.q
+        if self.plane is not None:  # the plane test: (nc0·d0 + nc1·d1) + nc2·d2, squared, against thr²·scale²
+            nc, thr2 = self.plane
+            dist = (nc[0] * (q[0] - px) + nc[1] * (q[1] - py)) + nc[2] * (q[2] - z)
+            return dist * dist <= thr2
         return (q[0] - px).square() + (q[1] - py).square() + (q[2] - z).square() <= self.thr_p2
 
     def normal_ok(self, n: list[Tensor]) -> Tensor:
@@ -237,7 +244,7 @@ class _Sizes(NamedTuple):
 
 def _project(
     warp: Warp, dst_depth: Tensor, size: _Sizes, motion: tuple | None = None
-) -> tuple[Tensor, Tensor, list[Tensor], Tensor, Tensor]:
+) -> tuple[Tensor, Tensor, list[Tensor], Tensor, Tensor, list[Tensor]]:
     """Destination pixels -> source coordinates and source-camera points (warp_pixels' arithmetic), on (B, H, W)
     with the pixel centres broadcast ((1, 1, W) and (1, H, 1)). With ``motion`` = (motion (B, 2, H, W),
     motion_world (B, 3, H, W) or None, source rotation (B, 3, 3)): the coordinates and moved points of
@@ -247,6 +254,7 @@ def _project(
         u, v: (B, H·W) source coordinates, clamped; OFF_FRAME where the pixel has no surface or is not in front of
             the source camera (such pixels read border taps only; their reason follows from depth and projection).
         q: 3 × (B, H·W) the destination point in the source camera frame. front, dst_ok: (B, H, W) bool.
+        ray: 3 × (B, H·W) the view ray ``ray_src_from_pixel_dst @ [u, v, 1]`` (for the plane test).
     """
     hom, kt, ray, t = warp.pixel_src_from_pixel_dst, warp.K_src_t, warp.ray_src_from_pixel_dst, warp.t_src_from_dst
     wdt = warp.K_src_inv.dtype
@@ -264,7 +272,8 @@ def _project(
     wx = coef(hom, 0, 0) * u_c + coef(hom, 0, 1) * v_c + coef(hom, 0, 2) + coef(kt, 0, 0) * inv_z
     wy = coef(hom, 1, 0) * u_c + coef(hom, 1, 1) * v_c + coef(hom, 1, 2) + coef(kt, 1, 0) * inv_z
     wz = coef(hom, 2, 0) * u_c + coef(hom, 2, 1) * v_c + coef(hom, 2, 2) + coef(kt, 2, 0) * inv_z
-    q = [((coef(ray, i, 0) * u_c + coef(ray, i, 1) * v_c + coef(ray, i, 2)) * z_dst + coef(t, i, 0)) for i in range(3)]
+    view_ray = [coef(ray, i, 0) * u_c + coef(ray, i, 1) * v_c + coef(ray, i, 2) for i in range(3)]
+    q = [view_ray[i] * z_dst + coef(t, i, 0) for i in range(3)]
     if motion is None:
         u = wx / wz  # wz <= 0: sent to the border below
         v = wy / wz
@@ -280,7 +289,7 @@ def _project(
     far = (1.0 - sent) * OFF_FRAME
     u = (_export_or_eager(_SomeFinite, u).clamp(-COORD_MARGIN, Ws + COORD_MARGIN) * sent + far).reshape(B, -1)
     v = (_export_or_eager(_SomeFinite, v).clamp(-COORD_MARGIN, Hs + COORD_MARGIN) * sent + far).reshape(B, -1)
-    return u, v, q, front, dst_ok
+    return u, v, q, front, dst_ok, [x.reshape(B, -1) for x in view_ray]
 
 
 def _motion_source(motion: tuple, q: list[Tensor], u_c: Tensor, v_c: Tensor, size: _Sizes):
@@ -437,6 +446,7 @@ def _reasons(
         [row(sel(x)) for x in geo.nd],
         geo.thr_p2,
         geo.thr_n2,
+        None if geo.plane is None else ([row(sel(x)) for x in geo.plane[0]], row(sel(geo.plane[1]))),
     )
     depth_table = F.pad(src_depth.to(wdt), (TABLE_PAD,) * 4, value=math.nan).reshape(-1)
     z_table = tap_tables[C].reshape(-1)
@@ -460,6 +470,7 @@ def lean_reproject(
     motion: Tensor | None = None,
     motion_world: Tensor | None = None,
     src_rotation: Tensor | None = None,
+    position_test: str = "distance",
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """:func:`~stereorepro.reproject.backward_reproject` with hard tests, in the export formulation.
 
@@ -467,7 +478,7 @@ def lean_reproject(
         ``dst_normal`` (B, 3, H, W), ``warp`` composed), plus ``rectified``: read only the taps of row y0 (the
         warp must have been rectified: :func:`~stereorepro.camera.rectify_warp`), and the destination's motion
         vectors ``motion`` (B, 2, H, W), ``motion_world`` (B, 3, H, W) with the source rotation ``src_rotation``
-        (B, 3, 3) (see :func:`._general.general_reproject`).
+        (B, 3, 3) (see :func:`._general.general_reproject`; needed for ``position_test="plane"`` too).
 
     Returns:
         values (B, C, H, W) in the dtype of ``src_values``, valid (B, 1, H, W) bool, reason (B, 1, H, W) uint8,
@@ -484,17 +495,24 @@ def lean_reproject(
     size = _Sizes(B, H, W, Hs, Ws, Ws + 2 * TABLE_PAD)
     tap_tables = source_tables(src_values, src_depth, src_normal, wdt)
     moving = None if motion is None else (motion, motion_world, src_rotation)
-    u, v, q, front, dst_ok = _project(warp, dst_depth, size, moving)
+    u, v, q, front, dst_ok, view_ray = _project(warp, dst_depth, size, moving)
     n_dst = _finite_or_zero(dst_normal.to(wdt)).reshape(B, 3, -1)
     nd = [n_dst[:, c] for c in range(3)]
     like = torch.empty((), dtype=wdt, device=dev)
     thr_p, thr_n = as_scalar(position_threshold, like), as_scalar(normal_threshold, like)
     thr_p2, thr_n2 = thr_p * thr_p, thr_n * thr_n
     cubic = sampling == "catmull_rom"
-    cubic_tests = TapTests(position_threshold, normal_threshold, sampling)
+    cubic_tests = TapTests(position_threshold, normal_threshold, sampling, position_test=position_test)
     x0, y0, fx, fy, taps, corner = _tap_corners(u, v, "bilinear" if cubic else sampling, rectified, size.Wp)
     ki = [warp.K_src_inv[:, i, j : j + 1] for i in range(3) for j in range(3)]  # (B, 1) each
-    geo = _TapGeometry(x0, y0, fx, fy, ki, q, nd, thr_p2, thr_n2)
+    plane = None
+    if position_test == "plane":  # per pixel: the normal in the source camera's axes, the squared threshold
+        n_raw = dst_normal.to(wdt).reshape(B, 3, -1)
+        z_dst = dst_depth.to(wdt).reshape(B, -1)
+        rot = src_rotation.to(wdt).reshape(B, 9)
+        nc, scale, usable = plane_terms(view_ray, z_dst, [n_raw[:, c] for c in range(3)], rot)
+        plane = (nc, torch.where(usable, thr_p2 * (scale * scale), _const(-1.0, wdt, dev)))
+    geo = _TapGeometry(x0, y0, fx, fy, ki, q, nd, thr_p2, thr_n2, plane)
     num, den = _accumulate(tap_tables, C, corner, taps, geo, size.Wp, wdt)
     valid = den > 0
     inval = 1.0 - valid.to(wdt)

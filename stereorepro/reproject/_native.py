@@ -67,17 +67,17 @@ def _warp_args(warp) -> tuple[Tensor, ...]:
 
 
 def _motion_args(
-    motion: Tensor | None, motion_world: Tensor | None, src_rotation: Tensor | None
+    motion: Tensor | None, motion_world: Tensor | None, src_rotation: Tensor | None, plane: bool = False
 ) -> tuple[Tensor | None, Tensor | None, Tensor | None]:
     """The kernels' motion arguments: the motion planes as they are (float32 or float16, contiguous) and the source
-    camera's rotation (B, 9) float32, rounded as the torch reference rounds it (only with ``motion_world``)."""
-    if motion is None:
-        return None, None, None
-    mo = _image_contiguous(motion, "motion")
-    if motion_world is None:
+    camera's rotation (B, 9) float32, rounded as the torch reference rounds it (with ``motion_world``, and for the
+    plane test)."""
+    mo = None if motion is None else _image_contiguous(motion, "motion")
+    mw = None if motion is None or motion_world is None else _image_contiguous(motion_world, "motion_world")
+    if mw is None and not plane:
         return mo, None, None
     R = src_rotation.detach().to(torch.float32).reshape(src_rotation.shape[0], 9).contiguous().cpu()
-    return mo, _image_contiguous(motion_world, "motion_world"), R
+    return mo, mw, R
 
 
 def core_constants() -> dict | None:
@@ -100,6 +100,7 @@ def reproject(
     motion_world: Tensor | None = None,
     src_rotation: Tensor | None = None,
     cubic: bool = False,
+    plane: bool = False,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
     """Backward reprojection with hard tests.
 
@@ -116,6 +117,8 @@ def reproject(
             rotation. float32 or float16.
         cubic: ``sampling="catmull_rom"``: the bilinear pass, then the 4×4 Catmull-Rom sum (clamped at 0) where
             all 16 footprint taps pass.
+        plane: the plane test (``Thresholds(position_test="plane")``; needs ``src_rotation``), ``thr2[0]`` being
+            the squared relative threshold.
 
     Returns:
         values (B, C, H, W) of src_values' dtype, valid (B, 1, H, W) bool, reason (B, 1, H, W) uint8, confidence
@@ -147,8 +150,9 @@ def reproject(
         valid,
         reason,
         confidence,
-        *_motion_args(motion, motion_world, src_rotation),
+        *_motion_args(motion, motion_world, src_rotation, plane),
         **({"cubic": True} if cubic else {}),  # a core built before the option serves the other samplings
+        **({"plane": True} if plane else {}),
     )
     return values, valid, reason, confidence
 
@@ -173,6 +177,7 @@ def temporal_reproject(
     round_history: bool = False,
     cubic: bool = False,
     footprint: bool = False,
+    plane: bool = False,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Temporal reprojection in one fused pass: warp [history_color, history_len] and blend with the current frame.
 
@@ -192,6 +197,7 @@ def temporal_reproject(
         cubic: ``sampling="catmull_rom"`` for the history colour and length, as :func:`reproject`.
         footprint: scale the warped n by ``0.5 + 0.5·min(den, 1)`` before the blend, ``den`` the accepted
             bilinear weight (``Blend.footprint_weighting``).
+        plane: the plane test, as :func:`reproject`.
 
     Returns:
         color (B, 3, H, W) of current_color's dtype, history_len (B, 1, H, W) float32, valid (B, 1, H, W) bool.
@@ -227,9 +233,10 @@ def temporal_reproject(
         color,
         n_out,
         valid,
-        *_motion_args(motion, motion_world, src_rotation),
+        *_motion_args(motion, motion_world, src_rotation, plane),
         **({"round_history": True} if round_history else {}),  # a core built before the option serves "none"
         **({"cubic": True} if cubic else {}),
         **({"footprint": True} if footprint else {}),
+        **({"plane": True} if plane else {}),
     )
     return color, n_out, valid

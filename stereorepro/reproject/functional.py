@@ -79,6 +79,7 @@ from .view import (
     View,
     _check_footprint_weighting,
     _check_history_rounding,
+    _check_position_test,
 )
 
 __all__ = [
@@ -190,11 +191,11 @@ def as_thresholds(thresholds) -> Thresholds:
     Examples:
         >>> from stereorepro.reproject.functional import as_thresholds
         >>> as_thresholds((0.01, 0.1))
-        Thresholds(position=0.01, normal=0.1, temperature=0.1)
+        Thresholds(position=0.01, normal=0.1, temperature=0.1, position_test='distance')
     """
     if isinstance(thresholds, Thresholds):
         return thresholds
-    if isinstance(thresholds, (tuple, list)) and len(thresholds) in (2, 3):
+    if isinstance(thresholds, (tuple, list)) and len(thresholds) in (2, 3, 4):
         return Thresholds(*thresholds)
     raise TypeError(
         f"thresholds: expected Thresholds(position, normal) or a (position, normal) pair, got "
@@ -234,6 +235,7 @@ def _check_op_inputs(
         )
     check_device({values_name: values, "source view": src.depth, "destination view": dst.depth}, op, False)
     check_thresholds(thr.position, thr.normal, False)
+    _check_position_test(thr.position_test, f"{op}: thresholds")
 
 
 def backward_reproject(
@@ -389,7 +391,8 @@ def _torch_backward(
     wdt = compute_dtype(values, src.depth, src.normal, dst.depth, dst.normal)
     warp = _warp(src, dst, wdt, rectified)
     motion, motion_world = dst.motion, dst.motion_world
-    src_rotation = src.cam_from_world[:, :3, :3] if motion is not None else None
+    plane = thr.position_test == "plane"
+    src_rotation = src.cam_from_world[:, :3, :3] if motion is not None or plane else None
     if _exporting_lean(soft):
         return _lean.lean_reproject(
             values,
@@ -405,6 +408,7 @@ def _torch_backward(
             motion,
             motion_world,
             src_rotation,
+            thr.position_test,
         )
     inference = inference_only(
         (
@@ -440,6 +444,7 @@ def _torch_backward(
                 motion,
                 motion_world,
                 src_rotation,
+                thr.position_test,
             )
     return _general.general_reproject(
         values,
@@ -457,6 +462,7 @@ def _torch_backward(
         motion,
         motion_world,
         src_rotation,
+        thr.position_test,
     )
 
 
@@ -492,6 +498,7 @@ def _native_backward(
         dst.motion_world,
         src.cam_from_world[:, :3, :3],
         sampling == "catmull_rom",
+        plane=thr.position_test == "plane",
     )
 
 
@@ -524,6 +531,7 @@ def _native_temporal(
         rounding == "bmfr",
         sampling == "catmull_rom",
         bool(blend.footprint_weighting),
+        plane=thr.position_test == "plane",
     )
 
 

@@ -13,6 +13,7 @@ from ..errors import ParameterTypeError
 from . import _flat
 from .functional import BACKENDS, stereo_reproject, temporal_reproject
 from .view import Blend, Field, History, Thresholds, _check_footprint_weighting, _check_history_rounding, view_fields
+from .view import _check_position_test
 from ..errors import ParameterError
 from .clamp import _check_radius, fast_history_clamp
 from .view import FastClamp, _check_fast_clamp
@@ -54,16 +55,39 @@ class _ReprojectionBase(nn.Module):
         else:
             self.register_buffer("position_threshold", _threshold_param(position_threshold, False))
             self.register_buffer("normal_threshold", _threshold_param(normal_threshold, False))
+        self.position_test = "distance"
+
+    @property
+    def position_test(self) -> str:
+        """What ``position_threshold`` bounds: ``"distance"`` (default; scene units) or ``"plane"`` (the distance to
+        the destination's tangent plane relative to view depth, slope-scaled: see
+        :class:`~stereorepro.reproject.Thresholds`); set after construction (checked when set), honoured by the
+        exported graph.
+
+        Examples:
+            >>> from stereorepro import StereoReprojection
+            >>> m = StereoReprojection(0.01, 0.3)
+            >>> m.position_test = "plane"  # position_threshold 0.01: 1 % of view depth off the plane
+            >>> m.thresholds.position_test
+            'plane'
+        """
+        return self._position_test
+
+    @position_test.setter
+    def position_test(self, value: str) -> None:
+        _check_position_test(value, type(self).__name__)
+        self._position_test = value
 
     @property
     def thresholds(self) -> Thresholds:
         """The accept tests as the functions take them."""
-        return Thresholds(self.position_threshold, self.normal_threshold, self.temperature)
+        return Thresholds(self.position_threshold, self.normal_threshold, self.temperature, self.position_test)
 
     def extra_repr(self) -> str:
         return (
             f"position_threshold={float(self.position_threshold):g}, "
             f"normal_threshold={float(self.normal_threshold):g}, sampling={self.sampling!r}, soft={self.soft}"
+            + (f", position_test={self.position_test!r}" if self.position_test != "distance" else "")
         )
 
 

@@ -230,20 +230,47 @@ class View:
 
 
 class Thresholds(NamedTuple):
-    """The accept tests of a tap: ``|P_src − P_dst| <= position`` (scene units) and ``|N_src − N_dst| <= normal``
-    (unit normals), each a number or a one-element tensor >= 0 (``inf`` accepts everything); ``temperature`` is the
-    softness of ``soft=True`` tests, relative to the thresholds. A plain ``(position, normal)`` pair works too.
+    """The accept tests of a tap: a position test and ``|N_src − N_dst| <= normal`` (unit normals), each threshold a
+    number or a one-element tensor >= 0 (``inf`` accepts everything); ``temperature`` is the softness of
+    ``soft=True`` tests, relative to the thresholds. A plain ``(position, normal)`` pair works too.
+
+    ``position_test`` (one of :data:`POSITION_TESTS`) says what ``position`` bounds:
+
+    * ``"distance"`` (default): ``|P_src − P_dst| <= position``, an absolute distance in scene units;
+    * ``"plane"``: the distance of the source tap to the destination pixel's tangent plane, relative to its view
+      depth and widened at grazing angles (NVIDIA NRD's disocclusion test, without its parallax term):
+      ``|n_dst · (P_src − P_dst)| <= position · z_dst / (0.05 + 0.95·|n_dst · v_dst|)``. ``position`` is then a
+      fraction of view depth (dimensionless); ``n_dst`` is the destination pixel's world normal, ``z_dst`` its
+      depth, ``v_dst`` the unit direction of its view ray (from the destination camera through the pixel) and
+      ``P_dst`` the point the distance test compares with (moved by the world motion, when given). A destination
+      normal that is not finite or shorter than 0.5 (``|n|² < 0.25``) defines no plane: its taps fail the
+      position test. The soft test uses the plane distance² against the threshold² as ``"distance"`` does. Either
+      test reports ``Reason.POSITION``.
 
     Examples:
         >>> from stereorepro import Thresholds
         >>> t = Thresholds(0.01, 0.1)  # 1 cm of position, 0.1 of normal
         >>> t, t.position, t._replace(normal=float("inf")).normal
-        (Thresholds(position=0.01, normal=0.1, temperature=0.1), 0.01, inf)
+        (Thresholds(position=0.01, normal=0.1, temperature=0.1, position_test='distance'), 0.01, inf)
+        >>> Thresholds(0.01, 0.1, position_test="plane").position_test  # 1 % of view depth off the plane
+        'plane'
     """
 
     position: float | Tensor
     normal: float | Tensor
     temperature: float = 0.1
+    position_test: str = "distance"
+
+
+#: Values of :attr:`Thresholds.position_test`: ``"distance"`` (absolute distance in scene units) or ``"plane"``
+#: (distance to the destination's tangent plane relative to view depth, slope-scaled).
+POSITION_TESTS = ("distance", "plane")
+
+
+def _check_position_test(position_test, where: str) -> None:
+    """ParameterError naming ``where`` and the choices unless ``position_test`` is one of :data:`POSITION_TESTS`."""
+    if not (isinstance(position_test, str) and position_test in POSITION_TESTS):
+        raise ParameterError(f"{where}: position_test must be one of {POSITION_TESTS}, got {position_test!r}")
 
 
 #: Values of ``history_rounding`` (:class:`Blend`, :func:`~stereorepro.reproject.temporal_blend`): ``"none"``
