@@ -8,6 +8,7 @@ from pathlib import Path
 
 from ..._checks import check_backend_env, check_resolution
 from ...camera import DEFAULT_RESOLUTION, Eye
+from ...reproject import FastClamp
 from ...scenes import THRESHOLD_ROWS
 
 __all__ = [
@@ -20,6 +21,7 @@ __all__ = [
     "SCHEMES",
     "MOTION_SCHEMES",
     "OPTION_VARIANTS",
+    "PLANE_POSITION_THRESHOLD",
     "ExperimentConfig",
     "schemes",
     "validate_config",
@@ -96,6 +98,9 @@ class Scheme:
     options: tuple[tuple[str, object], ...] = ()
     #: Also measure the resampling bias without reference noise (the paper's schemes always do).
     bias: bool = False
+    #: The scheme's own position threshold, in the units of its position test (``"plane"``: a fraction of view
+    #: depth), instead of the scene's (scaled) one; None: the scene's.
+    position_threshold: float | None = None
 
 
 SCHEMES = (
@@ -172,13 +177,19 @@ class ExperimentConfig:
     option_variants: bool = False
 
 
+#: The position threshold of the plane-distance test's variant (``Thresholds(position_test="plane")``): the
+#: tap's distance to the destination pixel's plane, as a fraction of its view depth (slope-scaled).
+PLANE_POSITION_THRESHOLD = 0.01
+
 #: Table 2's option variants (``stereorepro experiment --option-variants``): the paper's temporal and
 #: stereo+temporal schemes, each with one option of the history on, named ``<scheme>_<suffix>``: suffix ->
-#: (sampling, driver settings). Each measures its resampling bias too.
-OPTION_VARIANTS: dict[str, tuple[str, tuple[tuple[str, object], ...]]] = {
-    "footprint": ("bilinear", (("footprint_weighting", True),)),
-    "bmfr": ("bilinear", (("history_rounding", "bmfr"),)),
-    "catmull_rom": ("catmull_rom", ()),
+#: (sampling, driver settings, position threshold or None for the scene's). Each measures its resampling bias too.
+OPTION_VARIANTS: dict[str, tuple[str, tuple[tuple[str, object], ...], float | None]] = {
+    "footprint": ("bilinear", (("footprint_weighting", True),), None),
+    "bmfr": ("bilinear", (("history_rounding", "bmfr"),), None),
+    "catmull_rom": ("catmull_rom", (), None),
+    "plane": ("bilinear", (("position_test", "plane"),), PLANE_POSITION_THRESHOLD),
+    "clamp": ("bilinear", (("fast_clamp", FastClamp()),), None),
 }
 
 
@@ -202,7 +213,7 @@ def schemes(cfg: ExperimentConfig, moving_objects: bool = False) -> list[Scheme]
         >>> "temporal_mv" in [s.name for s in schemes(cfg, moving_objects=True)]
         True
         >>> [s.name for s in schemes(ExperimentConfig(scene="cornell", out="runs/a", option_variants=True))][-2:]
-        ['temporal_catmull_rom', 'stereo_temporal_catmull_rom']
+        ['temporal_clamp', 'stereo_temporal_clamp']
     """
     out = list(SCHEMES) + (list(MOTION_SCHEMES) if moving_objects else [])
     for a in cfg.alphas:
@@ -211,9 +222,10 @@ def schemes(cfg: ExperimentConfig, moving_objects: bool = False) -> list[Scheme]
             out.append(Scheme(f"stereo_temporal_alpha{a:g}", True, True, LEFT, alpha=a))
             out.append(Scheme(f"stereo_temporal_blend_alpha{a:g}", True, True, LEFT, alpha=a, left_mode="blend"))
     if cfg.option_variants:
-        for suffix, (sampling, options) in OPTION_VARIANTS.items():
-            out.append(Scheme(f"temporal_{suffix}", False, True, RIGHT, sampling, options=options, bias=True))
-            out.append(Scheme(f"stereo_temporal_{suffix}", True, True, LEFT, sampling, options=options, bias=True))
+        for suffix, (sampling, options, pos) in OPTION_VARIANTS.items():
+            kw = dict(options=options, bias=True, position_threshold=pos)
+            out.append(Scheme(f"temporal_{suffix}", False, True, RIGHT, sampling, **kw))
+            out.append(Scheme(f"stereo_temporal_{suffix}", True, True, LEFT, sampling, **kw))
     return out
 
 

@@ -413,8 +413,9 @@ class _SchemeRun:
 
     @classmethod
     def make(cls, s: Scheme, run: _Run) -> _SchemeRun:
+        pos_thr = run.pos_thr if s.position_threshold is None else s.position_threshold
         drv = SpatiotemporalReprojection(
-            run.pos_thr,
+            pos_thr,
             run.nrm_thr,
             alpha=s.alpha,
             sampling=s.sampling,
@@ -426,7 +427,7 @@ class _SchemeRun:
 
         def fed():
             return SpatiotemporalReprojection(
-                run.pos_thr, run.nrm_thr, alpha=s.alpha, sampling=s.sampling, stereo=s.stereo, temporal=s.temporal
+                pos_thr, run.nrm_thr, alpha=s.alpha, sampling=s.sampling, stereo=s.stereo, temporal=s.temporal
             )
 
         clean = fed() if s.paper else None
