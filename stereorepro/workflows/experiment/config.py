@@ -179,7 +179,7 @@ class ExperimentConfig:
 
 #: The position threshold of the plane-distance test's variant (``Thresholds(position_test="plane")``): the
 #: tap's distance to the destination pixel's plane, as a fraction of its view depth (slope-scaled).
-PLANE_POSITION_THRESHOLD = 0.01
+PLANE_POSITION_THRESHOLD = 0.005
 
 #: Table 2's option variants (``stereorepro experiment --option-variants``): the paper's temporal and
 #: stereo+temporal schemes, each with one option of the history on, named ``<scheme>_<suffix>``: suffix ->
@@ -189,6 +189,8 @@ OPTION_VARIANTS: dict[str, tuple[str, tuple[tuple[str, object], ...], float | No
     "bmfr": ("bilinear", (("history_rounding", "bmfr"),), None),
     "catmull_rom": ("catmull_rom", (), None),
     "plane": ("bilinear", (("position_test", "plane"),), PLANE_POSITION_THRESHOLD),
+    # the plane test lets whole 4x4 footprints pass on most surfaces: where Catmull-Rom reads act
+    "plane_catmull_rom": ("catmull_rom", (("position_test", "plane"),), PLANE_POSITION_THRESHOLD),
     "clamp": ("bilinear", (("fast_clamp", FastClamp()),), None),
 }
 
