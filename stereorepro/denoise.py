@@ -553,7 +553,12 @@ def reprojection_features(
     if other is not None:
         o_color, o_view = _check_other(other, view)
         s_color, s_valid, _, _ = stereo_reproject(
-            o_color, o_view, view, Thresholds(thr.position, thr.normal), sampling=sampling, backend=backend
+            o_color,
+            o_view,
+            view,
+            Thresholds(thr.position, thr.normal, position_test=thr.position_test),
+            sampling=sampling,
+            backend=backend,
         )
     if previous_output is not None:
         out = warp_values(previous_output, prev_view, view, thr, sampling, backend=backend, confidence=False)

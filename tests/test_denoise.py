@@ -284,6 +284,22 @@ class TestReprojectionDenoiser(BaseTester):
             with pytest.raises(StereoreproError, match=match):
                 reprojection_features(sx[0], view, history, prev, THR, other=other)
 
+    def test_stereo_step_keeps_the_position_test(self):
+        """The other eye's stereo step uses the thresholds' own position test: with ``position_test="plane"`` the
+        threshold is a fraction of view depth there too (read as a distance it keeps nothing here)."""
+        from stereorepro import Blend, Thresholds, temporal_reproject
+
+        sx = inputs(make(True))
+        view, history, prev, o_view = View(*sx[1:5]), History(sx[5], sx[6]), View(*sx[7:11]), View(*sx[12:16])
+        thr = Thresholds(0.005, 0.2, position_test="plane")
+        got = reprojection_features(sx[0], view, history, prev, thr, other=(sx[11], o_view))
+        t = temporal_reproject(sx[0], view, history, prev, thr)
+        s = stereo_reproject(sx[11], o_view, view, thr)
+        assert float(s.valid.float().mean()) > 0.9
+        max_history = Blend().max_history
+        want = denoise_features(t.color, t.history_len, t.valid, view.depth, view.normal, max_history, *s[:2])
+        assert torch.equal(got.features, want)
+
     # ------------------------------------------------------------------------------------------------ ONNX
     @pytest.mark.onnx
     @pytest.mark.parametrize("stereo", [False, True], ids=["temporal", "stereo"])
