@@ -155,7 +155,9 @@ def temporal_step(
 
     Args:
         module: the settings (thresholds, alpha, warm-up, cap, sampling, soft, backend); its parameters carry
-            gradients when it is soft.
+            gradients when it is soft. With its ``fast_clamp`` (a :class:`~stereorepro.reproject.FastClamp`) the
+            state also carries a fast history (``EyeState.fast_color``, warped with the slow one) and the new
+            colour is clamped to the fast history's box where the history was kept.
         state: the eye's previous frame, or None for the first frame of an accumulation.
         color: (B, 3, H, W) this frame's samples; depth: (B, 1, H, W); normal: (B, 3, H, W); K: (B, 3, 3);
             cam_from_world: (B, 4, 4).
