@@ -66,6 +66,8 @@ class TestExperiment:
             base = "temporal" if name.startswith("temporal_") else "stereo_temporal"
             rm = [(r["rmse"][base], r["rmse"][name]) for r in res["per_frame"]]
             assert any(a != b for a, b in rm), (name, rm)
+            bias = [(r["bias_mse"][base], r["bias_mse"][name]) for r in res["per_frame"]]
+            assert any(a != b for a, b in bias), (name, bias)  # the reference halves ran with the option too
         (tmp_path / "b" / "report.md").read_text().index("stereo_temporal_footprint")
 
     def test_smoke(self, first_run):

@@ -425,9 +425,17 @@ class _SchemeRun:
             alternate=s.alternate,
         )
 
-        def fed():
+        def fed():  # fed references through right()/left(): the right eye traced in full every frame
+            if s.alternate:
+                raise ValueError(f"scheme {s.name}: the bias of an alternating scheme is not measured")
             return SpatiotemporalReprojection(
-                pos_thr, run.nrm_thr, alpha=s.alpha, sampling=s.sampling, stereo=s.stereo, temporal=s.temporal
+                pos_thr,
+                run.nrm_thr,
+                alpha=s.alpha,
+                sampling=s.sampling,
+                stereo=s.stereo,
+                temporal=s.temporal,
+                left_mode=s.left_mode,
             )
 
         clean = fed() if s.paper else None
