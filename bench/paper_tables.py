@@ -81,6 +81,7 @@ def tables(runs: dict[str, dict]) -> str:
             )
             + " |"
         )
+    lines += _option_lines(runs)
     for scene, r in runs.items():
         study = r.get("reference_study")
         if not study:
@@ -97,6 +98,41 @@ def tables(runs: dict[str, dict]) -> str:
         for p, row in study.items():
             lines.append(f"| {p} | " + " | ".join(_t(row[k]["avg"]) for k in keys) + " |")
     return "\n".join(lines) + "\n"
+
+
+def _pct(x, base) -> str:
+    return "–" if x is None or not base else f"{100.0 * (x / base - 1.0):+.1f} %"
+
+
+def _option_lines(runs: dict[str, dict]) -> list[str]:
+    """Per run with option variants: each option against its plain scheme (effective spp, temporal error, the
+    resampling bias's share of the MSE without reference noise, ms per frame of the evaluated eye)."""
+    lines = []
+    for scene, r in runs.items():
+        if not r.get("option_variants"):
+            continue
+        t2 = {**r["table2"], **r["table2_variants"]}
+        te, bias, ms = r.get("temporal_error") or {}, r.get("bias") or {}, r.get("timing_ms") or {}
+        lines += [
+            "",
+            f"**Option variants, {scene}** ({r['frames']} frames at {r['resolution']}) — effective spp average "
+            "over all frames / from the warm-up on (change against the plain scheme), temporal error (avg), "
+            "resampling bias as a share of the MSE (avg, without reference noise), ms per frame of the evaluated "
+            "eye's steps (median)",
+            "",
+            "| scheme | effective spp | change | temporal error | bias share | ms |",
+            "|---|---|---:|---:|---:|---:|",
+        ]
+        for k in [k for k in t2 if k in ("temporal", "stereo_temporal") or k in bias and k not in r["table2"]]:
+            base = "temporal" if k.startswith("temporal") else "stereo_temporal"
+            b = (bias.get(k) or {}).get("bias_share") or {}
+            share = "–" if b.get("avg") is None else f"{100.0 * b['avg']:.1f} %"
+            lines.append(
+                f"| {k} | {_t(t2[k]['avg'])} / {_t(t2[k].get('avg_after_warmup'))} | "
+                f"{_pct(t2[k]['avg'], t2[base]['avg']) if k != base else ''} | "
+                f"{_t((te.get(k) or {}).get('avg'), 4)} | {share} | {_t(ms.get(f'reproject_{k}_ms'), 0)} |"
+            )
+    return lines
 
 
 def main(argv=None) -> int:
@@ -130,6 +166,8 @@ def main(argv=None) -> int:
                 "wall_s",
                 "thresholds",
                 "flags",
+                "option_variants",
+                "temporal_error",
             )
         }
         runs[Path(d).name].update(path=str(d), scene=r["scene"])
