@@ -139,6 +139,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", nargs="+", required=True, help="experiment output folders (with results.json)")
     ap.add_argument("--name", required=True, help="results file name under bench/results/")
+    ap.add_argument("--note", default="", help="a paragraph above the tables (how the runs were made)")
     args = ap.parse_args(argv)
     runs = {}
     for d in args.runs:
@@ -172,7 +173,10 @@ def main(argv=None) -> int:
         }
         runs[Path(d).name].update(path=str(d), scene=r["scene"])
     md = tables(runs)
-    save(args.name, {**header(), "runs": runs, "paper_table1": PAPER_T1, "paper_table2": PAPER_T2}, md)
+    if args.note:
+        md = args.note + "\n\n" + md
+    record = {**header(), "runs": runs, "paper_table1": PAPER_T1, "paper_table2": PAPER_T2, "note": args.note}
+    save(args.name, record, md, script="paper_tables.py")
     print(md)
     return 0
 
