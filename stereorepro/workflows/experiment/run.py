@@ -414,21 +414,9 @@ class _SchemeRun:
     @classmethod
     def make(cls, s: Scheme, run: _Run) -> _SchemeRun:
         pos_thr = run.pos_thr if s.position_threshold is None else s.position_threshold
-        drv = SpatiotemporalReprojection(
-            pos_thr,
-            run.nrm_thr,
-            alpha=s.alpha,
-            sampling=s.sampling,
-            stereo=s.stereo,
-            temporal=s.temporal,
-            left_mode=s.left_mode,
-            alternate=s.alternate,
-        )
 
-        def fed():  # fed references through right()/left(): the right eye traced in full every frame
-            if s.alternate:
-                raise ValueError(f"scheme {s.name}: the bias of an alternating scheme is not measured")
-            return SpatiotemporalReprojection(
+        def driver(alternate: bool) -> SpatiotemporalReprojection:  # the config's history options, then the scheme's
+            d = SpatiotemporalReprojection(
                 pos_thr,
                 run.nrm_thr,
                 alpha=s.alpha,
@@ -436,16 +424,22 @@ class _SchemeRun:
                 stereo=s.stereo,
                 temporal=s.temporal,
                 left_mode=s.left_mode,
+                alternate=alternate,
             )
+            d.history_rounding = run.cfg.history_rounding
+            d.footprint_weighting = run.cfg.footprint_weighting
+            for name, value in s.options:
+                setattr(d, name, value)
+            return d
 
+        def fed():  # fed references through right()/left(): the right eye traced in full every frame
+            if s.alternate:
+                raise ValueError(f"scheme {s.name}: the bias of an alternating scheme is not measured")
+            return driver(False)
+
+        drv = driver(s.alternate)
         clean = fed() if s.paper else None
         halves = (fed(), fed()) if (s.paper or s.bias) and run.spec.chunks >= 2 else None
-        for d in (drv, clean, *(halves or ())):  # the config's history options, then the scheme's own
-            if d is not None:
-                d.history_rounding = run.cfg.history_rounding
-                d.footprint_weighting = run.cfg.footprint_weighting
-                for name, value in s.options:
-                    setattr(d, name, value)
         return cls(s, drv, clean, halves=halves)
 
     def reproject(self, fd: _FrameData) -> tuple[torch.Tensor, torch.Tensor, float]:
