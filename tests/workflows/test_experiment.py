@@ -523,3 +523,26 @@ class TestRenderTasks:
         assert f0["rmse"]["alternate"] == f0["rmse"]["stereo_temporal"]
         assert f1["rmse"]["alternate"] != f1["rmse"]["stereo_temporal"]
         assert all(v["avg"] > 0 for v in var.values())
+
+
+class TestCostPlotStyles:
+    def test_every_scheme_distinct(self):
+        """The cost plot tells every scheme apart, the option variants included: no two share marker and colour;
+        the marker is the family's, the colour the variant's (the same option reads alike in every family)."""
+        from matplotlib import colormaps
+
+        from stereorepro.workflows.experiment.config import schemes
+        from stereorepro.workflows.experiment.report import _cost_styles
+
+        cfg = ExperimentConfig(scene="cornell", out="unused", alphas=(0.1, 0.5), option_variants=True)
+        names = [s.name for s in schemes(cfg, moving_objects=True)]
+        styles = _cost_styles(names, colormaps["tab20"].colors)
+        assert len(names) > 25 and len(set(styles.values())) == len(names)
+        assert styles["temporal_clamp"][1] == styles["stereo_temporal_clamp"][1]
+        assert styles["temporal"][1] == styles["stereo"][1] == styles["stereo_temporal"][1]
+        assert [styles[n][0] for n in ("stereo", "temporal", "stereo_temporal_clamp", "alternate_blend")] == [
+            "o",
+            "s",
+            "^",
+            "D",
+        ]

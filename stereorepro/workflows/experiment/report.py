@@ -300,13 +300,31 @@ def _figure4(plt, results, per_frame, keep, cfg):
     return fig, "fig4_comparison.png"
 
 
-#: Marker shapes of the cost plot's schemes (colours cycle through tab20 alongside).
-_COST_MARKERS = ("o", "s", "^", "D", "v", "P", "X", "<", ">", "h")
+#: The cost plot's marker per scheme family (longest matching name prefix first); a scheme of no family gets "*".
+_COST_FAMILY_MARKERS = (("stereo_temporal", "^"), ("alternate", "D"), ("temporal", "s"), ("stereo", "o"))
+
+
+def _cost_styles(names: list[str], colours) -> dict[str, tuple[str, tuple]]:
+    """Marker and colour of each scheme in the cost plot: the marker says the family (stereo, temporal,
+    stereo + temporal, alternate), the colour the variant (the rest of the name: plain, nearest, blend, alpha0.1,
+    an option...), so the same option reads alike in every family and no two schemes share a symbol (for up to
+    ``len(colours)`` variants)."""
+    styles, variants = {}, {}
+    for name in names:
+        marker, variant = "*", name
+        for prefix, m in _COST_FAMILY_MARKERS:
+            if name == prefix or name.startswith(prefix + "_"):
+                marker, variant = m, name[len(prefix) + 1 :]
+                break
+        colour = colours[variants.setdefault(variant, len(variants)) % len(colours)]
+        styles[name] = (marker, colour)
+    return styles
 
 
 def _figure_cost(plt, results, per_frame, keep, cfg):
     """What accuracy costs in time: effective spp against ms per frame. Plain path tracing at n spp is the black line
-    (each point labelled with its n); every scheme is one marker with its own legend entry beside the axes."""
+    (each point labelled with its n); every scheme is one marker with its own legend entry beside the axes, its shape
+    the scheme's family and its colour the variant (:func:`_cost_styles`)."""
     from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
     fig, ax = plt.subplots(figsize=(8.5, 4.5))
@@ -321,16 +339,10 @@ def _figure_cost(plt, results, per_frame, keep, cfg):
     for r, n in zip(pt, spp):
         ax.annotate(n, (r["ms"], r["effective_spp"]), fontsize=7, xytext=(4, -9), textcoords="offset points")
     rest = [r for r in results["cost"] if not r["scheme"].startswith("path tracing") and r["effective_spp"]]
-    colours = plt.get_cmap("tab20").colors
-    for i, r in enumerate(rest):
-        ax.plot(
-            r["ms"],
-            r["effective_spp"],
-            _COST_MARKERS[i % len(_COST_MARKERS)],
-            color=colours[i % len(colours)],
-            ms=6,
-            label=r["scheme"],
-        )
+    styles = _cost_styles([r["scheme"] for r in rest], plt.get_cmap("tab20").colors)
+    for r in rest:
+        marker, colour = styles[r["scheme"]]
+        ax.plot(r["ms"], r["effective_spp"], marker, color=colour, ms=6, label=r["scheme"])
     ax.set_xscale("log")
     ax.set_yscale("log")
     for axis, values in (
