@@ -69,6 +69,9 @@ from .measure.metrics import (
 )
 from .measure.temporal import temporal_error
 from .reproject import (
+    HISTORY_ROUNDINGS,
+    POSITION_TESTS,
+    SAMPLINGS,
     Blend,
     FastClamp,
     FastHistoryClamp,
@@ -124,6 +127,9 @@ __all__ = [
     "History",
     "ReprojectionResult",
     "TemporalResult",
+    "SAMPLINGS",
+    "POSITION_TESTS",
+    "HISTORY_ROUNDINGS",
     # reprojection ops and modules
     "Reason",
     "StereoReprojection",

@@ -51,7 +51,8 @@ __all__ = [
 #: input is float64, the native kernels always; ``inf`` is the way to say "no limit").
 FLOAT32_MAX = float(torch.finfo(torch.float32).max)
 
-#: Tap sampling of the reprojection: 2×2 bilinear taps (the paper's) or the one nearest tap.
+#: Tap sampling of the reprojection: 2×2 bilinear taps (the paper's), the one nearest tap, or 4×4 Catmull-Rom taps
+#: where the whole footprint passes the tests (bilinear elsewhere; NVIDIA NRD's rule).
 SAMPLINGS = ("bilinear", "nearest", "catmull_rom")
 
 #: Argument names of the reprojection roles, as the stereo and the temporal functions call them.

@@ -20,7 +20,18 @@ from .modules import StereoReprojection, TemporalReprojection
 from .clamp import fast_history_clamp
 from .modules import FastHistoryClamp
 from .reason import REASON_COLORS, Reason, reason_to_rgb
-from .view import Blend, FastClamp, History, ReprojectionResult, TemporalResult, Thresholds, View
+from .._checks import SAMPLINGS
+from .view import (
+    HISTORY_ROUNDINGS,
+    POSITION_TESTS,
+    Blend,
+    FastClamp,
+    History,
+    ReprojectionResult,
+    TemporalResult,
+    Thresholds,
+    View,
+)
 
 __all__ = [
     "View",
@@ -30,6 +41,9 @@ __all__ = [
     "History",
     "ReprojectionResult",
     "TemporalResult",
+    "SAMPLINGS",
+    "POSITION_TESTS",
+    "HISTORY_ROUNDINGS",
     "Reason",
     "REASON_COLORS",
     "SOFT_DEN_FLOOR",
