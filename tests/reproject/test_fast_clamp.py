@@ -90,6 +90,22 @@ class TestOp(BaseTester):
         assert torch.isnan(got[0, 0, 1, 1]) and torch.isfinite(got[0, 2, 3, 3]) and torch.isfinite(got[1, 1, 5, 5])
         assert float(got[1, 0, 0, 0]) == float(color[1, 0, 0, 0])  # no finite value in its window
 
+    @pytest.mark.parametrize("radius", [1, 2])
+    def test_finite_path_equals_masked_path(self, radius):
+        """All-finite fast values take the path without finite masks: byte for byte what the masked path gives
+        (a NaN at one pixel sends the call down the masked path; every window without it is unchanged), and on
+        the numpy definition at the borders (radius 2 on a 7-pixel-high frame)."""
+        color, fast = _random(dtype=torch.float32)
+        color = 3 * color - 1
+        plain = fast_history_clamp(color, fast, 2.0, radius)
+        holed = fast.clone()
+        holed[1, 2, 3, 4] = float("nan")
+        masked = fast_history_clamp(color, holed, 2.0, radius)
+        away = torch.ones_like(plain, dtype=torch.bool)
+        away[1, 2, 3 - radius : 3 + radius + 1, 4 - radius : 4 + radius + 1] = False
+        assert torch.equal(plain[away], masked[away]) and not torch.equal(plain, masked)
+        np.testing.assert_allclose(plain.double().numpy(), numpy_clamp(color, fast, 2.0, radius), rtol=0, atol=1e-6)
+
     def test_dtypes(self):
         color, fast = _random(dtype=torch.float32)
         for dtype in (torch.float16, torch.bfloat16, torch.float32):
