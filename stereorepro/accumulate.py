@@ -251,7 +251,7 @@ def _fast_clamped_step(m: TemporalReprojection, state: EyeState, color: Tensor, 
     slow, n = _blend_checked(color, slow_w, n_w, confidence, *blend[:4])
     fast, _ = _blend_checked(color, fast_w, n_w, confidence, fc.alpha, blend.warmup, blend.max_history)
     if clamp:
-        slow = torch.where(valid, _clamp_checked(slow, fast, fc.sigma, fc.radius), slow)
+        slow = torch.where(valid, _clamp_checked(slow, fast, fc.sigma, fc.radius, m.backend), slow)
     return slow, n, fast, valid, reason
 
 
@@ -951,7 +951,9 @@ class SpatiotemporalReprojection:
                 out = filled
             if fast is not None and valid is not None:  # the clamp at the traced pixels that kept a history
                 fc = self.temporal_module.fast_clamp
-                out = torch.where(valid & trace, _clamp_checked(out, fast, fc.sigma, fc.radius), out)
+                out = torch.where(
+                    valid & trace, _clamp_checked(out, fast, fc.sigma, fc.radius, self.temporal_module.backend), out
+                )
         self.left_valid = self.other_valid if eye == "left" else None
         setattr(self, f"{eye}_state", EyeState(out, n, depth, normal, K, cam_from_world, fast))
         self._left_gbuffer = None
@@ -978,7 +980,7 @@ class SpatiotemporalReprojection:
             self.stereo_weight,
         )
         kept = self.stereo_valid | own_valid
-        return torch.where(kept, _clamp_checked(out, fast, fc.sigma, fc.radius), out), fast
+        return torch.where(kept, _clamp_checked(out, fast, fc.sigma, fc.radius, m.backend), out), fast
 
     def left(self, traced_color: Tensor) -> Tensor:
         """Complete the left eye from the traced discarded pixels (:meth:`other` when the left eye is the

@@ -1,5 +1,6 @@
 // stereorepro._core: optional native kernels. Pure torch / numpy (stereorepro/*.py) is the reference;
-// every kernel has a Python twin and a parity test (tests/reproject/test_reproject_native.py, tests/render/test_render_native.py).
+// every kernel has a Python twin and a parity test (tests/reproject/test_reproject_native.py,
+// tests/reproject/test_fast_clamp.py, tests/render/test_render_native.py).
 #include <nanobind/nanobind.h>
 
 namespace nb = nanobind;

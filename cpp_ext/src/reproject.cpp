@@ -1,5 +1,6 @@
 // Fused backward reprojection (stereo and temporal), the native twin of stereorepro.reproject.backward_reproject
-// (hard tests, float32) and of temporal_reproject (warp + temporal_blend in the same pass).
+// (hard tests, float32) and of temporal_reproject (warp + temporal_blend in the same pass); and the twin of
+// fast_history_clamp (at the end of the file).
 //
 // One pass per destination pixel: unproject with the destination depth, project into the source camera, read the
 // 2x2 bilinear taps (or the nearest one), run the accept tests (in frame, source surface, position, normal,
@@ -1216,6 +1217,111 @@ void temporal_reproject(CA current, CA history_color, CA history_len, CA prev_de
     dispatch(bt, Tests{pos_thr2, nrm_thr2, cubic, plane}, bilinear || cubic, sink);
 }
 
+// Fast-history clamp (NVIDIA NRD's RELAX), the native twin of stereorepro.reproject.clamp._clamp_checked, with the
+// same float32 operations in the same order (so the same bytes): per (b, c) plane the window sums of the finite
+// fast values x0 (0 where not finite), of x0 * x0 and of the finite count, separable (rows, then columns; each
+// sum starts at the window's first term and adds the following ones in order, 0 for a term outside the frame,
+// as torch's sum of shifted slices of a zero-padded copy); then mean = s1 / n, var = s2 / n - mean * mean,
+// std = var > 0 ? sqrt(var) : 0, half = sigma * std, out = min(max(c, mean - half), mean + half) (NaN-propagating
+// like torch.maximum / minimum), and out = c where the window holds no finite value.
+SR_INLINE float nan_max(float a, float b) { return a != a ? a : b != b ? b : a > b ? a : b; }
+SR_INLINE float nan_min(float a, float b) { return a != a ? a : b != b ? b : a < b ? a : b; }
+
+// One row of a float32 or float16 plane as float32 (float16 widened exactly).
+SR_INLINE void load_row(const Plane &p, int64_t off, int64_t n, float *dst) {
+    if (p.half)
+        for (int64_t i = 0; i < n; ++i) dst[i] = half_to_float(p.f16()[off + i]);
+    else
+        std::memcpy(dst, p.f32() + off, n * sizeof(float));
+}
+
+void fast_history_clamp(CA color, CA fast, float sigma, int64_t radius, OA out) {
+    if (color.ndim() != 4) throw std::invalid_argument("fast_history_clamp: color must be 4-D (B, C, H, W)");
+    const int64_t B = color.shape(0), C = color.shape(1), H = color.shape(2), W = color.shape(3);
+    expect_shape(fast, "fast", {B, C, H, W});
+    expect_shape(out, "out", {B, C, H, W});
+    if (radius < 0) throw std::invalid_argument("fast_history_clamp: radius must be >= 0");
+    const Plane cp = plane_of(color, "color"), fp = plane_of(fast, "fast");
+    const OutPlane op = plane_of(out, "out");
+    nb::gil_scoped_release release;
+    const int64_t HW = H * W, r = radius, taps = 2 * radius + 1, Wp = W + 2 * radius;
+    std::vector<float> h1(HW), h2(HW), hn(HW), zero(W, 0.0f);  // the row sums of one plane; a zero row
+    for (int64_t p = 0; p < B * C; ++p) {
+        const Plane f = fp + p * HW, c = cp + p * HW;
+        const OutPlane o = op + p * HW;
+#ifdef STEREOREPRO_OPENMP
+#pragma omp parallel
+#endif
+        {
+            std::vector<float> row(W), b1(Wp, 0.0f), b2(Wp, 0.0f), bn(Wp, 0.0f);  // zero-padded by r
+#ifdef STEREOREPRO_OPENMP
+#pragma omp for schedule(static)
+#endif
+            for (int64_t y = 0; y < H; ++y) {
+                load_row(f, y * W, W, row.data());
+#pragma omp simd
+                for (int64_t x = 0; x < W; ++x) {
+                    const float v = row[x];
+                    const bool ok = v - v == 0.0f;  // finite
+                    b1[x + r] = ok ? v : 0.0f;
+                    b2[x + r] = ok ? v * v : 0.0f;
+                    bn[x + r] = ok ? 1.0f : 0.0f;
+                }
+                float *s1 = h1.data() + y * W, *s2 = h2.data() + y * W, *sn = hn.data() + y * W;
+#pragma omp simd
+                for (int64_t x = 0; x < W; ++x) s1[x] = b1[x], s2[x] = b2[x], sn[x] = bn[x];
+                for (int64_t i = 1; i < taps; ++i)
+#pragma omp simd
+                    for (int64_t x = 0; x < W; ++x)
+                        s1[x] = s1[x] + b1[x + i], s2[x] = s2[x] + b2[x + i], sn[x] = sn[x] + bn[x + i];
+            }
+        }
+#ifdef STEREOREPRO_OPENMP
+#pragma omp parallel
+#endif
+        {
+            std::vector<float> v1(W), v2(W), vn(W), cur(W), res(W);
+#ifdef STEREOREPRO_OPENMP
+#pragma omp for schedule(static)
+#endif
+            for (int64_t y = 0; y < H; ++y) {
+                for (int64_t i = 0; i < taps; ++i) {  // rows y - r .. y + r in order
+                    const int64_t k = y - r + i;
+                    const bool in = k >= 0 && k < H;  // outside: a zero row, added like torch's padding
+                    const float *a1 = in ? h1.data() + k * W : zero.data(), *a2 = in ? h2.data() + k * W : zero.data(),
+                                *an = in ? hn.data() + k * W : zero.data();
+                    if (i == 0) {
+#pragma omp simd
+                        for (int64_t x = 0; x < W; ++x) v1[x] = a1[x], v2[x] = a2[x], vn[x] = an[x];
+                    } else {
+#pragma omp simd
+                        for (int64_t x = 0; x < W; ++x)
+                            v1[x] = v1[x] + a1[x], v2[x] = v2[x] + a2[x], vn[x] = vn[x] + an[x];
+                    }
+                }
+                load_row(c, y * W, W, cur.data());
+                // three loops: the square roots (scalar: errno-setting sqrt) apart, so the other two vectorise
+#pragma omp simd
+                for (int64_t x = 0; x < W; ++x) {
+                    const float safe = vn[x] > 0.0f ? vn[x] : 1.0f, mean = v1[x] / safe;
+                    v1[x] = mean;
+                    v2[x] = v2[x] / safe - mean * mean;  // the variance
+                }
+                for (int64_t x = 0; x < W; ++x) v2[x] = v2[x] > 0.0f ? std::sqrt(v2[x]) : 0.0f;
+#pragma omp simd
+                for (int64_t x = 0; x < W; ++x) {
+                    const float mean = v1[x], half = sigma * v2[x], cv = cur[x];
+                    res[x] = vn[x] > 0.0f ? nan_min(nan_max(cv, mean - half), mean + half) : cv;
+                }
+                if (o.half)
+                    for (int64_t x = 0; x < W; ++x) o.f16()[y * W + x] = float_to_half(res[x]);
+                else
+                    std::memcpy(o.f32() + y * W, res.data(), W * sizeof(float));
+            }
+        }
+    }
+}
+
 }  // namespace
 
 void bind_reproject(nb::module_ &m) {
@@ -1260,6 +1366,12 @@ void bind_reproject(nb::module_ &m) {
           "taps pass, clamped at 0).\n"
           "plane: the plane test (position_test=\"plane\"): |n.(P_src - q)|^2 <= pos_thr2 * scale^2, scale = z / "
           "(0.05 + 0.95 |n.v|), n the destination normal rotated by R (B, 9), needed then.");
+    m.def("fast_history_clamp", &fast_history_clamp, nb::arg("color").noconvert(), nb::arg("fast").noconvert(),
+          nb::arg("sigma"), nb::arg("radius"), nb::arg("out").noconvert(),
+          "Fast-history clamp (NRD RELAX), the twin of stereorepro.reproject.fast_history_clamp: out = color clamped "
+          "per channel to mean +- sigma * std of the finite in-frame values of fast in the (2 radius + 1)^2 window "
+          "(color where the window has none). color, fast (B, C, H, W) and out float32 or float16, each on its own; "
+          "compute is float32, in torch's order (same bytes).");
     m.def("temporal_reproject", &temporal_reproject, nb::arg("current").noconvert(),
           nb::arg("history_color").noconvert(), nb::arg("history_len").noconvert(),
           nb::arg("prev_depth").noconvert(), nb::arg("prev_normal").noconvert(), nb::arg("P").noconvert(),

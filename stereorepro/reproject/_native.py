@@ -27,7 +27,9 @@ __all__ = ["available", "core_constants", "reproject", "temporal_reproject"]
 
 def available() -> bool:
     """True when ``stereorepro._core`` is importable and has the reprojection kernels."""
-    return _core is not None and hasattr(_core, "reproject") and hasattr(_core, "temporal_reproject")
+    return _core is not None and all(
+        hasattr(_core, k) for k in ("reproject", "temporal_reproject", "fast_history_clamp")
+    )
 
 
 def _require() -> None:
@@ -240,3 +242,22 @@ def temporal_reproject(
         **({"plane": True} if plane else {}),
     )
     return color, n_out, valid
+
+
+def fast_history_clamp(color: Tensor, fast_color: Tensor, sigma: float, radius: int) -> Tensor:
+    """:func:`stereorepro.reproject.fast_history_clamp` in the native core: the same bytes.
+
+    Args:
+        color, fast_color: (B, C, H, W) float32 or float16 (each on its own; computed in float32).
+        sigma: the box's half width in standard deviations (rounded to float32 as torch does).
+        radius: the window's radius, >= 0.
+
+    Returns:
+        (B, C, H, W) the clamped colour, dtype of ``color``.
+    """
+    _require()
+    c = _image_contiguous(color, "color")
+    f = _image_contiguous(fast_color, "fast_color")
+    out = torch.empty_like(c)
+    _core.fast_history_clamp(c, f, float(sigma), int(radius), out)
+    return out

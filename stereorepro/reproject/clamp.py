@@ -15,20 +15,14 @@ from torch import Tensor
 
 from .._checks import check_floating, check_scalar, check_shape, tracing
 from .._tensors import as_scalar, compute_dtype
-from ..errors import ParameterError, ParameterTypeError
+from . import _native
+from .functional import select_backend
+from .view import _check_radius
 
 __all__ = ["fast_history_clamp"]
 
 
-def _check_radius(radius, where: str) -> None:
-    """ParameterTypeError unless ``radius`` is an int (not a bool), ParameterError unless it is >= 0."""
-    if isinstance(radius, bool) or not isinstance(radius, int):
-        raise ParameterTypeError(f"{where}: radius must be an int >= 0 (1: a 3x3 window), got {radius!r}")
-    if radius < 0:
-        raise ParameterError(f"{where}: radius must be >= 0 (1: a 3x3 window), got {radius}")
-
-
-def fast_history_clamp(color: Tensor, fast_color: Tensor, sigma=2.0, radius: int = 1) -> Tensor:
+def fast_history_clamp(color: Tensor, fast_color: Tensor, sigma=2.0, radius: int = 1, backend: str = "auto") -> Tensor:
     """Clamp a (slow) history to the colour box of a fast history's neighbourhood, per channel (NRD RELAX).
 
     At each pixel and channel the box is ``[μ − sigma·σ, μ + sigma·σ]``, μ and σ the mean and standard deviation
@@ -52,6 +46,9 @@ def fast_history_clamp(color: Tensor, fast_color: Tensor, sigma=2.0, radius: int
         sigma: the box's half width in standard deviations, a finite number >= 0 or a one-element tensor
             (RELAX's default 2).
         radius: the window's radius in pixels, an int >= 0 (1: 3×3; 2: 5×5).
+        backend: ``"auto"`` | ``"torch"`` | ``"native"``, the ops' one rule
+            (:func:`~stereorepro.reproject.select_backend`): the native core (the same bytes) for float32 /
+            float16 CPU tensors without autograd, else torch.
 
     Returns:
         (B, C, H, W) the clamped colour, dtype of ``color`` (float16 / bfloat16 computed in float32).
@@ -61,7 +58,8 @@ def fast_history_clamp(color: Tensor, fast_color: Tensor, sigma=2.0, radius: int
     Raises:
         ShapeError: ``color`` is not 4-d or ``fast_color`` has another shape.
         ParameterTypeError: ``radius`` is not an int, or a tensor is not floating point.
-        ParameterError: ``sigma`` is negative or not finite, or ``radius`` is negative.
+        ParameterError: ``sigma`` is negative or not finite, ``radius`` is negative, or ``backend`` is unknown.
+        RuntimeError: ``backend="native"`` where it cannot run (the message says why).
 
     Examples:
         >>> import torch
@@ -97,7 +95,7 @@ def fast_history_clamp(color: Tensor, fast_color: Tensor, sigma=2.0, radius: int
         check_floating(fast_color, "fast_history_clamp: fast_color")
         check_scalar(sigma, "fast_history_clamp: sigma", 0.0)
     _check_radius(radius, "fast_history_clamp")
-    return _clamp_checked(color, fast_color, sigma, radius)
+    return _clamp_checked(color, fast_color, sigma, radius, backend)
 
 
 def _box_sum(t: Tensor, radius: int) -> Tensor:
@@ -116,10 +114,12 @@ def _box_sum(t: Tensor, radius: int) -> Tensor:
     return out
 
 
-def _clamp_checked(color: Tensor, fast_color: Tensor, sigma, radius: int) -> Tensor:
-    """:func:`fast_history_clamp` of arguments the caller has checked. When every fast value is finite (eager
-    mode) the finite masks are skipped: the window counts depend on the border alone and every window has a value;
-    the result is the same, byte for byte."""
+def _clamp_checked(color: Tensor, fast_color: Tensor, sigma, radius: int, backend: str = "auto") -> Tensor:
+    """:func:`fast_history_clamp` of arguments the caller has checked, on the backend the one rule picks. In torch,
+    when every fast value is finite (eager mode) the finite masks are skipped: the window counts depend on the
+    border alone and every window has a value; the result is the same, byte for byte (and the native core's)."""
+    if select_backend(backend, [color, fast_color], [sigma]) == "native":
+        return _native.fast_history_clamp(color, fast_color, float(sigma), radius)
     wdt = compute_dtype(color, fast_color)
     x = fast_color.to(wdt)
     C, H, W = x.shape[-3:]
@@ -138,7 +138,9 @@ def _clamp_checked(color: Tensor, fast_color: Tensor, sigma, radius: int) -> Ten
     mean = sums[:, :C] / safe
     var = sums[:, C:] / safe - mean * mean
     pos = var > 0
-    std = torch.where(pos, torch.sqrt(torch.where(pos, var, one)), zero)  # no infinite gradient at var = 0
+    # no infinite gradient at var = 0; the root taken in float64, so that a float32 one is correctly rounded (torch's
+    # vectorised float32 sqrt is not) and the native core's std::sqrt gives the same bytes
+    std = torch.where(pos, torch.sqrt(torch.where(pos, var, one).double()).to(wdt), zero)
     half = as_scalar(sigma, mean) * std
     c = color.to(wdt)
     clamped = torch.minimum(torch.maximum(c, mean - half), mean + half)

@@ -15,8 +15,8 @@ from .functional import BACKENDS, stereo_reproject, temporal_reproject
 from .view import Blend, Field, History, Thresholds, _check_footprint_weighting, _check_history_rounding, view_fields
 from .view import _check_position_test
 from ..errors import ParameterError
-from .clamp import _check_radius, fast_history_clamp
-from .view import FastClamp, _check_fast_clamp
+from .clamp import fast_history_clamp
+from .view import FastClamp, _check_fast_clamp, _check_radius
 
 __all__ = ["StereoReprojection", "TemporalReprojection", "FastHistoryClamp"]
 
@@ -355,11 +355,13 @@ class TemporalReprojection(_ReprojectionBase):
 
 class FastHistoryClamp(nn.Module):
     """Fast-history clamping as a module: :func:`~stereorepro.reproject.fast_history_clamp` with its settings
-    stored (exports to ONNX: AveragePool, Sqrt, Min/Max).
+    stored (exports to ONNX: Pad, Slice, Add, Sqrt, Min/Max).
 
     Args:
         sigma: the box's half width in standard deviations (finite, >= 0; RELAX: 2).
         radius: the window's radius in pixels (an int >= 0; 1: 3×3).
+        backend: ``"auto"`` | ``"torch"`` | ``"native"`` (:func:`~stereorepro.reproject.select_backend`; ONNX
+            export always traces the torch path).
 
     Forward:
         ``forward(color, fast_color) -> color`` with shapes (B,C,H,W), (B,C,H,W) → (B,C,H,W).
@@ -380,15 +382,16 @@ class FastHistoryClamp(nn.Module):
     input_names = [f.name for f in input_fields]
     output_names = ["clamped"]
 
-    def __init__(self, sigma: float = 2.0, radius: int = 1):
+    def __init__(self, sigma: float = 2.0, radius: int = 1, backend: str = "auto"):
         super().__init__()
         check_scalar(sigma, "FastHistoryClamp: sigma", 0.0, tracing=False)
         _check_radius(radius, "FastHistoryClamp")
         self.sigma = float(sigma)
         self.radius = radius
+        self.backend = _backend.check(backend, BACKENDS, "FastHistoryClamp: ")
 
     def extra_repr(self) -> str:
-        return f"sigma={self.sigma:g}, radius={self.radius}"
+        return f"sigma={self.sigma:g}, radius={self.radius}, backend={self.backend!r}"
 
     def forward(self, color: Tensor, fast_color: Tensor) -> Tensor:
-        return fast_history_clamp(color, fast_color, self.sigma, self.radius)
+        return fast_history_clamp(color, fast_color, self.sigma, self.radius, self.backend)

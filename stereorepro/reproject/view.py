@@ -17,7 +17,7 @@ import torch
 from torch import Tensor
 
 from .._checks import check_camera, check_device, check_floating, check_motion, check_shape, tracing
-from ..errors import ParameterError
+from ..errors import ParameterError, ParameterTypeError
 
 __all__ = [
     "View",
@@ -344,6 +344,14 @@ class FastClamp(NamedTuple):
     radius: int = 1
 
 
+def _check_radius(radius, where: str) -> None:
+    """ParameterTypeError unless ``radius`` is an int (not a bool), ParameterError unless it is >= 0."""
+    if isinstance(radius, bool) or not isinstance(radius, int):
+        raise ParameterTypeError(f"{where}: radius must be an int >= 0 (1: a 3x3 window), got {radius!r}")
+    if radius < 0:
+        raise ParameterError(f"{where}: radius must be >= 0 (1: a 3x3 window), got {radius}")
+
+
 def _check_fast_clamp(fast_clamp, where: str) -> None:
     """ParameterError naming ``where`` and the field unless ``fast_clamp`` is None or a valid :class:`FastClamp`
     (ParameterTypeError for a field of the wrong kind: a string for a number, a float radius)."""
@@ -352,7 +360,6 @@ def _check_fast_clamp(fast_clamp, where: str) -> None:
     if not isinstance(fast_clamp, FastClamp):
         raise ParameterError(f"{where}: fast_clamp must be None or a FastClamp, got {fast_clamp!r}")
     from .._checks import check_scalar
-    from .clamp import _check_radius
 
     check_scalar(fast_clamp.alpha, f"{where}: fast_clamp.alpha", 0.0, 1.0, lo_open=True, tracing=False)
     check_scalar(fast_clamp.sigma, f"{where}: fast_clamp.sigma", 0.0, tracing=False)

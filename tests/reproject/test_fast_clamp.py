@@ -106,6 +106,38 @@ class TestOp(BaseTester):
         assert torch.equal(plain[away], masked[away]) and not torch.equal(plain, masked)
         np.testing.assert_allclose(plain.double().numpy(), numpy_clamp(color, fast, 2.0, radius), rtol=0, atol=1e-6)
 
+    @pytest.mark.parametrize("radius", [0, 1, 2, 4])
+    def test_backends_agree(self, backend, radius):
+        """The native core gives torch's bytes: float32, float16 and mixed inputs, non-finite fast values (the
+        masked path) and colours, every border (radius 4 on a 7-pixel-high frame)."""
+        nan, inf = float("nan"), float("inf")
+        color, fast = _random(dtype=torch.float32, seed=radius)
+        color = 3 * color - 1
+        color[0, 1, 1, 1], color[1, 1, 5, 5], color[0, 2, 3, 3] = nan, -inf, inf
+        holed = fast.clone()
+        holed[0, 0, 2, 3], holed[1, 2, 0, 0], holed[1, 0, :3, :3] = nan, inf, nan
+        for c_dtype, f_dtype in ((torch.float32,) * 2, (torch.float16,) * 2, (torch.float16, torch.float32)):
+            for f in (fast, holed):
+                args = (color.to(c_dtype), f.to(f_dtype), 1.5, radius)
+                want = fast_history_clamp(*args, backend="torch")
+                got = fast_history_clamp(*args, backend=self.backend_arg(backend))
+                nans = torch.isnan(want)  # NaN where NaN (the payload bits are the implementation's)
+                assert torch.equal(torch.isnan(got), nans) and int(nans.sum()) == 1  # the NaN colour stays NaN
+                self.assert_identical([got.masked_fill(nans, 0)], [want.masked_fill(nans, 0)])
+
+    def test_backend_choice(self):
+        """The one backend rule: native refuses autograd and float64 with the reason; auto falls back to torch."""
+        color, fast = _random(dtype=torch.float32)
+        with pytest.raises(RuntimeError, match="requires grad"):
+            fast_history_clamp(color.clone().requires_grad_(), fast, backend="native")
+        with pytest.raises(RuntimeError, match="float64"):
+            fast_history_clamp(color.double(), fast.double(), backend="native")
+        with pytest.raises(ParameterError, match="backend"):
+            fast_history_clamp(color, fast, backend="cuda")
+        grad = color.clone().requires_grad_()
+        fast_history_clamp(grad, fast).sum().backward()  # auto: torch, differentiable
+        assert grad.grad is not None
+
     def test_dtypes(self):
         color, fast = _random(dtype=torch.float32)
         for dtype in (torch.float16, torch.bfloat16, torch.float32):
