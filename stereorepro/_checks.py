@@ -34,6 +34,7 @@ __all__ = [
     "intrinsics_problem",
     "rigid_problem",
     "tracing",
+    "all_finite",
     "ShapeError",
     "CameraError",
     "ParameterError",
@@ -83,6 +84,25 @@ def tracing() -> bool:
 
 
 _tracing = tracing  # the name the package used before
+
+
+def all_finite(t: Tensor) -> bool:
+    """Whether every element of ``t`` is finite (eager mode): one sum first, which is finite only when every element
+    is (a NaN or an infinity makes it NaN or infinite), and the elementwise test only when the sum is not finite
+    (a non-finite element, or finite values whose sum overflows). At 1280×720×3 float32 the sum takes a few ms,
+    ``isfinite(t).all()`` several times that.
+
+    Examples:
+        >>> import torch
+        >>> from stereorepro._checks import all_finite
+        >>> all_finite(torch.ones(2, 3)), all_finite(torch.tensor([1.0, float("nan")]))
+        (True, False)
+        >>> all_finite(torch.tensor([3e38, 3e38]))  # the sum overflows; every element is finite
+        True
+    """
+    if not (t.is_floating_point() or t.is_complex()) or t.numel() == 0:
+        return True
+    return bool(torch.isfinite(t.sum())) or bool(torch.isfinite(t).all())
 
 
 def _skip(is_tracing: bool | None) -> bool:

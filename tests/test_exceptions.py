@@ -230,3 +230,26 @@ class TestFamilyAtTheEdges:
         _check_render_args(2, 2**63 - 2, "box")
         with pytest.raises(ParameterError, match="2\\*\\*63"):
             _check_render_args(2, 2**63 - 1, "box")
+
+
+class TestAllFinite:
+    @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.float32, torch.float64])
+    def test_agrees_with_isfinite(self, dtype):
+        """The sum-first test gives ``isfinite(t).all()`` for every placement of NaN / ±inf, in every float dtype,
+        and for finite values whose sum overflows (the fallback)."""
+        from stereorepro._checks import all_finite
+
+        g = torch.Generator().manual_seed(0)
+        for _ in range(40):
+            t = torch.randn(3, 5, 7, generator=g).to(dtype)
+            k = int(torch.randint(0, 4, (1,), generator=g))
+            if k:
+                t.view(-1)[int(torch.randint(0, t.numel(), (1,), generator=g))] = (
+                    float("nan"),
+                    float("inf"),
+                    -float("inf"),
+                )[k - 1]
+            assert all_finite(t) == bool(torch.isfinite(t).all())
+        big = torch.full((4,), torch.finfo(dtype).max, dtype=dtype)
+        assert all_finite(big) and not bool(torch.isfinite(big.sum()))
+        assert all_finite(torch.zeros(0)) and all_finite(torch.ones(3, dtype=torch.int64))

@@ -83,7 +83,7 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from .._checks import ShapeError, check_floating, check_shape
+from .._checks import ShapeError, all_finite, check_floating, check_shape
 from ..errors import ParameterError, ParameterTypeError
 from .._extras import available, require
 
@@ -166,6 +166,8 @@ def _pixel_valid(image: Tensor, reference: Tensor, mask: Tensor | None, nonfinit
 def _check_finite(name: str, **tensors: Tensor) -> None:
     """ParameterError naming the first of ``tensors`` (B, C, H, W) with pixels holding a NaN/inf channel."""
     for nm, t in tensors.items():
+        if all_finite(t):
+            continue
         n_bad = int((~torch.isfinite(t)).any(1).sum())
         if n_bad:
             raise ParameterError(f"{name}: {nm} has {n_bad} non-finite pixel(s) (NaN/inf)")

@@ -13,7 +13,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .._checks import check_floating, check_scalar, check_shape, tracing
+from .._checks import all_finite, check_floating, check_scalar, check_shape, tracing
 from .._tensors import as_scalar, compute_dtype
 from . import _native
 from .functional import select_backend
@@ -125,7 +125,7 @@ def _clamp_checked(color: Tensor, fast_color: Tensor, sigma, radius: int, backen
     C, H, W = x.shape[-3:]
     zero = torch.zeros((), dtype=wdt, device=x.device)
     one = torch.ones((), dtype=wdt, device=x.device)
-    masked = tracing() or not bool(torch.isfinite(x).all())
+    masked = tracing() or not all_finite(x)
     if masked:
         finite = torch.isfinite(x)
         x = torch.where(finite, x, zero)

@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..._checks import all_finite
 from ...measure.metrics import rmse
 from .cache import RenderCache
 from .config import METRICS, REFERENCE_OFFSET, metric_image
@@ -486,7 +487,7 @@ class _Scored:
 
     def __init__(self, image: torch.Tensor):
         self.image = image
-        self.finite = bool(torch.isfinite(image).all())
+        self.finite = all_finite(image)
         self.x64 = image.to(torch.float64) if self.finite else None
 
     def rmse(self, ref: "_Scored") -> float:
