@@ -125,7 +125,8 @@ def _clamp_checked(color: Tensor, fast_color: Tensor, sigma, radius: int, backen
     C, H, W = x.shape[-3:]
     zero = torch.zeros((), dtype=wdt, device=x.device)
     one = torch.ones((), dtype=wdt, device=x.device)
-    masked = tracing() or not all_finite(x)
+    traced = tracing()
+    masked = traced or not all_finite(x)
     if masked:
         finite = torch.isfinite(x)
         x = torch.where(finite, x, zero)
@@ -138,9 +139,12 @@ def _clamp_checked(color: Tensor, fast_color: Tensor, sigma, radius: int, backen
     mean = sums[:, :C] / safe
     var = sums[:, C:] / safe - mean * mean
     pos = var > 0
-    # no infinite gradient at var = 0; the root taken in float64, so that a float32 one is correctly rounded (torch's
-    # vectorised float32 sqrt is not) and the native core's std::sqrt gives the same bytes
-    std = torch.where(pos, torch.sqrt(torch.where(pos, var, one).double()).to(wdt), zero)
+    # no infinite gradient at var = 0. Eager on the CPU the root is taken in float64, so that a float32 one is
+    # correctly rounded (torch's vectorised float32 sqrt is not) and the native core's std::sqrt gives the same bytes;
+    # elsewhere (GPUs, some without float64; traced graphs) torch's own
+    v = torch.where(pos, var, one)
+    exact = not traced and v.device.type == "cpu" and v.dtype == torch.float32
+    std = torch.where(pos, torch.sqrt(v.double()).to(wdt) if exact else torch.sqrt(v), zero)
     half = as_scalar(sigma, mean) * std
     c = color.to(wdt)
     clamped = torch.minimum(torch.maximum(c, mean - half), mean + half)
