@@ -56,7 +56,9 @@ def main() -> None:
         s_plain = EyeState(hist, length, pd, pn, pK, pc)
         s_fast = EyeState(hist, length, pd, pn, pK, pc, fast)
         fns[f"temporal step, {backend}"] = lambda m=plain, s=s_plain: temporal_step(m, s, color, d, n, K, c)
-        fns[f"temporal step + fast clamp, {backend}"] = lambda m=clamped, s=s_fast: temporal_step(m, s, color, d, n, K, c)
+        fns[f"temporal step + fast clamp, {backend}"] = lambda m=clamped, s=s_fast: temporal_step(
+            m, s, color, d, n, K, c
+        )
         fns[f"box clamp alone, {backend}"] = lambda b=backend: fast_history_clamp(hist, fast, 2.0, 1, backend=b)
     with torch.no_grad():
         times = time_interleaved(fns, repeats=args.repeats)
