@@ -1230,7 +1230,7 @@ SR_INLINE float nan_min(float a, float b) { return a != a ? a : b != b ? b : a <
 // One row of a float32 or float16 plane as float32 (float16 widened exactly).
 SR_INLINE void load_row(const Plane &p, int64_t off, int64_t n, float *dst) {
     if (p.half)
-        for (int64_t i = 0; i < n; ++i) dst[i] = half_to_float(p.f16()[off + i]);
+        for (int64_t i = 0; i < n; ++i) dst[i] = load<ANY>(p, off + i);
     else
         std::memcpy(dst, p.f32() + off, n * sizeof(float));
 }
@@ -1262,7 +1262,7 @@ void fast_history_clamp(CA color, CA fast, float sigma, int64_t radius, OA out) 
 #pragma omp simd
                 for (int64_t x = 0; x < W; ++x) {
                     const float v = row[x];
-                    const bool ok = v - v == 0.0f;  // finite
+                    const bool ok = finitef(v);
                     b1[x + r] = ok ? v : 0.0f;
                     b2[x + r] = ok ? v * v : 0.0f;
                     bn[x + r] = ok ? 1.0f : 0.0f;
