@@ -75,6 +75,13 @@ def add_arguments(p: argparse.ArgumentParser, defaults: dict | None = None) -> N
     p.add_argument("--no-flip", action="store_true", help="skip the FLIP scores (seconds per image at 720p)")
     p.add_argument("--no-ssim", action="store_true", help="skip the SSIM scores (seconds per image at 720p)")
     p.add_argument(
+        "--perceptual-every",
+        type=int,
+        default=1,
+        metavar="K",
+        help="score FLIP and SSIM on every K-th frame only, counted back from the last (default 1: every frame)",
+    )
+    p.add_argument(
         "--scheduler",
         default=None,
         help="render on Dask: 'local:N' (N worker processes here) or 'tcp://HOST:PORT' (a running "
@@ -116,6 +123,7 @@ def config_from_args(args) -> ExperimentConfig:
         reference_chunk_spp=args.reference_chunk_spp,
         flip=not args.no_flip,
         ssim=not args.no_ssim,
+        perceptual_every=args.perceptual_every,
         scheduler=args.scheduler,
         jitter=args.jitter,
         history_rounding=args.history_rounding,

@@ -147,6 +147,26 @@ class TestExperiment:
         one = torch.from_numpy(ladder_task(ctx, 0, RIGHT)[0]["first"])
         assert f0 == float(ssim(one, reference(ctx, 0, RIGHT)[0], tonemap="clamp")[0])
 
+    @pytest.mark.parametrize("every, scored", [(2, [True, False, True]), (3, [False, False, True])])
+    def test_perceptual_every(self, first_run, tmp_path, every, scored):
+        """``perceptual_every=K`` scores FLIP and SSIM on every K-th frame counted back from the last (the last frame
+        always), with the values of a run that scores every frame; RMSE stays per frame."""
+        from stereorepro.measure.metrics import flip_available
+
+        out, res = first_run
+        sub = run_experiment(
+            ExperimentConfig(out=str(tmp_path), cache_dir=str(out / "cache"), perceptual_every=every, **SMALL)
+        )
+        assert sub["perceptual_every"] == every and sub["cache"]["misses"] == 0
+        for key in ("ssim", "flip") if flip_available() else ("ssim",):
+            assert [bool(r[key]) for r in sub["per_frame"]] == scored, key
+            for f in range(3):
+                assert sub["per_frame"][f][key] == (res["per_frame"][f][key] if scored[f] else {}), key
+            assert all(v["n"] == sum(scored) for v in sub[key].values()), key
+        assert all(r["rmse"] == q["rmse"] for r, q in zip(sub["per_frame"], res["per_frame"]))
+        report = (tmp_path / "report.md").read_text()
+        assert f"one frame in {every}, counted back from the last ({sum(scored)} frames)" in report
+
     def test_temporal_error_reported(self, first_run):
         out, res = first_run
         data = json.loads((out / "results.json").read_text())
@@ -282,6 +302,7 @@ class TestExperiment:
             (dict(frames=10_000), "frames"),
             (dict(alphas=(float("nan"),)), "alphas"),
             (dict(workers=0), "workers"),
+            (dict(perceptual_every=0), "perceptual_every"),
             (dict(scene=str(tmp_path / "missing.toml")), "not found"),
         ):
             with pytest.raises(ValueError, match=match):

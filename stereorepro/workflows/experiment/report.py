@@ -503,6 +503,10 @@ def _metric_sections(results: dict) -> list[str]:
     lines = []
     for title, key, column, about in _METRIC_SECTIONS:
         stats = results.get(key)
+        every = results.get("perceptual_every", 1)
+        if stats and key in ("flip", "ssim") and every > 1:
+            n = max(v["n"] for v in stats.values())
+            about += f" Scored on one frame in {every}, counted back from the last ({n} frames)."
         if stats:
             lines += [
                 "",

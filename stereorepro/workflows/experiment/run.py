@@ -105,6 +105,7 @@ class ExperimentResults:
     history_rounding: str  #: how the drivers store history lengths: ``"none"`` (floats) or ``"bmfr"`` (integers)
     footprint_weighting: bool  #: the drivers scale warped history lengths by the footprint quality
     option_variants: bool  #: Table 2 holds the option variants (``<scheme>_<option>``, see ``OPTION_VARIANTS``)
+    perceptual_every: int  #: FLIP and SSIM scored on every K-th frame, counted back from the last
     thresholds: dict  #: ``position``, ``normal``, ``position_scene``, ``scale``
     table1: dict  #: scheme -> discarded pixels (%): the paper's Table 1 (stereo, temporal)
     flip: dict | None  #: scheme -> mean LDR FLIP statistics; None when not measured
@@ -473,9 +474,11 @@ class _SchemeRun:
         err = float(rmse(metric_image(img, cfg.metric), metric_image(ref, cfg.metric))[0])
         spp, flags = effective_spp_many(torch.tensor([err]), *fd.ladder(s.eye, cfg.metric))
         row["rmse"][s.name] = err
-        if run.use_flip:
+        # FLIP and SSIM (LDR, clamped; SSIM of the paper's three schemes): seconds per image at 720p
+        perceptual = (run.frames - 1 - fd.frame) % cfg.perceptual_every == 0
+        if run.use_flip and perceptual:
             row["flip"][s.name] = float(flip(img, ref)[0])
-        if cfg.ssim and s.paper:  # LDR SSIM (clamp), the paper's three schemes: seconds per image at 720p
+        if cfg.ssim and s.paper and perceptual:
             row["ssim"][s.name] = float(ssim(img, ref, tonemap="clamp")[0])
         if fd.previous is not None and self.prev_image is not None:
             row["temporal_error"][s.name] = self.temporal_error(run, fd, img, timing)
@@ -677,6 +680,7 @@ def _assemble(
         history_rounding=cfg.history_rounding,
         footprint_weighting=bool(cfg.footprint_weighting),
         option_variants=bool(cfg.option_variants),
+        perceptual_every=cfg.perceptual_every,
         thresholds={
             "position": run.pos_thr,
             "normal": run.nrm_thr,
@@ -685,11 +689,11 @@ def _assemble(
         },
         table1={s.name: _stats([r["discard_pct"].get(s.name) for r in per_frame]) for s in paper if s.discards},
         flip=(
-            {s.scheme.name: _stats([r["flip"][s.scheme.name] for r in per_frame]) for s in schemes}
+            {s.scheme.name: _stats([r["flip"].get(s.scheme.name) for r in per_frame]) for s in schemes}
             if run.use_flip
             else None
         ),
-        ssim=({s.name: _stats([r["ssim"][s.name] for r in per_frame]) for s in paper} if cfg.ssim else None),
+        ssim=({s.name: _stats([r["ssim"].get(s.name) for r in per_frame]) for s in paper} if cfg.ssim else None),
         temporal_error=(
             {s.scheme.name: _stats([r["temporal_error"].get(s.scheme.name) for r in per_frame]) for s in schemes}
             if run.frames > 1
