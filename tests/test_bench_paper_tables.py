@@ -1,0 +1,44 @@
+"""bench/paper_tables.py (the 720p tables from finished runs): the resampling-bias and FLIP/SSIM sections."""
+
+from __future__ import annotations
+
+from conftest import load_script
+
+pt = load_script("bench", "paper_tables")
+
+
+def _stat(x: float) -> dict:
+    return {"avg": x, "min": x, "max": x, "n": 15, "avg_after_warmup": x}
+
+
+def _bias(share: float, without_noise: float, edge_pixels: float, edge_bias: float) -> dict:
+    return {
+        "bias_share": _stat(share),
+        "bias_share_without_reference_noise": _stat(without_noise),
+        "anatomy": {"edge": {"pixels_pct": _stat(edge_pixels), "bias_share_pct": _stat(edge_bias)}},
+    }
+
+
+class TestPaperTables:
+    def test_bias_rows(self):
+        run = {
+            "bias": {"stereo_temporal": _bias(0.028, 0.040, 17.8, 88.4), "temporal": _bias(0.019, 0.027, 17.2, 92.6)}
+        }
+        lines = pt._bias_lines({"lr": run})
+        assert "| lr | temporal | 1.9 % | 2.7 % | 17.2 % | 92.6 % |" in lines
+        assert "| lr | stereo_temporal | 2.8 % | 4.0 % | 17.8 % | 88.4 % |" in lines
+        assert not any("| stereo |" in x for x in lines)  # a scheme without a bias measurement has no row
+        assert pt._bias_lines({"lr": {"bias": {}}}) == []
+
+    def test_flip_and_ssim(self):
+        a = {
+            "flip": {"stereo": _stat(0.25), "stereo_temporal_clamp": _stat(0.125)},
+            "ssim": {"stereo": _stat(0.5)},
+            "perceptual_every": 4,
+        }
+        b = {"flip": {"stereo": _stat(0.375)}, "ssim": None, "perceptual_every": 1}
+        lines = pt._perceptual_lines({"a": a, "b": b})
+        assert "K = a: 4, b: 1" in lines[1]
+        assert "| stereo | 0.2500 | 0.5000 | 0.3750 | – |" in lines
+        assert "| stereo_temporal_clamp | 0.1250 | – | – | – |" in lines
+        assert pt._perceptual_lines({"a": {"flip": None, "ssim": None}}) == []
