@@ -1,7 +1,7 @@
 #!/bin/bash
 # The paper's protocol at 640x360 (60 frames, ladder 1..32, 32-spp references in two chunks, every history option,
 # FLIP and SSIM on every 4th frame) for the scenes whose 1280x720 option runs could not be redone here: the render
-# cache of the 720p runs does not outlive a session, and a 720p Classroom run from nothing takes about 3 h of this
+# cache of the 720p runs does not outlive a session, and a 720p Classroom run from nothing takes about 2 h of this
 # 2-core machine. Code: a snapshot of the commit below in runs/snap_<commit>, run by paper720_60/run_code.py's rule.
 # usage: bench/results/paper360_60/run.sh SCENE...     (from /work/main; resumable per scene: renders are cached)
 set -e
