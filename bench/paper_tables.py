@@ -1,6 +1,8 @@
 """Tables 1-2 next to the paper's from finished experiment runs (their results.json; nothing is rendered): each cell
 as the average over all frames, the average after the warm-up and [min, max], beside the paper's average and
 maximum; the variants (alpha, blending, alternating eyes, nearest) and the reference-spp study of each run.
+Rows are named by the runs' scenes; a later run of a scene already given fills only what the earlier one lacks
+(e.g. FLIP and SSIM from a run made for them), and the record says which fields came from where.
 
     python bench/paper_tables.py --runs /work/runs720/final/shared_living_room /work/runs720/final/shared_classroom \\
         --name paper720
@@ -28,6 +30,13 @@ def _cell(o: dict) -> str:
     return f"{_t(o['avg'])} / {_t(o.get('avg_after_warmup'))} [{_t(o['min'])}, {_t(o['max'])}]"
 
 
+def _sources(scene: str, r: dict) -> str:
+    filled: dict[str, list[str]] = {}
+    for k, d in (r.get("filled_from") or {}).items():
+        filled.setdefault(d, []).append(k)
+    return f"{scene} `{r['path']}`" + "".join(f" ({', '.join(ks)} from `{d}`)" for d, ks in filled.items())
+
+
 def tables(runs: dict[str, dict]) -> str:
     any_run = next(iter(runs.values()))
     lines = [
@@ -36,6 +45,8 @@ def tables(runs: dict[str, dict]) -> str:
         f"{any_run['metric'].upper()} RMSE. Cells: average over all frames / average from frame "
         f"{any_run.get('warmup_frames')} on [min, max]. Paper: 60 frames at 1280×720, 4096-spp references, "
         "average (max).",
+        "",
+        "Runs: " + "; ".join(_sources(scene, r) for scene, r in runs.items()) + ".",
         "",
         "**Table 1** — discarded pixels (%)",
         "",
@@ -199,46 +210,59 @@ def _option_lines(runs: dict[str, dict]) -> list[str]:
     return lines
 
 
+FIELDS = (
+    "table1",
+    "table2",
+    "table2_variants",
+    "reference_study",
+    "frames",
+    "resolution",
+    "reference_spp",
+    "reference_chunk_spp",
+    "ladder_spp",
+    "warmup_frames",
+    "metric",
+    "code",
+    "jitter",
+    "cost",
+    "timing_ms",
+    "bias",
+    "cache",
+    "wall_s",
+    "thresholds",
+    "flags",
+    "option_variants",
+    "temporal_error",
+    "flip",
+    "ssim",
+    "perceptual_every",
+)
+
+
+def collect(paths: list[str]) -> dict[str, dict]:
+    """The runs' results keyed by scene. A later run of a scene already collected fills only the fields the earlier
+    one lacks (``None`` or empty), and ``filled_from`` records which fields came from which folder."""
+    runs: dict[str, dict] = {}
+    for d in paths:
+        r = json.loads((Path(d) / "results.json").read_text())
+        got = {k: r.get(k) for k in FIELDS}
+        if r["scene"] not in runs:
+            runs[r["scene"]] = {**got, "path": str(d), "scene": r["scene"]}
+            continue
+        run = runs[r["scene"]]
+        filled = [k for k in FIELDS if not run.get(k) and got[k]]
+        run.update({k: got[k] for k in filled})
+        run.setdefault("filled_from", {}).update(dict.fromkeys(filled, str(d)))
+    return runs
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", nargs="+", required=True, help="experiment output folders (with results.json)")
     ap.add_argument("--name", required=True, help="results file name under bench/results/")
     ap.add_argument("--note", default="", help="a paragraph above the tables (how the runs were made)")
     args = ap.parse_args(argv)
-    runs = {}
-    for d in args.runs:
-        r = json.loads((Path(d) / "results.json").read_text())
-        runs[Path(d).name] = {
-            k: r.get(k)
-            for k in (
-                "table1",
-                "table2",
-                "table2_variants",
-                "reference_study",
-                "frames",
-                "resolution",
-                "reference_spp",
-                "reference_chunk_spp",
-                "ladder_spp",
-                "warmup_frames",
-                "metric",
-                "code",
-                "jitter",
-                "cost",
-                "timing_ms",
-                "bias",
-                "cache",
-                "wall_s",
-                "thresholds",
-                "flags",
-                "option_variants",
-                "temporal_error",
-                "flip",
-                "ssim",
-                "perceptual_every",
-            )
-        }
-        runs[Path(d).name].update(path=str(d), scene=r["scene"])
+    runs = collect(args.runs)
     md = tables(runs)
     if args.note:
         md = args.note + "\n\n" + md

@@ -42,3 +42,22 @@ class TestPaperTables:
         assert "| stereo | 0.2500 | 0.5000 | 0.3750 | – |" in lines
         assert "| stereo_temporal_clamp | 0.1250 | – | – | – |" in lines
         assert pt._perceptual_lines({"a": {"flip": None, "ssim": None}}) == []
+
+    def test_collect_fills_a_scene_from_a_later_run(self, tmp_path):
+        import json
+
+        def write(name: str, **fields) -> str:
+            (tmp_path / name).mkdir()
+            (tmp_path / name / "results.json").write_text(json.dumps(fields))
+            return str(tmp_path / name)
+
+        a = write("options", scene="lr", table1={"t": 1}, flip=None, ssim=None, perceptual_every=None)
+        b = write("flip", scene="lr", table1={"t": 2}, flip={"stereo": _stat(0.25)}, ssim={}, perceptual_every=4)
+        c = write("other", scene="cr", table1={"t": 3})
+        runs = pt.collect([a, b, c])
+        assert list(runs) == ["lr", "cr"]  # rows are named by scene, in the order given
+        assert runs["lr"]["table1"] == {"t": 1}  # the first run of a scene wins where it has the field
+        assert runs["lr"]["flip"] == {"stereo": _stat(0.25)} and runs["lr"]["perceptual_every"] == 4
+        assert runs["lr"]["filled_from"] == {"flip": b, "perceptual_every": b}  # empty ssim is not filled
+        assert runs["lr"]["path"] == a and "filled_from" not in runs["cr"]
+        assert pt._sources("lr", runs["lr"]) == f"lr `{a}` (flip, perceptual_every from `{b}`)"
