@@ -192,7 +192,7 @@ def _option_lines(runs: dict[str, dict]) -> list[str]:
             "",
             f"**Option variants, {scene}** ({r['frames']} frames at {r['resolution']}) — effective spp average "
             "over all frames / from the warm-up on (change against the plain scheme), temporal error (avg), "
-            "resampling bias as a share of the MSE (avg, without reference noise), ms per frame of the evaluated "
+            "resampling bias (without reference noise) as a share of the scored MSE (avg), ms per frame of the evaluated "
             "eye's steps (median)",
             "",
             "| scheme | effective spp | change | temporal error | bias share | ms |",
