@@ -21,13 +21,24 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _bench_common import header, save  # noqa: E402
 from paper import PAPER_NAME, PAPER_T1, PAPER_T2  # noqa: E402
 
+from stereorepro.workflows.experiment.run import _spp_stats  # noqa: E402
+
 
 def _t(x, nd=2):
     return "–" if x is None else f"{x:.{nd}f}"
 
 
+def _avg(o: dict, key: str = "avg") -> str:
+    """An effective-spp average; with frames beyond the ladder's top rung, its lower bound as ``≥ x``."""
+    return "≥ " + _t(o.get(f"{key}_lower_bound")) if o.get("beyond_ladder") else _t(o.get(key))
+
+
+def _pair(o: dict) -> str:
+    return f"{_avg(o)} / {_avg(o, 'avg_after_warmup')}"
+
+
 def _cell(o: dict) -> str:
-    return f"{_t(o['avg'])} / {_t(o.get('avg_after_warmup'))} [{_t(o['min'])}, {_t(o['max'])}]"
+    return f"{_pair(o)} [{_t(o['min'])}, {_t(o['max'])}]"
 
 
 def _sources(scene: str, r: dict) -> str:
@@ -84,12 +95,7 @@ def tables(runs: dict[str, dict]) -> str:
     for k in names:
         lines.append(
             f"| {k} | "
-            + " | ".join(
-                f"{_t(r['table2_variants'][k]['avg'])} / {_t(r['table2_variants'][k].get('avg_after_warmup'))}"
-                if k in r["table2_variants"]
-                else "–"
-                for r in runs.values()
-            )
+            + " | ".join(_pair(r["table2_variants"][k]) if k in r["table2_variants"] else "–" for r in runs.values())
             + " |"
         )
     lines += _bias_lines(runs)
@@ -203,7 +209,7 @@ def _option_lines(runs: dict[str, dict]) -> list[str]:
             b = (bias.get(k) or {}).get("bias_share") or {}
             share = "–" if b.get("avg") is None else f"{100.0 * b['avg']:.1f} %"
             lines.append(
-                f"| {k} | {_t(t2[k]['avg'])} / {_t(t2[k].get('avg_after_warmup'))} | "
+                f"| {k} | {_pair(t2[k])} | "
                 f"{_pct(t2[k]['avg'], t2[base]['avg']) if k != base else ''} | "
                 f"{_t((te.get(k) or {}).get('avg'), 4)} | {share} | {_t(ms.get(f'reproject_{k}_ms'), 0)} |"
             )
@@ -239,6 +245,16 @@ FIELDS = (
 )
 
 
+def _bound_old_results(got: dict, r: dict) -> None:
+    """Effective-spp statistics written before the experiment bounded the frames beyond the ladder's top rung
+    (no ``beyond_ladder``): recomputed from the run's per-frame values and flags, as the experiment does now."""
+    for table in ("table2", "table2_variants"):
+        for k, st in (got.get(table) or {}).items():
+            if "beyond_ladder" not in st and r.get("per_frame"):
+                bound = _spp_stats(r["per_frame"], k, r["ladder_spp"])
+                st.update({x: v for x, v in bound.items() if x not in st})
+
+
 def collect(paths: list[str]) -> dict[str, dict]:
     """The runs' results keyed by scene. A later run of a scene already collected fills only the fields the earlier
     one lacks (``None`` or empty), and ``filled_from`` records which fields came from which folder."""
@@ -246,6 +262,7 @@ def collect(paths: list[str]) -> dict[str, dict]:
     for d in paths:
         r = json.loads((Path(d) / "results.json").read_text())
         got = {k: r.get(k) for k in FIELDS}
+        _bound_old_results(got, r)
         if r["scene"] not in runs:
             runs[r["scene"]] = {**got, "path": str(d), "scene": r["scene"]}
             continue

@@ -61,3 +61,16 @@ class TestPaperTables:
         assert runs["lr"]["filled_from"] == {"flip": b, "perceptual_every": b}  # empty ssim is not filled
         assert runs["lr"]["path"] == a and "filled_from" not in runs["cr"]
         assert pt._sources("lr", runs["lr"]) == f"lr `{a}` (flip, perceptual_every from `{b}`)"
+
+    def test_frames_beyond_the_ladder_are_bounded(self):
+        rows = [{"effective_spp": {"s": 8.0}, "flags": {"s": "interpolated"}}] * 10 + [
+            {"effective_spp": {"s": 40.0}, "flags": {"s": "extrapolated_high"}}
+        ]
+        old = {"avg": 10.9, "min": 8.0, "max": 40.0, "n": 11, "avg_after_warmup": 40.0}
+        got = {"table2": {}, "table2_variants": {"s": dict(old)}}
+        pt._bound_old_results(got, {"per_frame": rows, "ladder_spp": 16})
+        st = got["table2_variants"]["s"]
+        assert {k: st[k] for k in old} == old  # what the run wrote stays
+        assert st["beyond_ladder"] == 1 and st["avg_lower_bound"] == 96.0 / 11
+        assert pt._cell(st) == "≥ 8.73 / ≥ 16.00 [8.00, 40.00]"
+        assert pt._pair(dict(old, beyond_ladder=0)) == "10.90 / 40.00"

@@ -534,6 +534,35 @@ class TestRenderTasks:
         ]
         assert eye_tasks(spec, 3, 1)[-1][2]["jitter"] != eye_tasks(spec, 4, 1)[-1][2]["jitter"]
 
+    def test_beyond_ladder_is_bounded_not_extrapolated(self, first_run):
+        """Frames whose error lies below the ladder's top rung (flagged ``extrapolated_high`` or ``beyond_floor``)
+        are counted at the top rung in ``avg_lower_bound``, and the tables print that bound as ``≥ x``."""
+        from stereorepro.workflows.experiment.report import cost_markdown
+        from stereorepro.workflows.experiment.run import _spp_stats
+
+        rows = [
+            {"effective_spp": {"s": x}, "flags": {"s": f}}
+            for x, f in [(10.0, "interpolated")] * 10 + [(50.0, "extrapolated_high"), (float("inf"), "beyond_floor")]
+        ]
+        st = _spp_stats(rows, "s", 32)
+        assert st["beyond_ladder"] == 2 and st["n"] == 11  # the infinite frame drops out of the plain average
+        assert st["avg"] == pytest.approx(150.0 / 11) and st["avg_lower_bound"] == pytest.approx(164.0 / 12)
+        assert st["avg_after_warmup"] == 50.0 and st["avg_after_warmup_lower_bound"] == 32.0
+        inside = _spp_stats(rows[:10], "s", 32)
+        assert inside["beyond_ladder"] == 0 and inside["avg_lower_bound"] == inside["avg"] == 10.0
+
+        _, res = first_run
+        for k, v in {**res["table2"], **res["table2_variants"]}.items():
+            beyond = sum(r["flags"][k] in ("extrapolated_high", "beyond_floor") for r in res["per_frame"])
+            assert v["beyond_ladder"] == beyond, k
+        t2 = {k: dict(v, beyond_ladder=0) for k, v in res["table2"].items()}
+        t2["stereo_temporal"].update(beyond_ladder=2, avg_lower_bound=3.25)
+        md = tables_markdown(dict(res, table2=t2))
+        assert "| ≥ 3.25 |" in md and "stereo_temporal 2" in md
+        assert "≥" not in tables_markdown(dict(res, table2={k: dict(v, beyond_ladder=0) for k, v in t2.items()}))
+        cost = [{"scheme": "s", "ms": 8.0, "effective_spp": 32.0, "ms_per_effective_spp": 0.25, "beyond_ladder": 3}]
+        assert cost_markdown({"cost": cost}).splitlines()[-1] == "| s | 8.0 | ≥ 32.00 | ≤ 0.2 |"
+
     def test_blend_and_alternate_schemes(self, first_run):
         """The follow-up's schemes run on the same renders: on frame 0 the alternating scheme traces the right eye
         like stereo+temporal (same images), from frame 1 on it traces the left eye every other frame."""

@@ -22,6 +22,26 @@ def _fmt(x, nd=2):
     return "–" if x is None else f"{x:.{nd}f}"
 
 
+def _spp(st: dict, key: str = "avg") -> str:
+    """An effective-spp average; with frames beyond the ladder's top rung, its lower bound as ``≥ x``."""
+    if st.get("beyond_ladder"):
+        return "≥ " + _fmt(st.get(f"{key}_lower_bound"))
+    return _fmt(st.get(key))
+
+
+def _beyond_note(stats: dict, results: dict) -> list[str]:
+    beyond = {k: v["beyond_ladder"] for k, v in stats.items() if v.get("beyond_ladder")}
+    if not beyond:
+        return []
+    return [
+        "",
+        f"≥: frames whose error lies below the ladder's top rung ({results['ladder_spp']} spp), counted at the top "
+        "rung (a lower bound; their extrapolated values, biased high, stay in results.json): "
+        + ", ".join(f"{k} {n}" for k, n in beyond.items())
+        + ". A longer ladder (--ladder-spp, with --reference-spp at least as long) measures them.",
+    ]
+
+
 def tables_markdown(results: dict) -> str:
     """``tables.md``: Table 1 (discarded pixels, %) and Table 2 (effective spp) of a run's ``results``, then the
     after-warm-up averages, the paper's schemes' temporal error, the reference study and the moving-objects table when
@@ -59,14 +79,15 @@ def tables_markdown(results: dict) -> str:
     ]
     cells = []
     for k in ("stereo", "temporal", "stereo_temporal"):
-        cells += [_fmt(t2[k]["avg"]), _fmt(t2[k]["min"]), _fmt(t2[k]["max"])]
+        cells += [_spp(t2[k]), _fmt(t2[k]["min"]), _fmt(t2[k]["max"])]
     lines.append(f"| {results['scene']} | " + " | ".join(cells) + " |")
+    lines += _beyond_note(t2, results)
     warm = results.get("warmup_frames")
     if warm is not None and t2["stereo"].get("avg_after_warmup") is not None:
         lines += [
             "",
             f"After warm-up (frames {warm}..{results['frames'] - 1}): "
-            + ", ".join(f"{k} {_fmt(t2[k]['avg_after_warmup'])}" for k in ("stereo", "temporal", "stereo_temporal"))
+            + ", ".join(f"{k} {_spp(t2[k], 'avg_after_warmup')}" for k in ("stereo", "temporal", "stereo_temporal"))
             + "; discards "
             + ", ".join(f"{k} {_fmt(t1[k].get('avg_after_warmup'))} %" for k in ("stereo", "temporal")),
         ]
@@ -148,9 +169,10 @@ def cost_markdown(results: dict) -> str:
         "|---|---:|---:|---:|",
     ]
     for r in results["cost"]:
+        ge, le = ("≥ ", "≤ ") if r.get("beyond_ladder") else ("", "")
         lines.append(
-            f"| {r['scheme']} | {_fmt(r['ms'], 1)} | {_fmt(r['effective_spp'])} | "
-            f"{_fmt(r['ms_per_effective_spp'], 1)} |"
+            f"| {r['scheme']} | {_fmt(r['ms'], 1)} | {ge}{_fmt(r['effective_spp'])} | "
+            f"{le}{_fmt(r['ms_per_effective_spp'], 1)} |"
         )
     return "\n".join(lines) + "\n"
 
@@ -374,7 +396,8 @@ def _report_markdown(results: dict, tables: str | None = None) -> str:
         "|---|---:|---:|---:|",
     ]
     for kk, v in results["table2_variants"].items():
-        report.append(f"| {kk} | {_fmt(v['avg'])} | {_fmt(v['min'])} | {_fmt(v['max'])} |")
+        report.append(f"| {kk} | {_spp(v)} | {_fmt(v['min'])} | {_fmt(v['max'])} |")
+    report += _beyond_note(results["table2_variants"], results)
     report += _bias_section(results) + _metric_sections(results) + _cost_section(results)
     return "\n".join(report)
 

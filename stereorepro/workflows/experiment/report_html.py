@@ -66,7 +66,10 @@ def _f(x, nd: int = 2) -> str:
 
 
 def _stats_rows(stats: dict, nd: int = 2) -> list[list[str]]:
-    return [[k, _f(v.get("avg"), nd), _f(v.get("min"), nd), _f(v.get("max"), nd)] for k, v in stats.items()]
+    def avg(v: dict) -> str:  # effective spp with frames beyond the ladder: its lower bound
+        return "≥ " + _f(v.get("avg_lower_bound"), nd) if v.get("beyond_ladder") else _f(v.get("avg"), nd)
+
+    return [[k, avg(v), _f(v.get("min"), nd), _f(v.get("max"), nd)] for k, v in stats.items()]
 
 
 def _settings(page: Page, results: dict) -> None:
@@ -224,7 +227,12 @@ def _plots(page: Page, results: dict, figures: Path | None) -> None:
     page.section("What accuracy costs in time")
     page.table(
         [
-            [r["scheme"], _f(r["ms"], 1), _f(r["effective_spp"]), _f(r["ms_per_effective_spp"], 1)]
+            [
+                r["scheme"],
+                _f(r["ms"], 1),
+                ("≥ " if r.get("beyond_ladder") else "") + _f(r["effective_spp"]),
+                ("≤ " if r.get("beyond_ladder") else "") + _f(r["ms_per_effective_spp"], 1),
+            ]
             for r in results["cost"]
         ],
         ["scheme", "ms / frame (evaluated eye)", "effective spp (avg)", "ms per effective spp"],

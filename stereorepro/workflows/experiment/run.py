@@ -72,11 +72,35 @@ def _stats(xs) -> dict:
     }
 
 
+#: Effective-spp flags of a frame whose error lies below the ladder's top rung: its value is extrapolated on a fit of
+#: the ladder (or infinite), which on real ladders runs high (``bench/results/ladder_extrapolation.md``), so
+#: :func:`_spp_stats` also bounds the average from below.
+BEYOND_LADDER = ("extrapolated_high", "beyond_floor")
+
+
+def _spp_stats(per_frame: list[dict], name: str, top: float) -> dict:
+    """:func:`_stats` of scheme ``name``'s effective spp over the frames, plus ``beyond_ladder`` (frames flagged in
+    :data:`BEYOND_LADDER`) and ``avg_lower_bound`` / ``avg_after_warmup_lower_bound``: the averages with those frames
+    counted at the top rung ``top`` (a frame beyond it has less error than the top rung, so at least its spp);
+    equal to ``avg`` / ``avg_after_warmup`` when no frame is beyond."""
+    xs = [r["effective_spp"][name] for r in per_frame]
+    beyond = [r["flags"].get(name) in BEYOND_LADDER for r in per_frame]
+    bound = _stats([top if b else x for x, b in zip(xs, beyond)])
+    return {
+        **_stats(xs),
+        "beyond_ladder": sum(beyond),
+        "avg_lower_bound": bound["avg"],
+        "avg_after_warmup_lower_bound": bound["avg_after_warmup"],
+    }
+
+
 @dataclass(frozen=True)
 class ExperimentResults:
     """What a run measured: the content of ``results.json``, field by field in its order (:meth:`to_dict`). The
     statistics over frames (``table1``, ``table2``, ...) are ``{"avg", "min", "max", "n", "avg_after_warmup"}``
-    dicts (``avg_after_warmup``: from frame :data:`WARMUP_FRAMES` on).
+    dicts (``avg_after_warmup``: from frame :data:`WARMUP_FRAMES` on); the effective spp's (``table2``,
+    ``table2_variants``) add ``beyond_ladder``, ``avg_lower_bound`` and ``avg_after_warmup_lower_bound``
+    (:func:`_spp_stats`).
 
     Examples:
         >>> from dataclasses import fields
@@ -661,7 +685,7 @@ def _assemble(
 ) -> ExperimentResults:
     """The statistics over frames of everything the rows hold, and the run's settings, as one record."""
     cfg, scene = run.cfg, run.scene
-    stats = {s.scheme.name: _stats([r["effective_spp"][s.scheme.name] for r in per_frame]) for s in schemes}
+    stats = {s.scheme.name: _spp_stats(per_frame, s.scheme.name, cfg.ladder_spp) for s in schemes}
     paper = [s.scheme for s in schemes if s.scheme.paper]
     timing_ms = {k: float(np.median(v)) if v else None for k, v in timing.items()}
     return ExperimentResults(
@@ -826,7 +850,9 @@ def _cost_table(schemes, table2, t, cfg) -> list[dict]:
             ms = gb + rep + masked
         else:
             ms = spp_ms + gb + rep
-        e = table2[s.name]["avg"]
+        st = table2[s.name]
+        beyond = st.get("beyond_ladder") or 0
+        e = st["avg_lower_bound"] if beyond else st["avg"]  # frames beyond the ladder: at least, not extrapolated
         rows.append(
             {
                 "scheme": s.name,
@@ -834,6 +860,7 @@ def _cost_table(schemes, table2, t, cfg) -> list[dict]:
                 "effective_spp": e,
                 "ms_per_effective_spp": (ms / e) if e else None,
                 "reprojection_ms": rep,
+                "beyond_ladder": beyond,
             }
         )
     return rows
