@@ -1,8 +1,9 @@
 """Tables 1-2 next to the paper's from finished experiment runs (their results.json; nothing is rendered): each cell
 as the average over all frames, the average after the warm-up and [min, max], beside the paper's average and
 maximum; the variants (alpha, blending, alternating eyes, nearest) and the reference-spp study of each run.
-Rows are named by the runs' scenes; a later run of a scene already given fills only what the earlier one lacks
-(e.g. FLIP and SSIM from a run made for them), and the record says which fields came from where.
+Rows are named by the runs' scenes (by their folders where two runs share a scene); a run given to --fill fills
+only what its scene's row lacks (e.g. FLIP and SSIM from a run made for them), and the record says which fields
+came from where.
 
     python bench/paper_tables.py --runs /work/runs720/final/shared_living_room /work/runs720/final/shared_classroom \\
         --name paper720
@@ -255,31 +256,39 @@ def _bound_old_results(got: dict, r: dict) -> None:
                 st.update({x: v for x, v in bound.items() if x not in st})
 
 
-def collect(paths: list[str]) -> dict[str, dict]:
-    """The runs' results keyed by scene. A later run of a scene already collected fills only the fields the earlier
-    one lacks (``None`` or empty), and ``filled_from`` records which fields came from which folder."""
-    runs: dict[str, dict] = {}
-    for d in paths:
-        r = json.loads((Path(d) / "results.json").read_text())
-        got = {k: r.get(k) for k in FIELDS}
-        _bound_old_results(got, r)
-        if r["scene"] not in runs:
-            runs[r["scene"]] = {**got, "path": str(d), "scene": r["scene"]}
-            continue
-        run = runs[r["scene"]]
-        filled = [k for k in FIELDS if not run.get(k) and got[k]]
-        run.update({k: got[k] for k in filled})
-        run.setdefault("filled_from", {}).update(dict.fromkeys(filled, str(d)))
+def _load(d: str) -> dict:
+    r = json.loads((Path(d) / "results.json").read_text())
+    got = {k: r.get(k) for k in FIELDS}
+    _bound_old_results(got, r)
+    return {**got, "path": str(d), "scene": r["scene"]}
+
+
+def collect(paths: list[str], fill: list[str] = ()) -> dict[str, dict]:
+    """The runs' results, one row each, named by the run's scene where only one run has it, else by its folder.
+    Each run in ``fill`` fills, in the row of its scene, only the fields that row lacks (``None`` or empty);
+    ``filled_from`` records which fields came from which folder."""
+    loaded = [_load(d) for d in paths]
+    scenes = [r["scene"] for r in loaded]
+    runs = {(r["scene"] if scenes.count(r["scene"]) == 1 else Path(r["path"]).name): r for r in loaded}
+    for d in fill:
+        got = _load(d)
+        rows = [r for r in runs.values() if r["scene"] == got["scene"]]
+        if len(rows) != 1:
+            raise SystemExit(f"paper_tables.py: --fill {d}: {len(rows)} runs of scene {got['scene']} to fill, not 1")
+        filled = [k for k in FIELDS if not rows[0].get(k) and got[k]]
+        rows[0].update({k: got[k] for k in filled})
+        rows[0].setdefault("filled_from", {}).update(dict.fromkeys(filled, str(d)))
     return runs
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", nargs="+", required=True, help="experiment output folders (with results.json)")
+    ap.add_argument("--fill", nargs="*", default=[], help="runs that fill only what their scene's row lacks")
     ap.add_argument("--name", required=True, help="results file name under bench/results/")
     ap.add_argument("--note", default="", help="a paragraph above the tables (how the runs were made)")
     args = ap.parse_args(argv)
-    runs = collect(args.runs)
+    runs = collect(args.runs, args.fill)
     md = tables(runs)
     if args.note:
         md = args.note + "\n\n" + md

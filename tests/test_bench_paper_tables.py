@@ -43,8 +43,10 @@ class TestPaperTables:
         assert "| stereo_temporal_clamp | 0.1250 | – | – | – |" in lines
         assert pt._perceptual_lines({"a": {"flip": None, "ssim": None}}) == []
 
-    def test_collect_fills_a_scene_from_a_later_run(self, tmp_path):
+    def test_collect_fills_a_scene_from_another_run(self, tmp_path):
         import json
+
+        import pytest
 
         def write(name: str, **fields) -> str:
             (tmp_path / name).mkdir()
@@ -54,13 +56,19 @@ class TestPaperTables:
         a = write("options", scene="lr", table1={"t": 1}, flip=None, ssim=None, perceptual_every=None)
         b = write("flip", scene="lr", table1={"t": 2}, flip={"stereo": _stat(0.25)}, ssim={}, perceptual_every=4)
         c = write("other", scene="cr", table1={"t": 3})
-        runs = pt.collect([a, b, c])
+        runs = pt.collect([a, c], fill=[b])
         assert list(runs) == ["lr", "cr"]  # rows are named by scene, in the order given
-        assert runs["lr"]["table1"] == {"t": 1}  # the first run of a scene wins where it has the field
+        assert runs["lr"]["table1"] == {"t": 1}  # the row's own fields stay
         assert runs["lr"]["flip"] == {"stereo": _stat(0.25)} and runs["lr"]["perceptual_every"] == 4
         assert runs["lr"]["filled_from"] == {"flip": b, "perceptual_every": b}  # empty ssim is not filled
         assert runs["lr"]["path"] == a and "filled_from" not in runs["cr"]
         assert pt._sources("lr", runs["lr"]) == f"lr `{a}` (flip, perceptual_every from `{b}`)"
+        both = pt.collect([a, b, c])  # two runs of a scene: two rows, named by their folders, nothing filled
+        assert list(both) == ["options", "flip", "cr"] and both["options"]["flip"] is None
+        with pytest.raises(SystemExit, match="2 runs of scene lr"):
+            pt.collect([a, b], fill=[b])
+        with pytest.raises(SystemExit, match="0 runs of scene lr"):
+            pt.collect([c], fill=[b])
 
     def test_frames_beyond_the_ladder_are_bounded(self):
         rows = [{"effective_spp": {"s": 8.0}, "flags": {"s": "interpolated"}}] * 10 + [
